@@ -1,0 +1,56 @@
+"""Helpers shared by the command modules: common options, JSON output, tables."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+
+import torch
+
+
+def add_common_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:
+    """``--seed`` and ``--json PATH``, which every command takes."""
+    parser.add_argument("--seed", type=int, default=seed, help=f"random seed (default {seed})")
+    parser.add_argument("--json", type=Path, default=None, metavar="PATH",
+                        help="also write the reported numbers to this JSON file")
+
+
+def _jsonable(obj):
+    if isinstance(obj, torch.Tensor):
+        return _jsonable(obj.detach().cpu().tolist())
+    if isinstance(obj, Mapping):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):
+        return obj.item()
+    return obj
+
+
+def write_json(path: Path | None, payload: Mapping) -> None:
+    """Write ``payload`` as indented JSON when ``path`` is given (tensors become lists, NaN null)."""
+    if path is None:
+        return
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_jsonable(payload), indent=2) + "\n")
+
+
+def format_table(header: Sequence[str], rows: Sequence[Sequence], floatfmt: str = ".3f") -> str:
+    """A plain aligned text table."""
+    def cell(v):
+        if isinstance(v, float):
+            return format(v, floatfmt)
+        return str(v)
+
+    cells = [[cell(v) for v in row] for row in rows]
+    widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h) for i, h in enumerate(header)]
+    lines = ["  ".join(h.rjust(w) for h, w in zip(header, widths))]
+    lines.append("  ".join("-" * w for w in widths))
+    lines += ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in cells]
+    return "\n".join(lines)
