@@ -1,0 +1,123 @@
+"""MOTChallenge text I/O: round trips, the velocity columns, bad input."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.mot import POINT_BOX_SIZE, MOTWriter, read_mot, write_mot
+
+MOTMETRICS_DATA = None
+try:
+    import motmetrics
+
+    MOTMETRICS_DATA = Path(motmetrics.__file__).parent / "data"
+except ImportError:  # test-only dependency
+    pass
+
+
+def test_round_trip_points(tmp_path):
+    rng = np.random.default_rng(0)
+    frames = rng.integers(1, 20, size=200)
+    ids = np.arange(200)
+    cx, cy = rng.uniform(0, 500, 200), rng.uniform(0, 400, 200)
+    conf = rng.uniform(0, 1, 200)
+    write_mot(tmp_path / "a.txt", frames, ids, cx, cy, conf=conf)
+    d = read_mot(tmp_path / "a.txt")
+    order = np.lexsort((ids, frames))
+    np.testing.assert_array_equal(d.frame, frames[order])
+    np.testing.assert_array_equal(d.id, ids[order])
+    np.testing.assert_allclose(d.centers(), np.stack([cx, cy], 1)[order], atol=1e-3)
+    np.testing.assert_allclose(d.w, POINT_BOX_SIZE)
+    np.testing.assert_allclose(d.conf, conf[order], rtol=1e-3)
+    assert d.vx is None and d.vy is None
+    line = (tmp_path / "a.txt").read_text().splitlines()[0].split(",")
+    assert len(line) == 10 and line[7:] == ["-1", "-1", "-1"]
+
+
+def test_velocity_columns_round_trip(tmp_path):
+    vx, vy = np.array([0.5, -1.0, 3.25]), np.array([-1.0, -1.0, 0.0])
+    write_mot(tmp_path / "d.txt", [1, 1, 2], [-1, -1, -1], [1, 2, 3], [4, 5, 6], vx=vx, vy=vy)
+    d = read_mot(tmp_path / "d.txt")
+    np.testing.assert_allclose(d.velocity(), np.stack([vx, vy], 1))
+    np.testing.assert_array_equal(d.id, -1)
+
+
+def test_short_lines_get_defaults(tmp_path):
+    p = tmp_path / "s.txt"
+    p.write_text("1,1,1,2,3,4,0.5\n2,2,1,2,3,4\n\n# comment\n3 3 1 2 3 4 0.2 -1 -1 -1\n")
+    d = read_mot(p)
+    np.testing.assert_allclose(d.conf, [0.5, 1.0, 0.2])
+    assert d.vx is None
+    np.testing.assert_allclose(d.centers(), [[2.5, 4.0]] * 3)
+
+
+def test_writer_flushes_each_frame_and_accepts_tensors(tmp_path):
+    p = tmp_path / "w.txt"
+    w = MOTWriter(p)
+    w.write_frame(1, torch.tensor([3, 4]), torch.tensor([1.0, 2.0]), torch.tensor([5.0, 6.0]))
+    w.write_frame(2, [], [], [])
+    # not closed yet: an interrupted run still leaves the completed frames readable
+    d = read_mot(p)
+    np.testing.assert_array_equal(d.id, [3, 4])
+    w.write_frame(3, [7], [1.0], [1.0])
+    w.close()
+    assert read_mot(p).size == 3
+
+
+def test_empty_file(tmp_path):
+    p = tmp_path / "e.txt"
+    p.write_text("")
+    d = read_mot(p)
+    assert d.size == 0 and d.frames().size == 0
+
+
+@pytest.mark.parametrize(
+    "line, what",
+    [
+        ("1,2,3", "fields"),
+        ("1,2,3,4,5,x", "not a number"),
+        ("-1,2,3,4,5,6", "frame"),
+        ("1.5,2,3,4,5,6", "frame"),
+        ("1,2.5,3,4,5,6", "id"),
+        ("1,-3,3,4,5,6", "id"),
+        ("1,2,nan,4,5,6", "NaN"),
+        ("1,2,3,4,-5,6", "box size"),
+        ("1,2,3,4,5,6,1,-1,-1,-1,7", "fields"),
+    ],
+)
+def test_malformed_line_names_file_and_line(tmp_path, line, what):
+    p = tmp_path / "bad.txt"
+    p.write_text("1,1,1,1,1,1,1,-1,-1,-1\n\n" + line + "\n")
+    with pytest.raises(TorchtrackError, match=what) as exc:
+        read_mot(p)
+    assert f"{p}:3:" in str(exc.value)
+
+
+def test_duplicate_frame_id_is_an_error(tmp_path):
+    p = tmp_path / "dup.txt"
+    p.write_text("1,1,1,1,1,1\n1,2,1,1,1,1\n1,1,5,5,1,1\n")
+    with pytest.raises(TorchtrackError, match=r":3: frame 1 id 1 already given on line 1"):
+        read_mot(p)
+
+
+def test_missing_file_is_a_clear_error(tmp_path):
+    with pytest.raises(TorchtrackError, match="cannot read"):
+        read_mot(tmp_path / "nope.txt")
+
+
+@pytest.mark.skipif(MOTMETRICS_DATA is None, reason="motmetrics not installed")
+def test_reads_motmetrics_sample_like_motmetrics():
+    import motmetrics as mm
+
+    for name in ("TUD-Campus/gt.txt", "TUD-Stadtmitte/test.txt"):
+        ours = read_mot(MOTMETRICS_DATA / name)
+        ref = mm.io.loadtxt(str(MOTMETRICS_DATA / name), fmt="mot15-2D")
+        assert ours.size == len(ref)
+        np.testing.assert_array_equal(ours.frame, ref.index.get_level_values(0))
+        np.testing.assert_array_equal(ours.id, ref.index.get_level_values(1))
+        np.testing.assert_allclose(ours.x - 1, ref["X"])  # motmetrics shifts to 0-based; we keep the file's
+        np.testing.assert_allclose(ours.y - 1, ref["Y"])
+        np.testing.assert_allclose(ours.h, ref["Height"])

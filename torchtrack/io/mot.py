@@ -1,0 +1,283 @@
+"""MOTChallenge text files: reading, writing, and an incremental per-frame writer.
+
+Format, one object per line, comma separated (whitespace is accepted too)::
+
+    frame, id, x, y, w, h, conf, c8, c9, c10
+
+- ``frame`` counts from 1 (0 is accepted, negative numbers are not); ``id`` is the track / truth id, or
+  ``-1`` for an unlabelled detection. Both must be integers (``3`` or ``3.0``, not ``3.5``).
+- ``x, y`` is the box's **top-left** corner, ``w, h`` its size, in pixels; ``x`` is the column, ``y`` the
+  row. Point objects (vehicles in WAMI, simulated detections, tracker output) get a fixed box of
+  :data:`POINT_BOX_SIZE` pixels centred on the point, so the centre is ``(x + w/2, y + h/2)``.
+- ``conf`` is the confidence (absent → 1). ``c8, c9, c10`` are the MOTChallenge 3-D world coordinates,
+  ``-1,-1,-1`` for 2-D data.
+- **Velocity (torchtrack extension).** Detection files that carry a velocity per detection (the
+  CenterTrack-style detector's velocity head, or ``torchtrack simulate-detections --velocity-sigma``)
+  store it in ``c8, c9`` as ``vx, vy`` in pixels per frame (``vx`` along columns, ``vy`` along rows),
+  keeping ``c10 = -1``. A file whose ``c8, c9`` are ``-1`` on every line, or absent, carries no velocity:
+  :func:`read_mot` then returns ``vx = vy = None``. Readers therefore accept both kinds of file.
+
+Lines may have 6 to 10 fields; blank lines and lines starting with ``#`` are skipped. A malformed line is
+a :class:`~torchtrack.errors.TorchtrackError` naming the file and the line number. Two lines with the
+same frame and the same (non-negative) id are an error too.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from collections.abc import Iterable
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+
+from torchtrack.errors import TorchtrackError
+
+POINT_BOX_SIZE = 8.0
+"""Side in pixels of the square box written around point objects (vehicles in WAMI are 3–7 px across)."""
+
+_SPLIT = re.compile(r"[,\s]+")
+
+
+class MOTData(NamedTuple):
+    """Objects of a MOTChallenge file as flat numpy arrays of length K (one entry per line).
+
+    ``frame, id`` int64; ``x, y, w, h, conf`` float64 (``x, y`` the top-left corner, column and row);
+    ``vx, vy`` float64 velocities in px/frame, or None when the file carries no velocity.
+    """
+
+    frame: np.ndarray
+    id: np.ndarray
+    x: np.ndarray
+    y: np.ndarray
+    w: np.ndarray
+    h: np.ndarray
+    conf: np.ndarray
+    vx: np.ndarray | None = None
+    vy: np.ndarray | None = None
+
+    @property
+    def size(self) -> int:
+        """Number of objects K (``len()`` of a MOTData is its number of fields, as for any tuple)."""
+        return int(self.frame.shape[0])
+
+    def centers(self) -> np.ndarray:
+        """(K, 2) box centres: column ``x + w/2``, row ``y + h/2``."""
+        return np.stack([self.x + 0.5 * self.w, self.y + 0.5 * self.h], axis=1)
+
+    def boxes(self) -> np.ndarray:
+        """(K, 4) boxes ``x, y, w, h``."""
+        return np.stack([self.x, self.y, self.w, self.h], axis=1)
+
+    def velocity(self) -> np.ndarray | None:
+        """(K, 2) velocity ``vx, vy`` in px/frame, or None."""
+        if self.vx is None or self.vy is None:
+            return None
+        return np.stack([self.vx, self.vy], axis=1)
+
+    def frames(self) -> np.ndarray:
+        """Sorted distinct frame numbers present in the data."""
+        return np.unique(self.frame)
+
+    def select(self, index: np.ndarray) -> MOTData:
+        """The objects picked by a boolean mask or an index array."""
+        return MOTData(*(None if a is None else a[index] for a in self))
+
+    def sorted(self) -> MOTData:
+        """The same objects ordered by frame, then id (stable)."""
+        return self.select(np.lexsort((self.id, self.frame)))
+
+    def split(self, frames: Iterable[int] | None = None) -> list[np.ndarray]:
+        """Index arrays of the objects of each frame, for ``frames`` (default :meth:`frames`)."""
+        frames = self.frames() if frames is None else np.asarray(list(frames), dtype=np.int64)
+        order = np.argsort(self.frame, kind="stable")
+        sorted_frames = self.frame[order]
+        lo = np.searchsorted(sorted_frames, frames, side="left")
+        hi = np.searchsorted(sorted_frames, frames, side="right")
+        return [order[a:b] for a, b in zip(lo, hi)]
+
+
+def empty_mot(with_velocity: bool = False) -> MOTData:
+    """A MOTData with no objects."""
+    f = np.zeros(0, dtype=np.float64)
+    i = np.zeros(0, dtype=np.int64)
+    v = f.copy() if with_velocity else None
+    return MOTData(i, i.copy(), f, f.copy(), f.copy(), f.copy(), f.copy(), v, None if v is None else f.copy())
+
+
+def from_points(
+    frames, ids, cx, cy, box: float = POINT_BOX_SIZE, conf=None, vx=None, vy=None
+) -> MOTData:
+    """MOTData of point objects with centres ``(cx, cy)`` and a ``box`` × ``box`` square around each.
+
+    All arguments are array-likes of length K (numpy arrays, lists or tensors); ``conf`` defaults to 1.
+    """
+    frames = _as_int_array(frames, "frames")
+    ids = _as_int_array(ids, "ids")
+    cx = _as_float_array(cx, "cx")
+    cy = _as_float_array(cy, "cy")
+    k = frames.shape[0]
+    for name, a in (("ids", ids), ("cx", cx), ("cy", cy)):
+        if a.shape[0] != k:
+            raise TorchtrackError(f"{name} has {a.shape[0]} entries, frames has {k}")
+    conf = np.ones(k) if conf is None else _as_float_array(conf, "conf")
+    if (vx is None) != (vy is None):
+        raise TorchtrackError("give both vx and vy, or neither")
+    if vx is not None:
+        vx, vy = _as_float_array(vx, "vx"), _as_float_array(vy, "vy")
+    size = np.full(k, float(box))
+    return MOTData(frames, ids, cx - 0.5 * box, cy - 0.5 * box, size, size.copy(), conf, vx, vy)
+
+
+def _as_float_array(a, name: str) -> np.ndarray:
+    if hasattr(a, "detach"):
+        a = a.detach().cpu().numpy()
+    out = np.asarray(a, dtype=np.float64).reshape(-1)
+    if not np.all(np.isfinite(out)):
+        raise TorchtrackError(f"{name} contains NaN or infinite values")
+    return out
+
+
+def _as_int_array(a, name: str) -> np.ndarray:
+    if hasattr(a, "detach"):
+        a = a.detach().cpu().numpy()
+    arr = np.asarray(a)
+    if arr.dtype.kind == "f":
+        if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
+            raise TorchtrackError(f"{name} must be integers")
+    return arr.astype(np.int64).reshape(-1)
+
+
+def _bad(path: Path, lineno: int, msg: str) -> TorchtrackError:
+    return TorchtrackError(f"{path}:{lineno}: {msg}")
+
+
+def read_mot(path: str | os.PathLike) -> MOTData:
+    """Read a MOTChallenge text file (see the module docstring for the format and the velocity rule).
+
+    Raises TorchtrackError naming the file and line for a malformed line (too few or too many fields,
+    non-numbers, NaN/inf, negative or non-integer frame, non-integer id or a negative id other than -1,
+    negative box size) and for a repeated (frame, id) pair. An empty file gives an empty MOTData.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise TorchtrackError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    rows: list[list[float]] = []
+    linenos: list[int] = []
+    for lineno, raw in enumerate(text.splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        fields = [f for f in _SPLIT.split(line) if f]
+        if not 6 <= len(fields) <= 10:
+            raise _bad(path, lineno, f"expected 6 to 10 fields (frame,id,x,y,w,h,...), got {len(fields)}")
+        try:
+            vals = [float(f) for f in fields]
+        except ValueError:
+            raise _bad(path, lineno, f"not a number in {line!r}") from None
+        if not all(np.isfinite(vals)):
+            raise _bad(path, lineno, f"NaN or infinite value in {line!r}")
+        frame, ident = vals[0], vals[1]
+        if frame != int(frame) or frame < 0:
+            raise _bad(path, lineno, f"frame must be a non-negative integer, got {fields[0]!r}")
+        if ident != int(ident) or ident < -1:
+            raise _bad(path, lineno, f"id must be an integer >= 0 (or -1 for a detection), got {fields[1]!r}")
+        if vals[4] < 0 or vals[5] < 0:
+            raise _bad(path, lineno, f"negative box size in {line!r}")
+        vals += [1.0, -1.0, -1.0][len(vals) - 6:]  # default conf and absent c8, c9 where missing
+        rows.append(vals[:9])
+        linenos.append(lineno)
+    if not rows:
+        return empty_mot()
+    a = np.asarray(rows, dtype=np.float64)
+    frame = a[:, 0].astype(np.int64)
+    ident = a[:, 1].astype(np.int64)
+    labelled = np.flatnonzero(ident >= 0)
+    if labelled.size:
+        key = frame[labelled] * (int(ident.max()) + 1) + ident[labelled]
+        order = np.argsort(key, kind="stable")
+        dup = np.flatnonzero(np.diff(key[order]) == 0)
+        if dup.size:
+            first, second = labelled[order[dup[0]]], labelled[order[dup[0] + 1]]
+            raise _bad(path, linenos[second],
+                       f"frame {frame[second]} id {ident[second]} already given on line {linenos[first]}")
+    has_velocity = bool(np.any(a[:, 7:9] != -1.0))
+    vx = a[:, 7].copy() if has_velocity else None
+    vy = a[:, 8].copy() if has_velocity else None
+    return MOTData(frame, ident, a[:, 2].copy(), a[:, 3].copy(), a[:, 4].copy(), a[:, 5].copy(),
+                   a[:, 6].copy(), vx, vy)
+
+
+def format_lines(data: MOTData) -> str:
+    """The MOTChallenge text of ``data`` (no trailing newline when empty), in the order given."""
+    vel = data.velocity()
+    out = []
+    for i in range(data.size):
+        c8 = f"{vel[i, 0]:.4f},{vel[i, 1]:.4f}" if vel is not None else "-1,-1"
+        out.append(f"{data.frame[i]},{data.id[i]},{data.x[i]:.3f},{data.y[i]:.3f},"
+                   f"{data.w[i]:.3f},{data.h[i]:.3f},{data.conf[i]:.4g},{c8},-1\n")
+    return "".join(out)
+
+
+def write_mot(
+    path: str | os.PathLike,
+    frames,
+    ids,
+    cx,
+    cy,
+    box: float = POINT_BOX_SIZE,
+    conf=None,
+    vx=None,
+    vy=None,
+) -> None:
+    """Write point objects (centres ``cx`` column, ``cy`` row) as MOTChallenge text, sorted by frame, id.
+
+    Each line is ``frame,id,x,y,w,h,conf,-1,-1,-1`` with a ``box`` × ``box`` square centred on the
+    point; with ``vx, vy`` the velocity goes to columns 8 and 9 (module docstring).
+    """
+    write_motdata(path, from_points(frames, ids, cx, cy, box=box, conf=conf, vx=vx, vy=vy))
+
+
+def write_motdata(path: str | os.PathLike, data: MOTData) -> None:
+    """Write a MOTData as MOTChallenge text, sorted by frame then id (parent folders are created)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(format_lines(data.sorted()))
+
+
+class MOTWriter:
+    """Incremental MOTChallenge writer: one :meth:`write_frame` call per frame, flushed at once.
+
+    Each frame's lines go to the file in a single write followed by a flush, so a run that is interrupted
+    leaves a file that is complete up to the last frame written. Use as a context manager::
+
+        with MOTWriter("out/tracks.txt") as w:
+            for k, (ids, cx, cy) in enumerate(estimates, start=1):
+                w.write_frame(k, ids, cx, cy)
+    """
+
+    def __init__(self, path: str | os.PathLike, box: float = POINT_BOX_SIZE):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self.box = float(box)
+        self._file = open(self.path, "w")  # noqa: SIM115 - closed in close()
+
+    def write_frame(self, frame: int, ids, cx, cy, conf=None, vx=None, vy=None) -> None:
+        """Append the objects of one frame (arrays of length n, n may be 0) and flush."""
+        ids = _as_int_array(ids, "ids")
+        frames = np.full(ids.shape[0], int(frame), dtype=np.int64)
+        data = from_points(frames, ids, cx, cy, box=self.box, conf=conf, vx=vx, vy=vy)
+        self._file.write(format_lines(data))
+        self._file.flush()
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> MOTWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
