@@ -1,0 +1,222 @@
+"""Frame sources: video files, folders of images, and in-memory arrays.
+
+Every source yields :class:`Frame` objects ``(index, image, name)`` one at a time (streaming, bounded
+memory): ``index`` counts from 1 as in MOTChallenge files, ``image`` is ``uint8 (H, W)`` grey
+(``color=False``, the default — satellite imagery and the synthetic sequences are grey) or
+``uint8 (H, W, 3)`` BGR (``color=True``), and ``name`` names the file the frame came from, so that
+errors and warnings can point at it.
+
+Bad input is a :class:`~torchtrack.errors.TorchtrackError` naming the file:
+
+* a missing path, a video OpenCV cannot open or whose first frame cannot be decoded;
+* a folder without any image (a folder holding only other files is also empty);
+* an image file that cannot be decoded;
+* a frame whose size differs from the first frame's.
+
+A folder that mixes images with other files is accepted: the other files are **skipped with a
+warning** naming them (a ``README`` or ``gt.txt`` beside the frames is common), and hidden files are
+ignored. Images are ordered by natural sort (``frame_2.png`` before ``frame_10.png``).
+"""
+
+from __future__ import annotations
+
+import re
+import warnings
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+
+from torchtrack.errors import TorchtrackError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv")
+
+
+class Frame(NamedTuple):
+    """One frame: ``index`` (from 1), ``image`` uint8 ``(H, W)`` or ``(H, W, 3)``, ``name`` (its source)."""
+
+    index: int
+    image: np.ndarray
+    name: str
+
+
+def natural_key(name: str) -> list:
+    """Sort key splitting digits from text so that ``f2`` < ``f10``."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _convert(image: np.ndarray, color: bool) -> np.ndarray:
+    if image.dtype != np.uint8:
+        # 16-bit or float imagery: scale the full range to 8 bits.
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX).astype(np.uint8)
+    if image.ndim == 3 and image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    if color:
+        return image if image.ndim == 3 else cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    return image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+
+
+class FrameSource:
+    """Base class: iterate to get :class:`Frame` objects; ``len()`` is the number of frames when known."""
+
+    path: str
+    shape: tuple[int, int]
+
+    def __iter__(self) -> Iterator[Frame]:
+        raise NotImplementedError
+
+    def __len__(self) -> int:
+        raise NotImplementedError
+
+
+class _SizeCheck:
+    """Raises when a frame's size differs from the first one's, naming both files."""
+
+    def __init__(self) -> None:
+        self.shape: tuple[int, int] | None = None
+        self.first = ""
+
+    def __call__(self, image: np.ndarray, name: str) -> None:
+        hw = (int(image.shape[0]), int(image.shape[1]))
+        if self.shape is None:
+            self.shape, self.first = hw, name
+        elif hw != self.shape:
+            raise TorchtrackError(
+                f"{name}: frame size {hw[1]}x{hw[0]} differs from {self.shape[1]}x{self.shape[0]} "
+                f"of the first frame ({self.first}); all frames of a sequence must have the same size"
+            )
+
+
+class VideoSource(FrameSource):
+    """Frames of a video file decoded with ``cv2.VideoCapture``.
+
+    The file is opened and its first frame decoded at construction, so a missing, unreadable or empty
+    video fails immediately with an error naming it.
+    """
+
+    def __init__(self, path: str | Path, color: bool = False) -> None:
+        self.path = str(path)
+        self.color = color
+        p = Path(path)
+        if not p.exists():
+            raise TorchtrackError(f"{self.path}: no such video file")
+        if p.is_dir():
+            raise TorchtrackError(f"{self.path}: is a folder, not a video file (use --frames DIR)")
+        cap = cv2.VideoCapture(self.path)
+        try:
+            if not cap.isOpened():
+                raise TorchtrackError(f"{self.path}: OpenCV cannot open this video (unknown or corrupt format)")
+            ok, first = cap.read()
+            if not ok or first is None:
+                raise TorchtrackError(f"{self.path}: no frame could be decoded from this video")
+            self.shape = (int(first.shape[0]), int(first.shape[1]))
+            self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+            self._count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        finally:
+            cap.release()
+
+    def __len__(self) -> int:
+        """The container's frame count (``CAP_PROP_FRAME_COUNT``; may be an estimate for some codecs)."""
+        return self._count
+
+    def __iter__(self) -> Iterator[Frame]:
+        cap = cv2.VideoCapture(self.path)
+        if not cap.isOpened():
+            raise TorchtrackError(f"{self.path}: OpenCV cannot open this video")
+        check = _SizeCheck()
+        index = 0
+        try:
+            while True:
+                ok, image = cap.read()
+                if not ok or image is None:
+                    break
+                index += 1
+                name = f"{self.path} (frame {index})"
+                check(image, name)
+                yield Frame(index, _convert(image, self.color), name)
+        finally:
+            cap.release()
+        if index == 0:
+            raise TorchtrackError(f"{self.path}: no frame could be decoded from this video")
+
+
+class FolderSource(FrameSource):
+    """The images of a folder in natural-sort order, decoded one at a time with ``cv2.imread``.
+
+    Non-image files are skipped with one warning naming them; hidden files are ignored; a folder
+    without images is an error. The first image is decoded at construction to learn the frame size.
+    """
+
+    def __init__(self, path: str | Path, color: bool = False) -> None:
+        self.path = str(path)
+        self.color = color
+        folder = Path(path)
+        if not folder.exists():
+            raise TorchtrackError(f"{self.path}: no such folder")
+        if not folder.is_dir():
+            raise TorchtrackError(f"{self.path}: is not a folder (use --video FILE for a video)")
+        entries = [e for e in folder.iterdir() if not e.name.startswith(".")]
+        images = [e for e in entries if e.is_file() and e.suffix.lower() in IMAGE_SUFFIXES]
+        others = sorted((e.name for e in entries if e not in images), key=natural_key)
+        if not images:
+            what = f" (it holds only: {', '.join(others[:5])}{', ...' if len(others) > 5 else ''})" if others else ""
+            raise TorchtrackError(f"{self.path}: folder contains no image files{what}; "
+                                  f"expected one of {', '.join(IMAGE_SUFFIXES)}")
+        if others:
+            shown = ", ".join(others[:5]) + (f" and {len(others) - 5} more" if len(others) > 5 else "")
+            warnings.warn(f"{self.path}: skipping {len(others)} non-image entr"
+                          f"{'y' if len(others) == 1 else 'ies'}: {shown}", stacklevel=2)
+        self.files: list[Path] = sorted(images, key=lambda e: natural_key(e.name))
+        self.skipped: list[str] = others
+        self.shape = _read_image(self.files[0]).shape[:2]
+
+    def __len__(self) -> int:
+        return len(self.files)
+
+    def __iter__(self) -> Iterator[Frame]:
+        check = _SizeCheck()
+        for index, file in enumerate(self.files, start=1):
+            image = _read_image(file)
+            check(image, str(file))
+            yield Frame(index, _convert(image, self.color), str(file))
+
+
+def _read_image(file: Path) -> np.ndarray:
+    image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
+    if image is None or image.size == 0:
+        raise TorchtrackError(f"{file}: cannot decode this image file")
+    return image
+
+
+class ArraySource(FrameSource):
+    """Frames held in memory (a list of arrays or an ``(T, H, W[, 3])`` array), e.g. from a generator."""
+
+    def __init__(self, images: Sequence[np.ndarray] | np.ndarray, name: str = "<array>",
+                 color: bool = False) -> None:
+        if len(images) == 0:
+            raise TorchtrackError(f"{name}: no frames")
+        self.images = images
+        self.path = name
+        self.color = color
+        self.shape = (int(images[0].shape[0]), int(images[0].shape[1]))
+
+    def __len__(self) -> int:
+        return len(self.images)
+
+    def __iter__(self) -> Iterator[Frame]:
+        check = _SizeCheck()
+        for index, image in enumerate(self.images, start=1):
+            name = f"{self.path}[{index}]"
+            check(image, name)
+            yield Frame(index, _convert(np.asarray(image), self.color), name)
+
+
+def open_frames(path: str | Path, color: bool = False) -> FrameSource:
+    """A :class:`FolderSource` for a folder, else a :class:`VideoSource` (errors name ``path``)."""
+    p = Path(path)
+    if p.is_dir():
+        return FolderSource(p, color=color)
+    return VideoSource(p, color=color)
