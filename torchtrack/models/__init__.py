@@ -9,6 +9,7 @@ from torchtrack.models.measurement import (
 )
 from torchtrack.models.motion import (
     ConstantAcceleration,
+    ConstantPosition,
     ConstantVelocity,
     CoordinatedTurn,
     CoordinatedTurnRate,
@@ -17,6 +18,7 @@ from torchtrack.models.motion import (
 )
 
 __all__ = [
-    "ConstantAcceleration", "ConstantVelocity", "CoordinatedTurn", "CoordinatedTurnRate", "LinearPosition",
-    "MeasurementModel", "ModeControlInput", "MotionModel", "RangeBearing", "RelativePosition", "wrap_angle",
+    "ConstantAcceleration", "ConstantPosition", "ConstantVelocity", "CoordinatedTurn", "CoordinatedTurnRate",
+    "LinearPosition", "MeasurementModel", "ModeControlInput", "MotionModel", "RangeBearing", "RelativePosition",
+    "wrap_angle",
 ]

@@ -64,6 +64,30 @@ class MotionModel(nn.Module):
         return self.transition_matrix(dt)
 
 
+class ConstantPosition(MotionModel):
+    """A (nearly) stationary target, state ``[p (d)]``: ``F = I``, ``Q = q dt I`` (random walk with
+    spectral density ``q``; a tiny ``q`` gives the random-constant model of §3.1 of the maneuver paper)."""
+
+    def __init__(self, ndim: int = 2, q: float = 1e-9, learnable: bool = True):
+        super().__init__()
+        self.ndim = ndim
+        self.state_dim = ndim
+        self.q = Positive(q, "process noise q", requires_grad=learnable)
+
+    def _ref(self) -> Tensor:
+        return self.q.raw
+
+    def transition_matrix(self, dt) -> Tensor:
+        dt = as_dt(dt, self._ref())
+        eye = torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
+        return eye.expand(*dt.shape, self.ndim, self.ndim)
+
+    def process_noise(self, dt) -> Tensor:
+        dt = as_dt(dt, self._ref())
+        eye = torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
+        return (self.q() * dt)[..., None, None] * eye
+
+
 class ConstantVelocity(MotionModel):
     """Nearly constant velocity in ``ndim`` spatial dimensions, state ``[p (d), v (d)]``.
 
