@@ -1,6 +1,7 @@
 """Motion and measurement models."""
 
 from torchtrack.models.measurement import (
+    LinearMeasurement,
     LinearPosition,
     MeasurementModel,
     RangeBearing,
@@ -13,12 +14,13 @@ from torchtrack.models.motion import (
     ConstantVelocity,
     CoordinatedTurn,
     CoordinatedTurnRate,
+    LinearMotion,
     ModeControlInput,
     MotionModel,
 )
 
 __all__ = [
     "ConstantAcceleration", "ConstantPosition", "ConstantVelocity", "CoordinatedTurn", "CoordinatedTurnRate",
-    "LinearPosition", "MeasurementModel", "ModeControlInput", "MotionModel", "RangeBearing", "RelativePosition",
-    "wrap_angle",
+    "LinearMeasurement", "LinearMotion", "LinearPosition", "MeasurementModel", "ModeControlInput", "MotionModel",
+    "RangeBearing", "RelativePosition", "wrap_angle",
 ]

@@ -13,7 +13,7 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.models.autodiff import batched_jacobian
-from torchtrack.params import Positive
+from torchtrack.params import Covariance, Positive
 
 
 class MeasurementModel(nn.Module):
@@ -43,6 +43,27 @@ class MeasurementModel(nn.Module):
     def noise_cov(self) -> Tensor:
         """``R (m, m)``."""
         raise NotImplementedError
+
+
+class LinearMeasurement(MeasurementModel):
+    """A general linear measurement with fixed ``H (m, n)`` and learnable ``R (m, m)`` (Covariance)."""
+
+    def __init__(self, H, R, learnable: bool = True):
+        super().__init__()
+        H = torch.as_tensor(H, dtype=torch.get_default_dtype())
+        if H.dim() != 2:
+            raise TorchtrackError(f"H must have shape (m, n); got {tuple(H.shape)}")
+        self.meas_dim, self.state_dim = H.shape
+        self.register_buffer("H", H)
+        self.R = Covariance(torch.as_tensor(R, dtype=H.dtype), "measurement noise R", requires_grad=learnable)
+        if self.R.raw.shape[-1] != self.meas_dim:
+            raise TorchtrackError(f"R must be {self.meas_dim}x{self.meas_dim} like the rows of H")
+
+    def matrix(self) -> Tensor:
+        return self.H
+
+    def noise_cov(self) -> Tensor:
+        return self.R()
 
 
 class LinearPosition(MeasurementModel):

@@ -17,7 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.params import Positive
+from torchtrack.params import Covariance, Positive
 
 
 def as_dt(dt, like: Tensor) -> Tensor:
@@ -62,6 +62,33 @@ class MotionModel(nn.Module):
     def jacobian(self, x: Tensor, dt) -> Tensor:
         """``∂f/∂x`` at ``x``, shape ``(*, n, n)``; linear models return ``F`` (broadcast)."""
         return self.transition_matrix(dt)
+
+
+class LinearMotion(MotionModel):
+    """A general linear-Gaussian model with fixed ``F (n, n)`` and learnable ``Q (n, n)``
+    (``Q`` is a :class:`~torchtrack.params.Covariance`; ``dt`` is accepted and ignored)."""
+
+    def __init__(self, F, Q, learnable: bool = True):
+        super().__init__()
+        F = torch.as_tensor(F, dtype=torch.get_default_dtype())
+        if F.dim() != 2 or F.shape[0] != F.shape[1]:
+            raise TorchtrackError(f"F must be square (n, n); got shape {tuple(F.shape)}")
+        self.state_dim = F.shape[0]
+        self.register_buffer("F", F)
+        self.Q = Covariance(torch.as_tensor(Q, dtype=F.dtype), "process noise Q", requires_grad=learnable)
+        if self.Q.raw.shape[-1] != self.state_dim:
+            raise TorchtrackError(f"Q must be {self.state_dim}x{self.state_dim} like F")
+
+    def _ref(self) -> Tensor:
+        return self.Q.raw
+
+    def transition_matrix(self, dt) -> Tensor:
+        as_dt(dt, self._ref())
+        return self.F
+
+    def process_noise(self, dt) -> Tensor:
+        as_dt(dt, self._ref())
+        return self.Q()
 
 
 class ConstantPosition(MotionModel):
