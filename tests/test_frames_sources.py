@@ -5,6 +5,7 @@ import warnings
 import cv2
 import numpy as np
 import pytest
+import torch
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import ArraySource, FolderSource, VideoSource, natural_key, open_frames
@@ -95,3 +96,16 @@ def test_array_source_checks_sizes():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         assert len(list(ArraySource(np.zeros((4, 8, 8), np.uint8)))) == 4
+
+
+def test_synthetic_source_matches_generator():
+    from torchtrack.io.frames import SyntheticSource
+    from torchtrack.sim.video import VideoConfig, generate_sequence
+
+    cfg = VideoConfig(height=128, width=128, frames=3)
+    src = SyntheticSource(cfg, torch.Generator().manual_seed(5))
+    frames = list(src)
+    direct = list(generate_sequence(cfg, torch.Generator().manual_seed(5)))
+    assert len(src) == 3 and [f.index for f in frames] == [1, 2, 3]
+    assert all(np.array_equal(a.image, b.image) for a, b in zip(frames, direct))
+    assert np.array_equal(src.truth.xy, direct[-1].xy)

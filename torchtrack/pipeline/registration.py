@@ -45,7 +45,7 @@ class RegistrationConfig:
     features: int = 500
     refresh_every: int = 15
     min_inliers: int = 40
-    ransac_threshold: float = 1.5
+    ransac_threshold: float = 0.7
     ecc_iterations: int = 30
     ecc_epsilon: float = 1e-5
 

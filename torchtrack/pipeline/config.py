@@ -1,0 +1,80 @@
+"""Settings of the video pipeline (``configs/pipeline.yaml``); the defaults are the embedded ones."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.pipeline.registration import RegistrationConfig
+
+TRACKERS = ("gmphd", "labelled-gmphd", "pmb", "sort", "greedy")
+
+
+@dataclass
+class PipelineConfig:
+    """Every knob of :func:`torchtrack.pipeline.track_video.track_video`.
+
+    tracker / tracker_options: the tracker's name and its options (``make_tracker(name, options)``).
+    detector_weights: a weights file (``None``: the shipped weights).
+    prior: where the detector's prior heatmap comes from: the previous frame's ``detections`` (the
+    paper's eq. 1) or its ``tracks``.
+    threshold: CLEAR-MOT centre-distance threshold in pixels (the paper's 10 px).
+    video, video_fps, trail, box, scale, draw_truth: the annotated video (``box=None`` draws dots).
+    snapshots: frame numbers saved as PNG beside the video.
+    dtype: the tracker's floating-point type.
+    """
+
+    tracker: str = "gmphd"
+    tracker_options: dict = field(default_factory=dict)
+    registration: RegistrationConfig = field(default_factory=RegistrationConfig)
+    detector_weights: str | None = None
+    prior: str = "detections"
+    threshold: float = 10.0
+    video: bool = True
+    video_fps: float = 10.0
+    trail: int = 12
+    box: int | None = None
+    scale: int = 1
+    draw_truth: bool = True
+    snapshots: tuple[int, ...] = (1,)
+    dtype: str = "float64"
+
+    def __post_init__(self) -> None:
+        if self.prior not in ("detections", "tracks"):
+            raise TorchtrackError(f"pipeline config: prior must be 'detections' or 'tracks', got {self.prior!r}")
+        if self.dtype not in ("float32", "float64"):
+            raise TorchtrackError(f"pipeline config: dtype must be float32 or float64, got {self.dtype!r}")
+        if isinstance(self.registration, dict):
+            self.registration = _build(RegistrationConfig, self.registration, "registration")
+        self.snapshots = tuple(int(s) for s in self.snapshots)
+
+    def replace(self, **changes) -> PipelineConfig:
+        """A copy with some fields changed."""
+        return dataclasses.replace(self, **changes)
+
+
+def _build(cls, values: dict, where: str):
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise TorchtrackError(f"{where}: unknown key(s) {unknown}; known: {sorted(names)}")
+    return cls(**values)
+
+
+def load_pipeline_config(path: str | Path | None) -> PipelineConfig:
+    """Read a pipeline YAML (the mapping may sit under a top-level ``pipeline:`` key); ``None``: defaults."""
+    if path is None:
+        return PipelineConfig()
+    path = Path(path)
+    if not path.is_file():
+        raise TorchtrackError(f"pipeline config {path}: no such file")
+    data = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(data, dict):
+        raise TorchtrackError(f"pipeline config {path}: expected a mapping at the top level")
+    if set(data) == {"pipeline"}:
+        data = data["pipeline"] or {}
+    return _build(PipelineConfig, data, f"pipeline config {path}")

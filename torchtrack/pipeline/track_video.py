@@ -1,0 +1,305 @@
+"""The end-to-end video pipeline (Fig. 1 of Aguilar et al., ICASSP 2023), streaming frame by frame.
+
+For each frame ``k`` (only the previous frame is kept, so memory does not grow with the sequence):
+
+1. **register** — ``H_k``: frame ``k`` → reference (the first frame), see
+   :mod:`torchtrack.pipeline.registration`;
+2. **detect** — ``H, V = CT(I_k, I_{k-1}, G_{k-1})`` (paper eq. 1): the detector sees the current
+   frame, the previous frame warped into the current one by ``H_k⁻¹ H_{k-1}`` (so that only the
+   objects move), and the prior heatmap ``G_{k-1}`` built from the previous frame's detections (or
+   tracks) mapped into the current frame;
+3. **track** — positions and detector velocities go to reference coordinates (velocities through the
+   Jacobian of ``H_k`` at each point) and into the tracker's ``step``; tracks live in reference
+   coordinates;
+4. **write** — the frame's tracks, mapped back into frame ``k`` by ``H_k⁻¹``, are appended to
+   ``tracks.txt`` and flushed (an interrupted run leaves a file complete up to the last frame), and the
+   detections to ``detections.txt`` (frame coordinates, with velocities);
+5. **render** — the annotated frame goes to ``annotated.mp4`` (renamed from ``.partial.mp4`` at the
+   end).
+
+At the end, the tracks are scored against the truth (CLEAR-MOT, ``torchtrack.metrics.clear_mot``)
+where given, and ``metrics.json`` gets the scores, the per-stage timings (registration, detection,
+tracking, I/O, render) and the frames per second. ``metrics.json`` is written last, so a folder
+holding it holds a complete run.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections import defaultdict
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import NamedTuple
+
+import cv2
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.frames import FrameSource
+from torchtrack.io.mot import MOTData, MOTWriter, from_points, read_mot
+from torchtrack.io.video_writer import AnnotatedVideoWriter, apply_homography, save_png
+from torchtrack.pipeline.config import PipelineConfig
+from torchtrack.pipeline.registration import Registration, transfer_error
+
+
+class StageTimer:
+    """Accumulated wall-clock seconds per named stage."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] += time.perf_counter() - t0
+
+
+def homography_jacobian(h: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Jacobians ``∂π(H p)/∂p (K, 2, 2)`` of the map ``p ↦ π(H [p; 1])`` at ``points (K, 2)``.
+
+    With ``q = H [p; 1]`` and ``π(q) = q[:2] / q[2]``: ``J = (H[:2, :2] − π(q) H[2, :2]) / q[2]``.
+    """
+    p = np.asarray(points, np.float64).reshape(-1, 2)
+    q2 = p @ h[2, :2] + h[2, 2]
+    proj = apply_homography(p, h)
+    return (h[None, :2, :2] - proj[:, :, None] * h[None, 2:3, :2]) / q2[:, None, None]
+
+
+class FrameDetections(NamedTuple):
+    """Detections of one frame: ``positions``/``velocities (K, 2)`` in reference coordinates, ``scores (K,)``,
+    ``homography (3, 3)`` frame → reference; ``image_positions``/``image_velocities`` in frame coordinates."""
+
+    index: int
+    homography: np.ndarray
+    positions: np.ndarray
+    velocities: np.ndarray
+    scores: np.ndarray
+    image_positions: np.ndarray
+    image_velocities: np.ndarray
+
+
+def _numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
+    if x is None:
+        return np.zeros((0, *shape_tail))
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, np.float64).reshape(-1, *shape_tail)
+
+
+class Detection:
+    """Registration + detection of a frame stream (steps 1–2 of the module docstring).
+
+    ``detector`` has ``detect(frame, prev_frame, prev_points) -> (positions, scores, velocities)``
+    (``(K, 2)``, ``(K,)``, ``(K, 2)``, frame pixel coordinates, velocities in px/frame).
+    """
+
+    def __init__(self, detector, registration: Registration, timer: StageTimer) -> None:
+        self.detector = detector
+        self.registration = registration
+        self.timer = timer
+        self.prev_image: np.ndarray | None = None
+        self.prev_h = np.eye(3)
+        self.prior_ref = np.zeros((0, 2))  # prior points (reference coordinates) for the next frame
+
+    def __call__(self, index: int, image: np.ndarray) -> FrameDetections:
+        with self.timer("registration"):
+            h = self.registration(image).homography
+            h_inv = np.linalg.inv(h)
+            if self.prev_image is None:
+                prev = image
+            else:
+                # Previous frame resampled into the current frame: x_{k-1} = H_{k-1}^{-1} H_k x_k.
+                rel = np.linalg.inv(self.prev_h) @ h
+                prev = cv2.warpPerspective(self.prev_image, rel, image.shape[::-1],
+                                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                           borderMode=cv2.BORDER_REPLICATE)
+            prior = apply_homography(self.prior_ref, h_inv)
+        with self.timer("detection"):
+            pos, scores, vel = self.detector.detect(image, prev, prior)
+        pos, vel, scores = _numpy(pos, (2,)), _numpy(vel, (2,)), _numpy(scores, ())
+        with self.timer("registration"):
+            pos_ref = apply_homography(pos, h)
+            vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
+        self.prev_image, self.prev_h = image, h
+        self.prior_ref = pos_ref
+        return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel)
+
+
+def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
+    """One ``tracker.step`` on a frame's detections; returns ``ids (N,)`` and reference ``positions (N, 2)``."""
+    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype),
+                                  torch.as_tensor(det.velocities, dtype=dtype))
+    return _numpy(ids, ()).astype(np.int64), _numpy(positions, (2,))
+
+
+def _truth_by_frame(gt: MOTData | None) -> dict[int, np.ndarray]:
+    if gt is None:
+        return {}
+    centers = gt.centers()
+    return {int(f): centers[idx] for f, idx in zip(gt.frames(), gt.split())}
+
+
+def check_truth_frames(gt: MOTData, gt_path: str, frames: int) -> None:
+    """Error naming ``gt_path`` when the truth refers to frames beyond the ``frames`` of the video."""
+    if gt.size and int(gt.frame.max()) > frames:
+        raise TorchtrackError(f"{gt_path}: truth refers to frames up to {int(gt.frame.max())}, but the "
+                              f"video has only {frames} frames")
+
+
+def score(gt: MOTData, tracks: MOTData, threshold: float) -> dict:
+    """CLEAR-MOT of ``tracks`` against ``gt`` (centre distance ``threshold`` px)."""
+    from torchtrack.metrics import clear_mot
+
+    return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in
+            clear_mot(gt, tracks, threshold=threshold).items()}
+
+
+def write_json_atomic(path: Path, payload: dict) -> None:
+    """Write JSON to ``path`` through a temporary file and a rename (never a half-written file)."""
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(payload, indent=2, default=float) + "\n")
+    os.replace(tmp, path)
+
+
+@dataclass
+class PipelineResult:
+    """What :func:`track_video` produced: the metrics dict (as in ``metrics.json``) and the files."""
+
+    metrics: dict
+    files: dict[str, Path] = field(default_factory=dict)
+    detections: list[FrameDetections] = field(default_factory=list)
+
+
+def make_tracker(name: str, options: dict):
+    """The tracker ``name`` of :func:`torchtrack.filters.multitarget.make_tracker`."""
+    from torchtrack.filters.multitarget import make_tracker as _make
+
+    return _make(name, options)
+
+
+def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | None = None, detector=None,
+                gt: MOTData | None = None, gt_path: str = "gt.txt", camera: np.ndarray | None = None,
+                keep_detections: bool = False, progress: bool = True) -> PipelineResult:
+    """Run the pipeline on ``source`` and write ``tracks.txt``, ``detections.txt``, ``annotated.mp4`` and
+    ``metrics.json`` under ``out``.
+
+    Args:
+        source: frames (grey).
+        config: :class:`PipelineConfig` (defaults: enhanced GM-PHD, LK registration).
+        detector: object with ``detect`` (default: the shipped weights, ``detector.load_detector``).
+        gt: truth (frame coordinates) to score against and draw; ``gt_path`` names it in errors.
+        camera: true homographies ``(T, 3, 3)`` reference → frame ``k`` of a synthetic sequence; when
+            given, the registration error against them is measured and reported.
+        keep_detections: also return every frame's :class:`FrameDetections` (to run other trackers on
+            the same detections, as ``torchtrack demo`` does; a few kB per frame).
+    """
+    cfg = config or PipelineConfig()
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for stale in ("metrics.json", "annotated.mp4"):  # never leave a previous run's results beside ours
+        (out / stale).unlink(missing_ok=True)
+    n_frames = len(source)
+    if gt is not None and n_frames:
+        check_truth_frames(gt, gt_path, n_frames)
+    if detector is None:
+        from detector import load_detector
+
+        detector = load_detector(cfg.detector_weights)
+    dtype = getattr(torch, cfg.dtype)
+    timer = StageTimer()
+    detection = Detection(detector, Registration(cfg.registration), timer)
+    tracker = make_tracker(cfg.tracker, cfg.tracker_options)
+    truth = _truth_by_frame(gt)
+    files = {"tracks": out / "tracks.txt", "detections": out / "detections.txt"}
+    video = AnnotatedVideoWriter(out / "annotated.mp4", fps=cfg.video_fps, trail=cfg.trail, box=cfg.box,
+                                 scale=cfg.scale) if cfg.video else None
+    kept: list[FrameDetections] = []
+    reg_errors: list[float] = []
+    frames = 0
+    t_start = time.perf_counter()
+    bar = tqdm(total=n_frames or None, desc=f"track {cfg.tracker}", unit="frame", disable=not progress,
+               leave=False)
+    try:
+        with MOTWriter(files["tracks"]) as tracks_out, MOTWriter(files["detections"]) as det_out:
+            it = iter(source)
+            while True:
+                with timer("io"):
+                    frame = next(it, None)
+                if frame is None:
+                    break
+                det = detection(frame.index, frame.image)
+                if camera is not None and frame.index <= len(camera):
+                    # True frame k → frame 1 map: H_1 H_k^{-1} (the generator's H maps reference → frame).
+                    true_h = camera[0] @ np.linalg.inv(camera[frame.index - 1])
+                    reg_errors.append(float(np.median(transfer_error(det.homography, true_h, frame.image.shape))))
+                with timer("tracking"):
+                    ids, pos_ref = run_tracker_step(tracker, det, dtype)
+                if cfg.prior == "tracks":
+                    detection.prior_ref = pos_ref
+                h_inv = np.linalg.inv(det.homography)
+                with timer("io"):
+                    pos_img = apply_homography(pos_ref, h_inv)
+                    tracks_out.write_frame(frame.index, ids, pos_img[:, 0], pos_img[:, 1])
+                    det_out.write_frame(frame.index, np.full(len(det.scores), -1), det.image_positions[:, 0],
+                                        det.image_positions[:, 1], conf=det.scores,
+                                        vx=det.image_velocities[:, 0], vy=det.image_velocities[:, 1])
+                if video is not None:
+                    with timer("render"):
+                        t = truth.get(frame.index)
+                        drawn = video.write(frame.image, ids, pos_ref, homography=h_inv,
+                                            truth=None if t is None or not cfg.draw_truth
+                                            else apply_homography(t, det.homography),
+                                            label=f"{cfg.tracker}  frame {frame.index}")
+                        if frame.index in cfg.snapshots:
+                            save_png(out / f"frame_{frame.index:06d}.png", drawn)
+                if keep_detections:
+                    kept.append(det)
+                frames += 1
+                bar.update()
+        if video is not None:
+            with timer("render"):
+                files["video"] = video.close()
+    except BaseException:
+        if video is not None:
+            video.abort()
+        raise
+    finally:
+        bar.close()
+    wall = time.perf_counter() - t_start
+    if frames == 0:
+        raise TorchtrackError(f"{source.path}: no frames")
+    metrics: dict = {"source": str(source.path), "tracker": cfg.tracker, "frames": frames,
+                     "frame_size": list(source.shape)}
+    if gt is not None:
+        check_truth_frames(gt, gt_path, frames)
+        metrics["clear_mot"] = score(gt, read_mot(files["tracks"]), cfg.threshold)
+        det_scores = score(gt, _detections_as_tracks(files["detections"]), cfg.threshold)
+        metrics["detector"] = {k: det_scores[k] for k in ("TP", "FP", "FN", "precision", "recall", "MOTP")}
+    seconds = dict(timer.seconds)
+    metrics["timings_s"] = {**seconds, "total": wall}
+    metrics["fps"] = {"end_to_end": frames / wall,
+                      **{f"{k}_only": frames / v for k, v in seconds.items() if v > 0}}
+    if reg_errors:
+        metrics["registration_error_px"] = {"median": float(np.median(reg_errors)),
+                                            "p90": float(np.percentile(reg_errors, 90)),
+                                            "max": float(np.max(reg_errors))}
+    files["metrics"] = out / "metrics.json"
+    write_json_atomic(files["metrics"], metrics)
+    return PipelineResult(metrics, files, kept)
+
+
+def _detections_as_tracks(path: Path) -> MOTData:
+    """Detections scored as if each were its own one-frame track (a detector-only CLEAR-MOT: its MOTA
+    is meaningless for identities, but FP, FN, precision and recall describe the detector)."""
+    d = read_mot(path)
+    return from_points(d.frame, np.arange(d.size), *d.centers().T)
+
