@@ -1,0 +1,301 @@
+"""Interacting multiple model (IMM) filter, batched over any batch shape (tracks × runs × …).
+
+Blom & Bar-Shalom (1988); Bar-Shalom, Li & Kirubarajan (2001) §11.6.6; the gate paper eq. 24–29.
+With ``M`` model-matched filters sharing one state layout and a row-stochastic mode transition
+matrix ``p_ij = Pr{m_k = j | m_{k-1} = i}`` (eq. 24), one cycle is::
+
+    interaction   c_j = Σ_i μ_i p_ij                                        (eq. 26)
+                  μ_{i|j} = μ_i p_ij / c_j                                   (eq. 27)
+                  x⁰_j = Σ_i μ_{i|j} x_i,  P⁰_j = Σ_i μ_{i|j} [P_i + (x_i − x⁰_j)(x_i − x⁰_j)ᵀ]
+    filtering     model j's filter predicts from (x⁰_j, P⁰_j) and updates with z: Λ_j = N(z; ẑ_j, S_j)
+    mode update   μ_j ∝ c_j Λ_j;  log p(z_k | z_{1:k-1}) = log Σ_j c_j Λ_j
+    combination   x = Σ_j μ_j x_j,  P = Σ_j μ_j [P_j + (x_j − x)(x_j − x)ᵀ]   (eq. 28 moments)
+
+Mode probabilities live in the log domain. :meth:`InteractingMultipleModel.predict` performs
+interaction and model-matched prediction and returns the *predicted* mode probabilities ``c_j``;
+:meth:`update` turns them into posteriors. The model-matched filters may be any of the Kalman
+family (:class:`~torchtrack.filters.kalman.KalmanFilter`, ``ExtendedKalmanFilter``,
+``UnscentedKalmanFilter``) and may differ in dynamics, process noise and control input
+(:class:`ModeMatched` wraps one mode of a :class:`~torchtrack.models.ModeControlInput`).
+
+Everything is differentiable in the models' noise parameters and in the transition matrix when it
+is given as a :class:`~torchtrack.params.RowStochastic`; the exact marginal log-likelihood
+``Σ_k log p(z_k | z_{1:k-1})`` is :attr:`IMMResult.log_likelihood`.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.kalman import ExtendedKalmanFilter, GaussianState
+from torchtrack.gaussian import moment_match, symmetrize
+from torchtrack.models.measurement import MeasurementModel
+from torchtrack.models.motion import ModeControlInput, MotionModel
+from torchtrack.params import RowStochastic
+
+
+class IMMState(NamedTuple):
+    """Per-model Gaussians and mode probabilities: ``log_prob (*, M)``, ``mean (*, M, n)``,
+    ``cov (*, M, n, n)``."""
+
+    log_prob: Tensor
+    mean: Tensor
+    cov: Tensor
+
+
+class IMMUpdateInfo(NamedTuple):
+    """What an IMM update exposes besides the new state."""
+
+    log_likelihood: Tensor        # (*,)  log Σ_j c_j Λ_j (0 where missing)
+    model_log_likelihood: Tensor  # (*, M) log Λ_j (0 where missing)
+    nis: Tensor                   # (*, M) per-model νᵀ S⁻¹ ν (0 where missing)
+    present: Tensor               # (*,) bool
+
+
+class IMMResult(NamedTuple):
+    """A filtered sequence (``T`` steps)."""
+
+    mean: Tensor            # (T, *, n) combined estimate
+    cov: Tensor             # (T, *, n, n)
+    mode_prob: Tensor       # (T, *, M)
+    model_mean: Tensor      # (T, *, M, n)
+    log_likelihood: Tensor  # (*,) Σ_k log p(z_k | z_{1:k-1})
+
+
+def check_transition(P: Tensor, num_models: int, name: str = "mode transition matrix", atol: float = 1e-6) -> None:
+    """Raise :class:`TorchtrackError` unless ``P (M, M)`` is non-negative with rows summing to one."""
+    if P.dim() != 2 or P.shape != (num_models, num_models):
+        raise TorchtrackError(f"{name} must have shape ({num_models}, {num_models}) for {num_models} models; "
+                              f"got {tuple(P.shape)}")
+    if not bool(torch.isfinite(P).all()) or bool((P < 0).any()):
+        raise TorchtrackError(f"{name} must have finite non-negative entries; got {P.tolist()}")
+    sums = P.sum(-1)
+    if not bool(((sums - 1).abs() <= atol).all()):
+        raise TorchtrackError(f"rows of {name} must sum to 1; got row sums {sums.tolist()}")
+
+
+class TransitionMatrix(nn.Module):
+    """A fixed (buffer) or learnable (:class:`RowStochastic`) mode transition matrix; call for ``(M, M)``."""
+
+    def __init__(self, value, num_models: int, name: str = "mode transition matrix"):
+        super().__init__()
+        if isinstance(value, RowStochastic):
+            check_transition(value().detach(), num_models, name)
+            self.learned = value
+        else:
+            t = torch.as_tensor(value, dtype=torch.get_default_dtype())
+            check_transition(t, num_models, name)
+            self.learned = None
+            self.register_buffer("fixed", t)
+
+    def forward(self) -> Tensor:
+        return self.learned() if self.learned is not None else self.fixed
+
+    def log(self, like: Tensor) -> Tensor:
+        """``log p_ij`` on ``like``'s dtype/device (``-inf`` for impossible transitions)."""
+        return torch.log(self().to(like))
+
+
+def check_probabilities(p: Tensor, name: str, atol: float = 1e-5) -> None:
+    """Raise unless ``p (*, K)`` is non-negative and sums to one over the last axis."""
+    if p.dim() < 1 or bool((p < 0).any()) or not bool(torch.isfinite(p).all()):
+        raise TorchtrackError(f"{name} must be finite and non-negative")
+    sums = p.sum(-1)
+    if not bool(((sums - 1).abs() <= atol).all()):
+        raise TorchtrackError(f"{name} must sum to 1 over the last axis; got sums in "
+                              f"[{float(sums.min()):.6g}, {float(sums.max()):.6g}]")
+
+
+def mix(state: IMMState, log_transition: Tensor) -> IMMState:
+    """Interaction step (eq. 26–27): mixed initial conditions and predicted mode log-probabilities.
+
+    ``log_transition (M, M)``; returns ``IMMState(log c (*, M), x⁰ (*, M, n), P⁰ (*, M, n, n))``.
+    """
+    a = state.log_prob.unsqueeze(-1) + log_transition            # (*, i, j): log μ_i p_ij
+    log_c = torch.logsumexp(a, dim=-2)                            # (*, j)
+    w = torch.exp(a - log_c.unsqueeze(-2))                        # μ_{i|j}
+    mean0 = torch.einsum("...ij,...in->...jn", w, state.mean)
+    d = state.mean.unsqueeze(-2) - mean0.unsqueeze(-3)            # (*, i, j, n)
+    spread = state.cov.unsqueeze(-3) + d.unsqueeze(-1) * d.unsqueeze(-2)
+    cov0 = (w[..., None, None] * spread).sum(-4)
+    return IMMState(log_c, mean0, symmetrize(cov0))
+
+
+def combine(state: IMMState) -> GaussianState:
+    """Combined estimate: moment match of the model-conditioned Gaussians (``(*, n)``, ``(*, n, n)``)."""
+    mean, cov = moment_match(state.log_prob, state.mean, state.cov)
+    return GaussianState(mean, cov)
+
+
+class ModeMatched(MotionModel):
+    """One mode ``j`` of a :class:`ModeControlInput`: ``f(x) = F x + G u_j``, ``Q = σ_j² G Gᵀ``.
+
+    Affine, so it is declared nonlinear and filtered by the EKF, which is exact for affine models
+    (``transition`` adds the control offset; ``jacobian`` is ``F``). Parameters are shared with the
+    wrapped model, so gradients reach its ``sigma``.
+    """
+
+    is_linear = False
+
+    def __init__(self, motion: ModeControlInput, mode: int):
+        super().__init__()
+        if not 0 <= mode < motion.num_modes:
+            raise TorchtrackError(f"mode must be in [0, {motion.num_modes}); got {mode}")
+        self.base = motion
+        self.mode = mode
+        self.state_dim = motion.state_dim
+
+    def _ref(self) -> Tensor:
+        return self.base.sigma.raw
+
+    def transition_matrix(self, dt) -> Tensor:
+        return self.base.transition_matrix(dt)
+
+    def transition(self, x: Tensor, dt) -> Tensor:
+        mode = torch.tensor(self.mode, device=x.device)
+        return self.base.transition(x, dt, mode).to(x.dtype)
+
+    def jacobian(self, x: Tensor, dt) -> Tensor:
+        return self.base.transition_matrix(dt).to(x.dtype)
+
+    def process_noise(self, dt) -> Tensor:
+        return self.base.process_noise(dt, torch.tensor(self.mode, device=self.base.sigma.raw.device))
+
+
+class InteractingMultipleModel(nn.Module):
+    """IMM over ``filters`` (one model-matched Gaussian filter per mode) and a transition matrix.
+
+    ``transition``: a ``(M, M)`` row-stochastic tensor (zeros allowed, fixed) or a
+    :class:`RowStochastic` (learnable). All filters must share the state and measurement sizes.
+    """
+
+    def __init__(self, filters: Sequence[nn.Module], transition):
+        super().__init__()
+        if len(filters) == 0:
+            raise TorchtrackError("IMM needs at least one model-matched filter")
+        n = {f.state_dim for f in filters}
+        if len(n) != 1:
+            raise TorchtrackError(f"IMM models must share a state layout; got mismatched model state sizes "
+                                  f"{[f.state_dim for f in filters]}")
+        m = {f.measurement.meas_dim for f in filters}
+        if len(m) != 1:
+            raise TorchtrackError(f"IMM models must share the measurement size; got "
+                                  f"{[f.measurement.meas_dim for f in filters]}")
+        self.filters = nn.ModuleList(filters)
+        self.transition = TransitionMatrix(transition, len(filters))
+        self.state_dim = n.pop()
+        self.meas_dim = m.pop()
+
+    @classmethod
+    def from_mode_control(cls, motion: ModeControlInput, measurement: MeasurementModel,
+                          transition) -> InteractingMultipleModel:
+        """One EKF (exact for these affine models) per mode of ``motion`` — the gate paper's model sets."""
+        return cls([ExtendedKalmanFilter(ModeMatched(motion, j), measurement) for j in range(motion.num_modes)],
+                   transition)
+
+    @property
+    def num_models(self) -> int:
+        return len(self.filters)
+
+    def initial_state(self, mean: Tensor, cov: Tensor, mode_prob: Tensor | None = None) -> IMMState:
+        """Every model starts at ``mean (*, n)``, ``cov (*, n, n)``; ``mode_prob (*, M)`` (uniform if None)."""
+        M = self.num_models
+        if mean.shape[-1] != self.state_dim or cov.shape[-2:] != (self.state_dim, self.state_dim):
+            raise TorchtrackError(f"IMM initial state must be (*, {self.state_dim}) and (*, {self.state_dim}, "
+                                  f"{self.state_dim}); got {tuple(mean.shape)} and {tuple(cov.shape)}")
+        if mode_prob is None:
+            mode_prob = torch.full((M,), 1.0 / M, dtype=mean.dtype, device=mean.device)
+        mode_prob = torch.as_tensor(mode_prob, dtype=mean.dtype, device=mean.device)
+        if mode_prob.shape[-1] != M:
+            raise TorchtrackError(f"mode probabilities must have {M} entries; got shape {tuple(mode_prob.shape)}")
+        check_probabilities(mode_prob, "mode probabilities")
+        batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], mode_prob.shape[:-1])
+        mean = mean.unsqueeze(-2).expand(*batch, M, self.state_dim)
+        cov = cov.unsqueeze(-3).expand(*batch, M, self.state_dim, self.state_dim)
+        return IMMState(torch.log(mode_prob).expand(*batch, M), mean, cov)
+
+    def _check(self, state: IMMState) -> None:
+        M, n = self.num_models, self.state_dim
+        if state.log_prob.shape[-1] != M or state.mean.shape[-2:] != (M, n) or state.cov.shape[-3:] != (M, n, n):
+            raise TorchtrackError(f"IMM state must be log_prob (*, {M}), mean (*, {M}, {n}), cov (*, {M}, {n}, "
+                                  f"{n}); got {tuple(state.log_prob.shape)}, {tuple(state.mean.shape)}, "
+                                  f"{tuple(state.cov.shape)}")
+
+    def predict(self, state: IMMState, dt=1.0) -> IMMState:
+        """Interaction + model-matched prediction; returns predicted mode log-probabilities ``log c_j``."""
+        self._check(state)
+        mixed = mix(state, self.transition.log(state.mean))
+        means, covs = [], []
+        for j, f in enumerate(self.filters):
+            s = f.predict(GaussianState(mixed.mean[..., j, :], mixed.cov[..., j, :, :]), dt)
+            means.append(s.mean)
+            covs.append(s.cov)
+        return IMMState(mixed.log_prob, torch.stack(means, -2), torch.stack(covs, -3))
+
+    def update(self, state: IMMState, z: Tensor, mask: Tensor | None = None,
+               check: bool = True) -> tuple[IMMState, IMMUpdateInfo]:
+        """Model-matched updates with ``z (*, m)`` and the mode-probability update."""
+        self._check(state)
+        means, covs, lls, nis = [], [], [], []
+        present = None
+        for j, f in enumerate(self.filters):
+            s, info = f.update(GaussianState(state.mean[..., j, :], state.cov[..., j, :, :]), z, mask, check)
+            means.append(s.mean)
+            covs.append(s.cov)
+            lls.append(info.log_likelihood)
+            nis.append(info.nis)
+            present = info.present
+        ll = torch.stack(lls, -1)
+        joint = state.log_prob + ll
+        total = torch.logsumexp(joint, -1)
+        log_prob = joint - total.unsqueeze(-1)
+        new = IMMState(log_prob, torch.stack(means, -2), torch.stack(covs, -3))
+        return new, IMMUpdateInfo(total, ll, torch.stack(nis, -1), present)
+
+    def predicted_measurement(self, state: IMMState) -> tuple[Tensor, Tensor, Tensor]:
+        """Mixture measurement prediction of a *predicted* state (eq. 29–30).
+
+        Returns ``log weight (*, M)`` (= ``log c_j``), ``ẑ_j (*, M, m)`` and ``S_j (*, M, m, m)``.
+        """
+        self._check(state)
+        zs, Ss = [], []
+        for j, f in enumerate(self.filters):
+            z_hat, S, _ = f._moments(GaussianState(state.mean[..., j, :], state.cov[..., j, :, :]))
+            zs.append(z_hat)
+            Ss.append(S)
+        return state.log_prob, torch.stack(zs, -2), torch.stack(Ss, -3)
+
+    def combine(self, state: IMMState) -> GaussianState:
+        return combine(state)
+
+    def run(self, measurements: Tensor, init: IMMState, dt=1.0, mask: Tensor | None = None,
+            predict_first: bool = True) -> IMMResult:
+        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` False = missing) from ``init``."""
+        if measurements.dim() < 2:
+            raise TorchtrackError(f"IMM: measurements must have shape (T, *, m); got {tuple(measurements.shape)}")
+        state = init
+        out = {"mean": [], "cov": [], "mode": [], "model": []}
+        total = 0.0
+        for k in range(measurements.shape[0]):
+            if predict_first or k > 0:
+                state = self.predict(state, dt)
+            state, info = self.update(state, measurements[k], None if mask is None else mask[k])
+            est = combine(state)
+            out["mean"].append(est.mean)
+            out["cov"].append(est.cov)
+            out["mode"].append(state.log_prob.exp())
+            out["model"].append(state.mean)
+            total = total + info.log_likelihood
+        return IMMResult(torch.stack(out["mean"]), torch.stack(out["cov"]), torch.stack(out["mode"]),
+                         torch.stack(out["model"]), total)
+
+
+__all__ = [
+    "IMMResult", "IMMState", "IMMUpdateInfo", "InteractingMultipleModel", "ModeMatched", "TransitionMatrix",
+    "check_probabilities", "check_transition", "combine", "mix",
+]
