@@ -71,35 +71,33 @@ def render_frame(image: np.ndarray, ids: np.ndarray, positions: np.ndarray,
     shift = 4  # fixed-point sub-pixel drawing
     f = float(1 << shift)
 
-    def pt(xy) -> tuple[int, int]:
-        return int(round((xy[0] + 0.5) * s * f - 0.5 * f)), int(round((xy[1] + 0.5) * s * f - 0.5 * f))
+    def fixed(xy: np.ndarray) -> np.ndarray:
+        """Pixel-centre coordinates → fixed-point integer coordinates of the scaled canvas."""
+        return np.rint(((xy + 0.5) * s - 0.5) * f).astype(np.int32)
 
     if truth is not None and len(truth):
-        for xy in apply_homography(truth, homography):
-            c = pt(xy)
-            r = int(3 * s * f)
-            cv2.line(canvas, (c[0] - r, c[1]), (c[0] + r, c[1]), (255, 255, 255), 1, cv2.LINE_AA, shift)
-            cv2.line(canvas, (c[0], c[1] - r), (c[0], c[1] + r), (255, 255, 255), 1, cv2.LINE_AA, shift)
-    ids = np.asarray(ids).reshape(-1)
-    img_pos = apply_homography(positions, homography)
+        r = int(3 * s * f)
+        for cx, cy in fixed(apply_homography(truth, homography)).tolist():
+            cv2.line(canvas, (cx - r, cy), (cx + r, cy), (255, 255, 255), 1, cv2.LINE_AA, shift)
+            cv2.line(canvas, (cx, cy - r), (cx, cy + r), (255, 255, 255), 1, cv2.LINE_AA, shift)
+    ids = np.asarray(ids).reshape(-1).tolist()
+    colors = [identity_color(i) for i in ids]
     if trails:
-        for identity in ids.tolist():
+        for identity, color in zip(ids, colors):
             trail = trails.get(int(identity))
             if trail is not None and len(trail) > 1:
-                pts = np.array([pt(p) for p in apply_homography(np.array(trail), homography)], np.int32)
-                cv2.polylines(canvas, [pts.reshape(-1, 1, 2)], False, identity_color(identity), 1,
-                              cv2.LINE_AA, shift)
+                pts = fixed(apply_homography(np.array(trail), homography))
+                cv2.polylines(canvas, [pts.reshape(-1, 1, 2)], False, color, 1, cv2.LINE_AA, shift)
     font_scale = 0.35 * max(1.0, s * 0.75)
-    for identity, xy in zip(ids.tolist(), img_pos):
-        color = identity_color(identity)
-        c = pt(xy)
+    half = int((box or 0) * s * f / 2)
+    dot = int(2.5 * s * f)
+    centers = fixed(apply_homography(positions, homography)).tolist()
+    for identity, color, (cx, cy) in zip(ids, colors, centers):
         if box:
-            half = int(box * s * f / 2)
-            cv2.rectangle(canvas, (c[0] - half, c[1] - half), (c[0] + half, c[1] + half), color, 1,
-                          cv2.LINE_AA, shift)
+            cv2.rectangle(canvas, (cx - half, cy - half), (cx + half, cy + half), color, 1, cv2.LINE_AA, shift)
         else:
-            cv2.circle(canvas, c, int(2.5 * s * f), color, -1, cv2.LINE_AA, shift)
-        org = (int(c[0] / f) + int(3 * s), int(c[1] / f) - int(3 * s))
+            cv2.circle(canvas, (cx, cy), dot, color, -1, cv2.LINE_AA, shift)
+        org = (int(cx / f + 3 * s), int(cy / f - 3 * s))
         cv2.putText(canvas, str(identity), org, cv2.FONT_HERSHEY_SIMPLEX, font_scale, color, 1, cv2.LINE_AA)
     if label:
         cv2.putText(canvas, label, (4, 14), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 3, cv2.LINE_AA)

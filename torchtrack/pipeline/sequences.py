@@ -1,0 +1,179 @@
+"""Many sequences: find them in a folder, run the pipeline on each, aggregate the metrics — on one
+process or sharded over the ranks of ``torchrun`` (``torch.distributed``, gloo), rank 0 aggregating.
+
+A sequence is a sub-folder ``S`` of the folder given, holding its frames as
+
+* images directly in ``S``, or in ``S/frames/`` or ``S/img1/`` (the MOTChallenge layout), or
+* one video file in ``S`` (``S/video.mp4`` as written by ``torchtrack simulate-video --format mp4``),
+
+and optionally its truth ``S/gt.txt`` or ``S/gt/gt.txt`` and true camera motion ``S/camera.json``
+(the synthetic sequences'). Sub-folders holding none of these are skipped with a warning.
+
+Aggregation is exact: the truth and tracks of all sequences are concatenated, with frame numbers and
+identities offset so that sequences never mix, and CLEAR-MOT is computed once on the concatenation
+(so MOTA, IDF1 and MT/PT/ML are those of the pooled events, as in MOTChallenge's "overall" row).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch.distributed as dist
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
+from torchtrack.io.mot import MOTData, read_mot
+from torchtrack.pipeline.config import PipelineConfig
+from torchtrack.pipeline.track_video import score, track_video, write_json_atomic
+from torchtrack.sim.video import read_camera
+
+
+@dataclass
+class Sequence:
+    """One sequence: its ``name``, where its frames are, and its optional truth and camera files."""
+
+    name: str
+    frames: Path
+    gt: Path | None = None
+    camera: Path | None = None
+
+    def source(self) -> FrameSource:
+        return open_frames(self.frames)
+
+
+def _has_images(folder: Path) -> bool:
+    return folder.is_dir() and any(p.suffix.lower() in IMAGE_SUFFIXES for p in folder.iterdir())
+
+
+def describe_sequence(folder: Path) -> Sequence | None:
+    """The :class:`Sequence` stored in ``folder`` (layout in the module docstring), or None."""
+    frames = None
+    for cand in (folder / "frames", folder / "img1", folder):
+        if _has_images(cand):
+            frames = cand
+            break
+    if frames is None:
+        videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
+        if len(videos) > 1:
+            raise TorchtrackError(f"{folder}: several videos ({', '.join(p.name for p in videos)}); "
+                                  "keep one video per sequence folder")
+        frames = videos[0] if videos else None
+    if frames is None:
+        return None
+    gt = next((p for p in (folder / "gt.txt", folder / "gt" / "gt.txt") if p.is_file()), None)
+    camera = folder / "camera.json"
+    return Sequence(folder.name, frames, gt, camera if camera.is_file() else None)
+
+
+def find_sequences(root: str | Path) -> list[Sequence]:
+    """Every sequence under ``root``, by name; errors name ``root`` when there is none."""
+    root = Path(root)
+    if not root.is_dir():
+        raise TorchtrackError(f"{root}: no such folder (--sequences expects a folder of sequence folders)")
+    found, skipped = [], []
+    for sub in sorted(p for p in root.iterdir() if p.is_dir() and not p.name.startswith(".")):
+        seq = describe_sequence(sub)
+        (found if seq else skipped).append(seq or sub.name)
+    if skipped:
+        warnings.warn(f"{root}: skipping {len(skipped)} folder(s) without frames or video: "
+                      f"{', '.join(skipped[:5])}", stacklevel=2)
+    if not found:
+        raise TorchtrackError(f"{root}: no sequence found (each sub-folder needs images, frames/, img1/ "
+                              "or one video file)")
+    return found
+
+
+def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, progress: bool) -> dict:
+    """Run the pipeline on one sequence; returns what rank 0 needs to aggregate it."""
+    gt = read_mot(seq.gt) if seq.gt else None
+    camera = read_camera(seq.camera) if seq.camera else None
+    t0 = time.perf_counter()
+    result = track_video(seq.source(), out / seq.name, config, detector=detector, gt=gt, gt_path=str(seq.gt),
+                         camera=camera, progress=progress)
+    return {"name": seq.name, "metrics": result.metrics, "seconds": time.perf_counter() - t0,
+            "gt": gt, "tracks": read_mot(result.files["tracks"]) if gt is not None else None}
+
+
+def concatenate(parts: list[tuple[MOTData, MOTData]]) -> tuple[MOTData, MOTData]:
+    """Pool ``(gt, tracks)`` pairs into one pair, offsetting frames and ids so sequences never mix."""
+    gts, preds = [], []
+    frame_off = id_off = 0
+    for gt, pred in parts:
+        last = max(int(gt.frame.max()) if gt.size else 0, int(pred.frame.max()) if pred.size else 0)
+        top = max(int(gt.id.max()) if gt.size else 0, int(pred.id.max()) if pred.size else 0)
+        gts.append(gt._replace(frame=gt.frame + frame_off, id=gt.id + id_off))
+        preds.append(pred._replace(frame=pred.frame + frame_off, id=pred.id + id_off))
+        frame_off += last + 1
+        id_off += top + 1
+
+    def cat(items: list[MOTData]) -> MOTData:
+        fields = []
+        for name in MOTData._fields:
+            vals = [getattr(m, name) for m in items]
+            fields.append(None if any(v is None for v in vals) else np.concatenate(vals))
+        return MOTData(*fields)
+
+    return cat(gts), cat(preds)
+
+
+def _distributed() -> tuple[int, int]:
+    """``(rank, world_size)``; initialises the gloo process group under ``torchrun``."""
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return 0, 1
+    if not dist.is_initialized():
+        dist.init_process_group("gloo")
+    return dist.get_rank(), dist.get_world_size()
+
+
+def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, detector=None,
+                  progress: bool = True) -> dict | None:
+    """Evaluate every sequence of ``root`` and aggregate (module docstring).
+
+    Under ``torchrun`` rank ``r`` of ``W`` takes sequences ``r, r + W, ...``; results are gathered on
+    rank 0, which writes ``out/metrics.json`` and returns the summary; other ranks return None.
+    """
+    out = Path(out)
+    sequences = find_sequences(root)
+    rank, world = _distributed()
+    if detector is None:
+        from detector import load_detector
+
+        detector = load_detector(config.detector_weights)
+    mine = [run_sequence(s, out, config, detector, progress and rank == 0) for s in sequences[rank::world]]
+    if world > 1:
+        gathered: list = [None] * world if rank == 0 else None
+        dist.gather_object(mine, gathered, dst=0)
+        if rank != 0:
+            dist.barrier()
+            return None
+        results = [r for part in gathered for r in part]
+    else:
+        results = mine
+    results.sort(key=lambda r: r["name"])
+    summary: dict = {"root": str(root), "tracker": config.tracker, "world_size": world,
+                     "sequences": {r["name"]: r["metrics"] for r in results}}
+    scored = [r for r in results if r["gt"] is not None]
+    frames = sum(r["metrics"]["frames"] for r in results)
+    summary["frames"] = frames
+    summary["fps_per_process"] = frames / sum(r["seconds"] for r in results)
+    if scored:
+        summary["aggregate"] = score(*concatenate([(r["gt"], r["tracks"]) for r in scored]), config.threshold)
+        summary["aggregate"]["sequences"] = len(scored)
+    out.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(out / "metrics.json", summary)
+    if world > 1:
+        dist.barrier()
+    return summary
+
+
+def destroy() -> None:
+    """Tear down the process group if this process started one."""
+    if dist.is_available() and dist.is_initialized():
+        dist.destroy_process_group()
+
