@@ -190,7 +190,34 @@ def _check(data: MOTData, what: str) -> None:
         raise TorchtrackError(f"{what} has negative ids (unlabelled detections?); CLEAR-MOT needs track ids")
 
 
-def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None = None) -> dict:
+def _drop_ignored(gt: MOTData, pred: MOTData, ignore: np.ndarray, metric: _Distance):
+    """Remove don't-care objects the MOTChallenge way: per frame, the predictions assigned (Hungarian within
+    the gate, over all objects of the frame) to an ignored object are removed, then the ignored objects."""
+    ignore = np.asarray(ignore, dtype=bool)
+    if ignore.shape != (gt.size,):
+        raise TorchtrackError(f"ignore must have one entry per ground-truth line ({gt.size}), got {ignore.shape}")
+    order = np.lexsort((gt.id, gt.frame))
+    gt, ignore = gt.select(order), ignore[order]
+    pred = pred.sorted()
+    keep = np.ones(pred.size, dtype=bool)
+    gf, pf = metric.features(gt), metric.features(pred)
+    for f in np.unique(gt.frame[ignore]):
+        a, b = np.searchsorted(gt.frame, f, "left"), np.searchsorted(gt.frame, f, "right")
+        c, e = np.searchsorted(pred.frame, f, "left"), np.searchsorted(pred.frame, f, "right")
+        if e == c:
+            continue
+        n, m = b - a, e - c
+        if n * m <= DENSE_LIMIT:
+            r, k = _lsa_with_gaps(metric.dense(gf[a:b], pf[c:e]))
+        else:
+            pi, pj, pd = metric.pairs(gf[a:b], pf[c:e])
+            r, k, _ = _sparse_assignment(n, m, pi, pj, pd, _lsa_with_gaps)
+        keep[c + k[ignore[a + r]]] = False
+    return gt.select(~ignore), pred.select(keep)
+
+
+def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None = None,
+              ignore: np.ndarray | None = None) -> dict:
     """CLEAR-MOT, MT/PT/ML, FRAG and IDF1 of tracker output ``pred`` against ground truth ``gt``.
 
     Args:
@@ -198,6 +225,9 @@ def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | 
         pred: tracker output (ids >= 0).
         threshold: centre-distance gate in pixels (used unless ``iou`` is given).
         iou: IoU gate ``T`` in (0, 1]; a pair matches when ``IoU >= T``.
+        ignore: optional (K,) bool over ``gt``'s lines marking don't-care objects (e.g. the vehicles that
+            are not moving, :func:`torchtrack.io.wpafb.moving_mask`): in each frame, predictions assigned
+            to them (Hungarian, same gate) are dropped, and so are they, before scoring.
 
     Returns:
         dict with :data:`KEYS` (``MOTA, MOTP, IDF1, MT, PT, ML, FP, FN, IDS, FRAG, TP, GT, precision,
@@ -211,6 +241,8 @@ def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | 
     _check(gt, "ground truth")
     _check(pred, "prediction")
     metric = _Distance(float(threshold), iou)
+    if ignore is not None:
+        gt, pred = _drop_ignored(gt, pred, ignore, metric)
     gt, pred = gt.sorted(), pred.sorted()
     gt_ids, g = np.unique(gt.id, return_inverse=True)
     hyp_ids, h = np.unique(pred.id, return_inverse=True)
