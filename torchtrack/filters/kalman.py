@@ -138,6 +138,11 @@ class _GaussianFilter(nn.Module):
     def _posterior_cov(self, state: GaussianState, K: Tensor, S: Tensor) -> Tensor:
         return symmetrize(state.cov - K @ S @ K.transpose(-1, -2))
 
+    def forward(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
+                predict_first: bool = True) -> FilterResult:
+        """Calling the module runs :meth:`run` (so ``torch.func.functional_call`` works on filters)."""
+        return self.run(measurements, init, dt, mask, predict_first)
+
     def run(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
             predict_first: bool = True) -> FilterResult:
         """Filter a whole sequence ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` = missing).

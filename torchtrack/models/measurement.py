@@ -50,7 +50,8 @@ class LinearMeasurement(MeasurementModel):
 
     def __init__(self, H, R, learnable: bool = True):
         super().__init__()
-        H = torch.as_tensor(H, dtype=torch.get_default_dtype())
+        H = torch.as_tensor(H)
+        H = H if H.is_floating_point() else H.to(torch.get_default_dtype())
         if H.dim() != 2:
             raise TorchtrackError(f"H must have shape (m, n); got {tuple(H.shape)}")
         self.meas_dim, self.state_dim = H.shape

@@ -70,7 +70,8 @@ class LinearMotion(MotionModel):
 
     def __init__(self, F, Q, learnable: bool = True):
         super().__init__()
-        F = torch.as_tensor(F, dtype=torch.get_default_dtype())
+        F = torch.as_tensor(F)
+        F = F if F.is_floating_point() else F.to(torch.get_default_dtype())
         if F.dim() != 2 or F.shape[0] != F.shape[1]:
             raise TorchtrackError(f"F must be square (n, n); got shape {tuple(F.shape)}")
         self.state_dim = F.shape[0]

@@ -1,0 +1,39 @@
+"""Every command explains itself with --help; the entry point is discovered from the modules."""
+
+import subprocess
+import sys
+
+import pytest
+
+from torchtrack.cli import _command_modules, build_parser
+
+
+def _commands():
+    names = []
+    for module in _command_modules("torchtrack.cli"):
+        names.append([module.NAME])
+    for package, group in (("torchtrack.scenarios", "scenario"), ("torchtrack.bench", "bench")):
+        for module in _command_modules(package):
+            names.append([group, module.NAME])
+    return names
+
+
+@pytest.mark.parametrize("argv", _commands(), ids=lambda a: " ".join(a))
+def test_help(argv, capsys):
+    with pytest.raises(SystemExit) as exc:
+        build_parser().parse_args([*argv, "--help"])
+    assert exc.value.code == 0
+    out = capsys.readouterr().out
+    assert "usage: torchtrack" in out
+    if argv[0] not in ("scenario", "bench") or len(argv) > 1:  # the two groups only list their members
+        assert "--seed" in out
+
+
+def test_core_commands_exist():
+    names = {" ".join(a) for a in _commands()}
+    assert {"scenario maneuver", "bench kf"} <= names
+
+
+def test_console_entry_point_runs():
+    proc = subprocess.run([sys.executable, "-m", "torchtrack", "--version"], capture_output=True, text=True)
+    assert proc.returncode == 0 and "torchtrack" in proc.stdout

@@ -1,0 +1,123 @@
+"""``torchtrack bench kf``: batched Kalman filter throughput (track-steps per second).
+
+Workload: 2-D nearly-constant-velocity targets (state ``[x, y, vx, vy]``), position measurements,
+float32, ``--tracks`` tracks × ``--steps`` steps. Timed in the same run:
+
+* **ours** — the axis-decoupled fast path (:mod:`torchtrack.filters.kalman_fast`, compiled);
+* **general path** — :meth:`KalmanFilter.run` with full 4×4 matrices (reported as an extra);
+* **reference** — a plain batched NumPy implementation of the same equations (4×4 matrices,
+  ``np.linalg.solve`` for the gain);
+* **per-track loop** — FilterPy's ``KalmanFilter`` one track at a time (as FilterPy users run it)
+  on ``--loop-tracks`` tracks, if FilterPy is installed.
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import torch
+
+from torchtrack.bench._timing import best_time, report
+from torchtrack.cli._common import add_common_options
+from torchtrack.filters.kalman import GaussianState, KalmanFilter
+from torchtrack.filters.kalman_fast import run_cv_fast
+from torchtrack.models import ConstantVelocity, LinearPosition
+
+NAME = "kf"
+HELP = "batched Kalman filter throughput vs NumPy and a per-track loop"
+DESCRIPTION = __doc__
+
+DT, Q, SIGMA = 1.0, 0.05, 1.0
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--tracks", type=int, default=100_000, help="tracks (default 100000)")
+    parser.add_argument("--steps", type=int, default=100, help="time steps (default 100)")
+    parser.add_argument("--general-steps", type=int, default=10, help="steps timed for the general path")
+    parser.add_argument("--loop-tracks", type=int, default=200, help="tracks for the per-track loop")
+    parser.add_argument("--no-compile", action="store_true", help="time the eager fast path")
+    add_common_options(parser)
+
+
+def _numpy_reference(z: np.ndarray, x0: np.ndarray, P0: np.ndarray, F, Qm, H, R) -> tuple[np.ndarray, np.ndarray]:
+    x, P = x0.copy(), P0.copy()
+    ll = np.zeros(x.shape[0], dtype=x.dtype)
+    for k in range(z.shape[0]):
+        x = x @ F.T
+        P = F @ P @ F.T + Qm
+        S = H @ P @ H.T + R
+        nu = z[k] - x @ H.T
+        PHt = P @ H.T
+        K = np.linalg.solve(S, PHt.transpose(0, 2, 1)).transpose(0, 2, 1)
+        x = x + np.einsum("nij,nj->ni", K, nu)
+        P = P - K @ S @ K.transpose(0, 2, 1)
+        sol = np.linalg.solve(S, nu[..., None])[..., 0]
+        ll -= 0.5 * ((nu * sol).sum(-1) + np.log(np.linalg.det(S)) + 2 * np.log(2 * np.pi))
+    return x, ll
+
+
+def _filterpy_loop(z: np.ndarray, x0: np.ndarray, P0: np.ndarray, F, Qm, H, R) -> None:
+    from filterpy.kalman import KalmanFilter as FPKalman
+
+    for i in range(z.shape[1]):
+        f = FPKalman(dim_x=4, dim_z=2)
+        f.x, f.P, f.F, f.Q, f.H, f.R = x0[i].copy(), P0[i].copy(), F, Qm, H, R
+        for k in range(z.shape[0]):
+            f.predict()
+            f.update(z[k, i])
+
+
+def run(args) -> int:
+    gen = torch.Generator().manual_seed(args.seed)
+    N, T = args.tracks, args.steps
+    dtype = torch.float32
+    kf = KalmanFilter(ConstantVelocity(2, q=Q), LinearPosition(2, sigma=SIGMA)).to(dtype)
+    truth_v = torch.randn(N, 2, generator=gen, dtype=dtype) * 5
+    t = torch.arange(1, T + 1, dtype=dtype)[:, None, None]
+    z = (t * truth_v + torch.randn(T, N, 2, generator=gen, dtype=dtype) * SIGMA).contiguous()
+    init = GaussianState(torch.zeros(N, 4, dtype=dtype), torch.diag(torch.tensor([10.0, 10, 100, 100])).to(dtype)
+                         .expand(N, 4, 4))
+
+    compile = not args.no_compile
+    with torch.no_grad():
+        t0 = time.perf_counter()
+        run_cv_fast(kf, z, init, DT, compile=compile, history=False)
+        warmup_s = time.perf_counter() - t0
+        ours_s = best_time(lambda: run_cv_fast(kf, z, init, DT, compile=compile, history=False), repeats=3, warmup=0)
+        Tg = min(args.general_steps, T)
+        general_s = best_time(lambda: kf.run(z[:Tg], init, DT), repeats=1, warmup=0)
+
+    F = kf.motion.transition_matrix(DT).double().numpy()
+    Qm = kf.motion.process_noise(DT).detach().double().numpy()
+    H = kf.measurement.matrix().double().numpy()
+    R = kf.measurement.noise_cov().detach().double().numpy()
+    F32, Q32, H32, R32 = (m.astype(np.float32) for m in (F, Qm, H, R))
+    z_np = z.numpy()
+    x0 = init.mean.numpy().copy()
+    P0 = init.cov.numpy().copy()
+    Tr = min(T, 10)
+    ref_s = best_time(lambda: _numpy_reference(z_np[:Tr], x0, P0, F32, Q32, H32, R32), repeats=1, warmup=0)
+
+    extra = {"tracks": N, "steps": T, "dtype": "float32", "compile": compile,
+             "warmup_s": warmup_s,
+             "general_path_per_s": N * Tg / general_s}
+    try:
+        import filterpy  # noqa: F401
+
+        M = min(args.loop_tracks, N)
+        loop_s = best_time(lambda: _filterpy_loop(z_np[:Tr, :M].astype(np.float64), x0[:M].astype(np.float64),
+                                                  P0[:M].astype(np.float64), F, Qm, H, R), repeats=1, warmup=0)
+        extra["filterpy_loop_per_s"] = M * Tr / loop_s
+        extra["ratio_vs_filterpy_loop"] = (N * T / ours_s) / extra["filterpy_loop_per_s"]
+    except ImportError:
+        extra["filterpy_loop_per_s"] = None
+
+    report(f"KF, 2-D CV + position, {N} tracks x {T} steps, float32", N * T / ours_s,
+           "batched NumPy (same equations, 4x4)", N * Tr / ref_s, "track-steps", args.json, extra)
+    print(f"general path (KalmanFilter.run, 4x4 matrices): {extra['general_path_per_s']:,.0f} track-steps/s")
+    if extra.get("filterpy_loop_per_s"):
+        print(f"FilterPy per-track loop: {extra['filterpy_loop_per_s']:,.0f} track-steps/s "
+              f"(ours {extra['ratio_vs_filterpy_loop']:,.0f}x)")
+    print(f"(first call incl. compilation: {warmup_s:.1f} s)")
+    return 0
