@@ -1,0 +1,26 @@
+"""configs/pipeline.yaml documents exactly the embedded defaults; bad keys are named."""
+
+from pathlib import Path
+
+import pytest
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_shipped_yaml_equals_defaults():
+    assert load_pipeline_config(ROOT / "configs" / "pipeline.yaml") == PipelineConfig()
+
+
+def test_unknown_keys_are_named(tmp_path):
+    bad = tmp_path / "p.yaml"
+    bad.write_text("pipeline:\n  trakcer: sort\n")
+    with pytest.raises(TorchtrackError, match=r"p\.yaml: unknown key\(s\) \['trakcer'\]"):
+        load_pipeline_config(bad)
+    bad.write_text("registration:\n  method: sift\n")
+    with pytest.raises(TorchtrackError, match="registration.method"):
+        load_pipeline_config(bad)
+    with pytest.raises(TorchtrackError, match="no such file"):
+        load_pipeline_config(tmp_path / "missing.yaml")
