@@ -21,7 +21,7 @@ def _commands():
 @pytest.mark.parametrize("argv", _commands(), ids=lambda a: " ".join(a))
 def test_help(argv, capsys):
     with pytest.raises(SystemExit) as exc:
-        build_parser().parse_args([*argv, "--help"])
+        build_parser([*argv, "--help"]).parse_args([*argv, "--help"])
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "usage: torchtrack" in out

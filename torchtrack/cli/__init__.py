@@ -1,47 +1,73 @@
 """The ``torchtrack`` command.
 
 Each sub-command lives in its own module of this package and defines ``NAME``, ``HELP``,
-``add_arguments(parser)`` and ``run(args) -> int``; modules are discovered automatically, so a
-new command is a new file.
+optional ``DESCRIPTION``, ``add_arguments(parser)`` and ``run(args) -> int``; modules are discovered
+automatically, so a new command is a new file. ``NAME`` and ``HELP`` are read from the source
+without importing it, and only the module of the command being run is imported: a command pays
+only for its own dependencies.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
 import importlib
+import importlib.util
 import pkgutil
 import sys
+from pathlib import Path
 
 from torchtrack.errors import TorchtrackError
 
 
-def _command_modules(package: str) -> list:
-    pkg = importlib.import_module(package)
-    modules = []
-    for info in sorted(pkgutil.iter_modules(pkg.__path__), key=lambda m: m.name):
+def _literal(tree: ast.Module, name: str) -> str | None:
+    for node in tree.body:
+        if isinstance(node, ast.Assign) and any(isinstance(t, ast.Name) and t.id == name for t in node.targets):
+            if isinstance(node.value, ast.Constant) and isinstance(node.value.value, str):
+                return node.value.value
+    return None
+
+
+def discover(package: str) -> list[tuple[str, str, str]]:
+    """``(NAME, HELP, module name)`` of every command module of ``package``, sorted by name."""
+    spec = importlib.util.find_spec(package)
+    found = []
+    for info in pkgutil.iter_modules(spec.submodule_search_locations):
         if info.name.startswith("_"):
             continue
-        module = importlib.import_module(f"{package}.{info.name}")
-        if hasattr(module, "NAME") and hasattr(module, "run"):
-            modules.append(module)
-    return modules
+        path = Path(info.module_finder.path) / f"{info.name}.py"
+        if not path.is_file():
+            continue
+        tree = ast.parse(path.read_text())
+        name, help_ = _literal(tree, "NAME"), _literal(tree, "HELP")
+        if name is not None:
+            found.append((name, help_ or "", f"{package}.{info.name}"))
+    return sorted(found)
 
 
-def add_subcommands(parser: argparse.ArgumentParser, package: str, dest: str) -> None:
-    """Attach every command module found in ``package`` as a sub-parser of ``parser``."""
+def _command_modules(package: str) -> list:
+    """Import and return every command module of ``package`` (used by tests and documentation)."""
+    return [importlib.import_module(mod) for _, _, mod in discover(package)]
+
+
+def add_subcommands(parser: argparse.ArgumentParser, package: str, dest: str, argv: list[str]) -> None:
+    """Attach the command modules of ``package`` to ``parser``; import only the one ``argv`` selects."""
     sub = parser.add_subparsers(dest=dest, metavar="NAME", required=True)
-    for module in _command_modules(package):
-        p = sub.add_parser(
-            module.NAME,
-            help=module.HELP,
-            description=getattr(module, "DESCRIPTION", module.HELP),
-            formatter_class=argparse.RawDescriptionHelpFormatter,
-        )
+    chosen = next((a for a in argv if not a.startswith("-")), None)
+    for name, help_, modname in discover(package):
+        if name != chosen:
+            sub.add_parser(name, help=help_, description=help_)
+            continue
+        module = importlib.import_module(modname)
+        p = sub.add_parser(name, help=help_, description=getattr(module, "DESCRIPTION", help_),
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        p.set_defaults(_run=module.run, _argv_rest=argv[argv.index(chosen) + 1:])
         module.add_arguments(p)
-        p.set_defaults(_run=module.run)
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The ``torchtrack`` parser, with the arguments of the command that ``argv`` selects."""
+    argv = sys.argv[1:] if argv is None else argv
     parser = argparse.ArgumentParser(
         prog="torchtrack",
         description="Batched, differentiable target tracking: filters, scenarios from the papers, "
@@ -50,13 +76,13 @@ def build_parser() -> argparse.ArgumentParser:
     from torchtrack import __version__
 
     parser.add_argument("--version", action="version", version=f"torchtrack {__version__}")
-    add_subcommands(parser, "torchtrack.cli", "command")
+    add_subcommands(parser, "torchtrack.cli", "command", argv)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    argv = sys.argv[1:] if argv is None else list(argv)
+    args = build_parser(argv).parse_args(argv)
     try:
         return int(args._run(args) or 0)
     except TorchtrackError as exc:

@@ -7,7 +7,7 @@ HELP = "measure throughput against a reference implementation timed in the same 
 
 
 def add_arguments(parser) -> None:
-    add_subcommands(parser, "torchtrack.bench", "workload")
+    add_subcommands(parser, "torchtrack.bench", "workload", parser.get_default("_argv_rest") or [])
 
 
 def run(args) -> int:

@@ -7,7 +7,7 @@ HELP = "run one of the papers' experiments, batched over Monte Carlo runs"
 
 
 def add_arguments(parser) -> None:
-    add_subcommands(parser, "torchtrack.scenarios", "scenario")
+    add_subcommands(parser, "torchtrack.scenarios", "scenario", parser.get_default("_argv_rest") or [])
 
 
 def run(args) -> int:
