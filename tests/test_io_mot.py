@@ -67,6 +67,17 @@ def test_writer_flushes_each_frame_and_accepts_tensors(tmp_path):
     assert read_mot(p).size == 3
 
 
+def test_tens_of_thousands_in_one_frame(tmp_path):
+    n = 40000
+    xy = np.random.default_rng(1).uniform(0, 5000, (n, 2))
+    with MOTWriter(tmp_path / "big.txt") as w:
+        w.write_frame(1, np.full(n, -1), xy[:, 0], xy[:, 1])
+        w.write_frame(2, [5], [1.0], [2.0])
+    d = read_mot(tmp_path / "big.txt")
+    assert d.size == n + 1 and d.split()[0].size == n
+    np.testing.assert_allclose(d.centers()[:n], xy, atol=1e-3)
+
+
 def test_empty_file(tmp_path):
     p = tmp_path / "e.txt"
     p.write_text("")
