@@ -1,0 +1,184 @@
+"""The trackers of Table 1 of Aguilar, Ortner & Zerubia (2023), behind the interface of
+:mod:`torchtrack.filters.multitarget`:
+
+- :func:`enhanced_gmphd` — the proposed GM-PHD (label fix, velocity map, detector velocity);
+- :func:`labelled_gmphd` — the plain labelled GM-PHD (labels, no fix, no velocity map, births at rest);
+- :class:`SORT` — Bewley et al. (2016): a constant-velocity Kalman filter per track, Hungarian
+  assignment on centre distance, birth/death rules (``min_hits``, ``max_age``);
+- :class:`GreedyTracker` — CenterTrack's tracking step (Zhou et al. 2020): each detection, displaced back
+  by its own velocity, greedily takes the nearest unmatched track of the previous frame.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchtrack.association.assignment import hungarian
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.gmphd_tracker import GMPHDTracker
+from torchtrack.gaussian import kalman_update, symmetrize
+from torchtrack.models import ConstantVelocity, LinearPosition
+
+
+def enhanced_gmphd(config: dict | None = None) -> GMPHDTracker:
+    """The enhanced GM-PHD of the paper (all of sections 2.2–2.4) from its config section."""
+    return GMPHDTracker.from_config(config)
+
+
+def labelled_gmphd(config: dict | None = None) -> GMPHDTracker:
+    """The labelled GM-PHD baseline: ``label_fix``, the velocity map and the detector's velocity are off
+    whatever the config says (births start at rest with ``birth.sigma_vel_unknown``)."""
+    cfg = dict(config or {})
+    birth = dict(cfg.get("birth") or {})
+    birth.update(use_velocity_map=False, use_detector_velocity=False)
+    cfg.update(birth=birth, label_fix=False)
+    return GMPHDTracker.from_config(cfg)
+
+
+def _check_keys(config: dict, known: set[str], who: str) -> dict:
+    cfg = dict(config or {})
+    unknown = set(cfg) - known
+    if unknown:
+        raise TorchtrackError(f"unknown {who} option(s) {sorted(unknown)}; known: {sorted(known)}")
+    return cfg
+
+
+def _as_points(positions, dtype) -> Tensor:
+    return torch.as_tensor(positions, dtype=dtype).reshape(-1, 2)
+
+
+class SORT:
+    """SORT (Bewley et al. 2016) on point detections.
+
+    Each track is a constant-velocity Kalman filter ``[x, y, vx, vy]`` (all tracks batched); detections
+    are assigned by the Hungarian algorithm on centre distance (pairs farther than ``max_distance`` are
+    forbidden); an unmatched detection starts a track at rest (velocity std ``sigma_vel``); a track
+    missed for more than ``max_age`` frames is deleted; a track is reported in a frame where it was
+    updated once it has ``min_hits`` consecutive hits (or during the first ``min_hits`` frames).
+    """
+
+    KNOWN = {"q", "sigma", "sigma_vel", "max_distance", "max_age", "min_hits"}
+
+    def __init__(self, q: float = 1.0, sigma: float = 1.0, sigma_vel: float = 10.0, max_distance: float = 20.0,
+                 max_age: int = 1, min_hits: int = 3, dtype: torch.dtype = torch.float64):
+        self.motion = ConstantVelocity(2, q=q, learnable=False).to(dtype)
+        self.measurement = LinearPosition(2, sigma=sigma, learnable=False).to(dtype)
+        self.sigma_pos, self.sigma_vel = sigma, sigma_vel
+        self.max_distance, self.max_age, self.min_hits = max_distance, max_age, min_hits
+        self.dtype = dtype
+        with torch.no_grad():
+            self.H, self.R = self.measurement.matrix(), self.measurement.noise_cov()
+        self.reset()
+
+    @classmethod
+    def from_config(cls, config: dict | None = None) -> SORT:
+        return cls(**_check_keys(config, cls.KNOWN, "SORT"))
+
+    def reset(self) -> None:
+        self.mean = torch.empty(0, 4, dtype=self.dtype)
+        self.cov = torch.empty(0, 4, 4, dtype=self.dtype)
+        self.ids = torch.empty(0, dtype=torch.long)
+        self.streak = torch.empty(0, dtype=torch.long)
+        self.missed = torch.empty(0, dtype=torch.long)
+        self.next_id = 1
+        self.frame_count = 0
+        self._last_frame: int | None = None
+
+    def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        z = _as_points(positions, self.dtype)
+        dt = 1.0 if self._last_frame is None else float(frame - self._last_frame)
+        if dt <= 0:
+            raise TorchtrackError(f"frames must increase: frame {frame} after {self._last_frame}")
+        self._last_frame = frame
+        self.frame_count += 1
+        with torch.no_grad():
+            F, Q = self.motion.transition_matrix(dt), self.motion.process_noise(dt)
+            mean = self.mean @ F.T
+            cov = symmetrize(F @ self.cov @ F.T + Q)
+            T, M = mean.shape[0], z.shape[0]
+            ti_t = di_t = torch.zeros(0, dtype=torch.long)
+            if T and M:
+                dist = torch.cdist(mean[:, :2], z)
+                ti_t, di_t = hungarian(dist, dist <= self.max_distance)
+            if ti_t.numel():
+                upd = kalman_update(mean[ti_t], cov[ti_t], z[di_t], self.H, self.R)
+                mean[ti_t], cov[ti_t] = upd.mean, upd.cov
+            hit = torch.zeros(T, dtype=torch.bool)
+            hit[ti_t] = True
+            streak = torch.where(hit, self.streak + 1, torch.zeros_like(self.streak))
+            missed = torch.where(hit, torch.zeros_like(self.missed), self.missed + 1)
+            new = torch.ones(M, dtype=torch.bool)
+            new[di_t] = False
+            zn = z[new]
+            B = zn.shape[0]
+            b_mean = torch.cat([zn, torch.zeros_like(zn)], 1)
+            b_cov = torch.diag(torch.tensor([self.sigma_pos**2] * 2 + [self.sigma_vel**2] * 2,
+                                            dtype=self.dtype)).expand(B, 4, 4)
+            keep = missed <= self.max_age
+            self.mean = torch.cat([mean[keep], b_mean])
+            self.cov = torch.cat([cov[keep], b_cov])
+            self.ids = torch.cat([self.ids[keep], torch.arange(self.next_id, self.next_id + B)])
+            self.streak = torch.cat([streak[keep], torch.ones(B, dtype=torch.long)])
+            self.missed = torch.cat([missed[keep], torch.zeros(B, dtype=torch.long)])
+            self.next_id += B
+            report = (self.missed == 0) & ((self.streak >= self.min_hits) | (self.frame_count <= self.min_hits))
+            return self.ids[report], self.mean[report, :2].clone()
+
+
+class GreedyTracker:
+    """CenterTrack-style greedy matching (Zhou et al. 2020, section 4.3).
+
+    Each detection ``p`` with velocity ``v`` (px/frame; zero when the detector gives none) is displaced to
+    ``p − v``, its position in the previous frame. Detections, in decreasing confidence (the input
+    order), each take the nearest still-unmatched track of the previous frame within ``max_distance``
+    and inherit its id; the others start new tracks. A track not matched for more than ``max_age``
+    frames is forgotten (``max_age = 0``: CenterTrack's default, no memory). Every detection is
+    reported.
+    """
+
+    KNOWN = {"max_distance", "max_age"}
+
+    def __init__(self, max_distance: float = 10.0, max_age: int = 0):
+        self.max_distance, self.max_age = max_distance, max_age
+        self.reset()
+
+    @classmethod
+    def from_config(cls, config: dict | None = None) -> GreedyTracker:
+        return cls(**_check_keys(config, cls.KNOWN, "greedy"))
+
+    def reset(self) -> None:
+        self.pos = np.empty((0, 2))
+        self.ids = np.empty(0, dtype=np.int64)
+        self.age = np.empty(0, dtype=np.int64)
+        self.next_id = 1
+        self._last_frame: int | None = None
+
+    def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        if self._last_frame is not None and frame <= self._last_frame:
+            raise TorchtrackError(f"frames must increase: frame {frame} after {self._last_frame}")
+        self._last_frame = frame
+        p = _as_points(positions, torch.float64).numpy()
+        back = p - (_as_points(velocities, torch.float64).numpy() if velocities is not None else 0.0)
+        M, T = p.shape[0], self.pos.shape[0]
+        ids = np.zeros(M, dtype=np.int64)
+        taken = np.zeros(T, dtype=bool)
+        if T:
+            dist = np.sqrt(((back[:, None, :] - self.pos[None, :, :]) ** 2).sum(-1))
+            dist[:, :] = np.where(dist <= self.max_distance, dist, np.inf)
+            for i in range(M):
+                row = np.where(taken, np.inf, dist[i])
+                j = int(np.argmin(row))
+                if np.isfinite(row[j]):
+                    taken[j] = True
+                    ids[i] = self.ids[j]
+        new = ids == 0
+        ids[new] = np.arange(self.next_id, self.next_id + int(new.sum()))
+        self.next_id += int(new.sum())
+        age = self.age[~taken] + 1
+        keep = age <= self.max_age
+        self.pos = np.concatenate([p, self.pos[~taken][keep]])
+        self.ids = np.concatenate([ids, self.ids[~taken][keep]])
+        self.age = np.concatenate([np.zeros(M, dtype=np.int64), age[keep]])
+        return torch.from_numpy(ids), torch.from_numpy(p)

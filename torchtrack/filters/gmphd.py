@@ -1,0 +1,369 @@
+"""Gaussian-mixture PHD filter (Vo & Ma 2006) with labelled components (Panta, Clark & Vo 2009).
+
+The PHD ``D_k(x)`` is a Gaussian mixture (eq. 2 of Aguilar, Ortner & Zerubia 2023)::
+
+    D_k(x) = Σ_j w_j N(x; m_j, P_j)
+
+held in a :class:`MixtureState` whose leading axis (``J`` components) is bounded by the filter's
+``capacity``: every step ends with pruning, merging and capping, so memory stays bounded over
+arbitrarily long sequences, and a cap that is hit is logged (``logging`` warning) and counted.
+
+Prediction (eq. 3; Vo & Ma 2006 eq. 21–24)::
+
+    w⁻ = p_S w,   m⁻ = F m,   P⁻ = F P Fᵀ + Q          (birth components are added by the caller)
+
+Update of every component against every measurement in one batched operation (eq. 25–29)::
+
+    ẑ_j = H m_j,  S_j = H P_j Hᵀ + R,  K_j = P_j Hᵀ S_j⁻¹,  P_j⁺ = (I − K_j H) P_j (·)ᵀ + K_j R K_jᵀ
+    missed:    w = (1 − p_D) w_j,                         m = m_j,                P = P_j
+    detected:  w = p_D w_j g_jk / (κ(z_k) + Σ_i p_D w_i g_ik),  m = m_j + K_j (z_k − ẑ_j),  P = P_j⁺
+    g_jk = N(z_k; ẑ_j, S_j), kept only inside the gate  (z_k − ẑ_j)ᵀ S_j⁻¹ (z_k − ẑ_j) ≤ γ
+
+``S`` is factored once per component (it does not depend on the measurement); pairs outside the gate
+get weight zero and are not materialised. The measurement axis is processed in chunks so that tens
+of thousands of measurements in one frame keep memory bounded.
+
+The PHD predictive log-likelihood of a measurement set (Mahler 2007, the Poisson form used for
+parameter learning) is returned by :meth:`GMPHD.update`::
+
+    log p(Z_k | Z_{1:k-1}) ≈ −λ_c − p_D Σ_j w_j⁻ + Σ_k log(κ(z_k) + p_D Σ_j w_j⁻ g_jk)
+
+with ``λ_c = κ · area`` (the term is dropped when ``area`` is None).
+
+Labels propagate: every updated hypothesis inherits its component's label, a merged component takes
+the label of its highest-weight member. Pruning, merging, capping and extraction are explicit
+stop-gradient *selections*; weights, means and covariances stay differentiable with respect to
+``p_S, p_D, κ, Q, R`` and the birth parameters.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.gaussian import LOG_2PI, symmetrize
+from torchtrack.models import ConstantVelocity, LinearPosition, MeasurementModel, MotionModel
+from torchtrack.params import Positive, Probability
+
+log = logging.getLogger(__name__)
+
+NEG_INF = float("-inf")
+
+
+class MixtureState(NamedTuple):
+    """A labelled Gaussian mixture; ``J`` components, state size ``n``.
+
+    ``log_weight (J,)`` (``-inf`` for an empty slot), ``mean (J, n)``, ``cov (J, n, n)``,
+    ``label (J,)`` int64 track labels, ``mask (J,)`` bool live slots.
+    """
+
+    log_weight: Tensor
+    mean: Tensor
+    cov: Tensor
+    label: Tensor
+    mask: Tensor
+
+    @property
+    def size(self) -> int:
+        return int(self.log_weight.shape[0])
+
+    def select(self, index: Tensor) -> MixtureState:
+        """Components at ``index`` (a long index or bool mask; a stop-gradient selection)."""
+        return MixtureState(self.log_weight[index], self.mean[index], self.cov[index], self.label[index],
+                            self.mask[index])
+
+    def expected_count(self) -> Tensor:
+        """Expected number of targets ``Σ w_j`` (differentiable)."""
+        return torch.where(self.mask, self.log_weight, torch.full_like(self.log_weight, NEG_INF)).exp().sum()
+
+
+def empty_mixture(n: int, dtype: torch.dtype = torch.float32, device=None) -> MixtureState:
+    """A mixture with no component."""
+    return MixtureState(torch.empty(0, dtype=dtype, device=device), torch.empty(0, n, dtype=dtype, device=device),
+                        torch.empty(0, n, n, dtype=dtype, device=device),
+                        torch.empty(0, dtype=torch.long, device=device),
+                        torch.empty(0, dtype=torch.bool, device=device))
+
+
+def concat(*states: MixtureState) -> MixtureState:
+    """Concatenate mixtures along the component axis."""
+    return MixtureState(*(torch.cat(parts, 0) for parts in zip(*states)))
+
+
+class Matrices(NamedTuple):
+    """The linear-Gaussian model for one time step: ``F, Q (n, n)``, ``H (m, n)``, ``R (m, m)``."""
+
+    F: Tensor
+    Q: Tensor
+    H: Tensor
+    R: Tensor
+
+
+class UpdateInfo(NamedTuple):
+    """What :meth:`GMPHD.update` reports besides the posterior."""
+
+    log_likelihood: Tensor   # () PHD predictive log-likelihood of the measurement set
+    log_denominator: Tensor  # (M,) log(κ(z_k) + p_D Σ_j w_j g_jk)
+    gated_pairs: int         # number of (component, measurement) pairs inside the gate
+
+
+class GMPHD(nn.Module):
+    """The GM-PHD recursion with learnable continuous parameters (all :mod:`torchtrack.params`).
+
+    Args:
+        motion: a linear motion model (default ``ConstantVelocity(2, q=1.0)``), state ``[x, y, vx, vy]``.
+        measurement: a linear measurement model (default ``LinearPosition(2, sigma=1.0)``).
+        p_survival, p_detection: ``p_S``, ``p_D`` (learnable probabilities).
+        clutter_density: clutter intensity ``κ`` per unit measurement volume (px⁻²; learnable).
+        area: surveillance area for the ``−λ_c`` term of the log-likelihood (None: term dropped).
+        gate_probability: probability mass of the χ² gate (``γ`` = its quantile, ``m`` dof).
+        prune_threshold: components with weight below it are dropped (Vo & Ma's ``T``).
+        merge_threshold: squared Mahalanobis distance ``U`` under which components merge.
+        merge_rounds: vectorised greedy-merging rounds (see :func:`merge`).
+        capacity: maximum number of components ``J_max`` kept after a step.
+        extract_threshold: components with weight above it are reported as targets.
+        chunk: measurements processed per batched chunk of the update.
+    """
+
+    def __init__(self, motion: MotionModel | None = None, measurement: MeasurementModel | None = None,
+                 p_survival: float = 0.99, p_detection: float = 0.9, clutter_density: float = 1e-4,
+                 area: float | None = None, gate_probability: float = 0.999, prune_threshold: float = 1e-4,
+                 merge_threshold: float = 4.0, merge_rounds: int = 3, capacity: int = 1024,
+                 extract_threshold: float = 0.5, chunk: int = 4096):
+        super().__init__()
+        self.motion = motion if motion is not None else ConstantVelocity(2, q=1.0)
+        self.measurement = measurement if measurement is not None else LinearPosition(2, sigma=1.0)
+        if not (self.motion.is_linear and self.measurement.is_linear):
+            raise TorchtrackError("GMPHD needs linear motion and measurement models")
+        if self.measurement.state_dim != self.motion.state_dim:
+            raise TorchtrackError(f"measurement state_dim {self.measurement.state_dim} != motion state_dim "
+                                  f"{self.motion.state_dim}")
+        if not 0.0 < gate_probability <= 1.0:
+            raise TorchtrackError(f"gate_probability must lie in (0, 1]; got {gate_probability}")
+        if capacity < 1:
+            raise TorchtrackError(f"capacity must be >= 1; got {capacity}")
+        if prune_threshold <= 0 or merge_threshold < 0 or extract_threshold <= 0 or merge_rounds < 1:
+            raise TorchtrackError("prune_threshold and extract_threshold must be > 0, merge_threshold >= 0, "
+                                  "merge_rounds >= 1")
+        self.p_survival = Probability(p_survival, "p_survival")
+        self.p_detection = Probability(p_detection, "p_detection")
+        self.clutter_density = Positive(clutter_density, "clutter_density")
+        self.area = area
+        m = self.measurement.meas_dim
+        self.gate = chi2_quantile(gate_probability, m)
+        self.prune_threshold = prune_threshold
+        self.merge_threshold = merge_threshold
+        self.merge_rounds = merge_rounds
+        self.capacity = capacity
+        self.extract_threshold = extract_threshold
+        self.chunk = chunk
+        self.cap_hits = 0
+
+    @property
+    def state_dim(self) -> int:
+        return self.motion.state_dim
+
+    def matrices(self, dt: float = 1.0) -> Matrices:
+        """``F, Q, H, R`` for a step of ``dt`` (compute once per step; differentiable)."""
+        return Matrices(self.motion.transition_matrix(dt), self.motion.process_noise(dt),
+                        self.measurement.matrix(), self.measurement.noise_cov())
+
+    def predict(self, state: MixtureState, mats: Matrices) -> MixtureState:
+        """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
+        F, Q = mats.F, mats.Q
+        mean = state.mean @ F.transpose(-1, -2)
+        cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + Q)
+        log_w = state.log_weight + torch.log(self.p_survival())
+        return MixtureState(log_w, mean, cov, state.label, state.mask)
+
+    def update(self, state: MixtureState, z: Tensor, mats: Matrices,
+               clutter: Tensor | None = None) -> tuple[MixtureState, UpdateInfo]:
+        """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
+
+        ``clutter`` optionally gives ``κ(z_k)`` per measurement ``(M,)``; by default the uniform
+        ``clutter_density``. Returns the posterior (missed-detection components first, then the gated
+        detection components, ``J + G`` in all) and :class:`UpdateInfo`.
+        """
+        H, R = mats.H, mats.R
+        m_dim = H.shape[0]
+        if z.dim() != 2 or z.shape[1] != m_dim:
+            raise TorchtrackError(f"measurements must have shape (M, {m_dim}); got {tuple(z.shape)}")
+        z = z.to(state.mean.dtype)
+        pd = self.p_detection()
+        log_pd = torch.log(pd)
+        kappa = self.clutter_density() if clutter is None else clutter
+        log_kappa = torch.log(kappa).expand(z.shape[0]) if z.shape[0] else torch.log(kappa).reshape(1)[:0]
+        live_w = torch.where(state.mask, state.log_weight, torch.full_like(state.log_weight, NEG_INF))
+
+        PHt = state.cov @ H.transpose(-1, -2)                       # (J, n, m)
+        S = symmetrize(H @ PHt + R)                                  # (J, m, m)
+        L, info = torch.linalg.cholesky_ex(S)
+        if state.size and bool((info != 0).any()):
+            raise TorchtrackError("GMPHD update: innovation covariance S is not positive definite "
+                                  f"for {int((info != 0).sum())} components")
+        eye_m = torch.eye(m_dim, dtype=S.dtype, device=S.device)
+        Linv = torch.linalg.solve_triangular(L, eye_m.expand_as(L), upper=False)   # (J, m, m)
+        K = PHt @ (Linv.transpose(-1, -2) @ Linv)                  # (J, n, m)  K = P Hᵀ S⁻¹
+        I_KH = torch.eye(H.shape[1], dtype=S.dtype, device=S.device) - K @ H
+        P_upd = symmetrize(I_KH @ state.cov @ I_KH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2))
+        z_hat = state.mean @ H.transpose(-1, -2)                    # (J, m)
+        half_logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (J,)
+        base = log_pd + live_w - half_logdet - 0.5 * m_dim * LOG_2PI            # (J,)
+
+        pair_j, pair_k, pair_logw, log_den = [], [], [], []
+        for start in range(0, z.shape[0], self.chunk):
+            zc = z[start:start + self.chunk]
+            nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
+            y = nu @ Linv.transpose(-1, -2)                          # whitened innovations
+            nis = y.pow(2).sum(-1)                                   # (J, C)
+            gated = (nis <= self.gate) & state.mask.unsqueeze(1)
+            log_num = torch.where(gated, base.unsqueeze(1) - 0.5 * nis, torch.full_like(nis, NEG_INF))
+            den = torch.logaddexp(log_kappa[start:start + self.chunk], torch.logsumexp(log_num, 0)) \
+                if state.size else log_kappa[start:start + self.chunk]
+            jj, kk = gated.nonzero(as_tuple=True)
+            pair_j.append(jj)
+            pair_k.append(kk + start)
+            pair_logw.append(log_num[jj, kk] - den[kk])
+            log_den.append(den)
+        log_den_t = torch.cat(log_den) if log_den else log_kappa
+        jj = torch.cat(pair_j) if pair_j else torch.empty(0, dtype=torch.long, device=z.device)
+        kk = torch.cat(pair_k) if pair_k else torch.empty(0, dtype=torch.long, device=z.device)
+        det_logw = torch.cat(pair_logw) if pair_logw else live_w[:0]
+        nu_sel = z[kk] - z_hat[jj]                                   # (G, m)
+        det_mean = state.mean[jj] + (K[jj] @ nu_sel.unsqueeze(-1)).squeeze(-1)
+
+        miss_logw = live_w + torch.log1p(-pd)
+        post = MixtureState(
+            torch.cat([miss_logw, det_logw]),
+            torch.cat([state.mean, det_mean]),
+            torch.cat([state.cov, P_upd[jj]]),
+            torch.cat([state.label, state.label[jj]]),
+            torch.cat([state.mask, torch.ones_like(jj, dtype=torch.bool)]),
+        )
+        loglik = log_den_t.sum() - pd * live_w.exp().sum()
+        if self.area is not None:
+            loglik = loglik - self.clutter_density() * self.area
+        return post, UpdateInfo(loglik, log_den_t, int(jj.shape[0]))
+
+    def prune(self, state: MixtureState) -> MixtureState:
+        """Drop empty slots and components with weight below ``prune_threshold``."""
+        keep = state.mask & (state.log_weight > math.log(self.prune_threshold))
+        return state.select(keep)
+
+    def cap(self, state: MixtureState, capacity: int | None = None) -> MixtureState:
+        """Keep the ``capacity`` highest-weight components; a hit cap is logged and counted."""
+        capacity = self.capacity if capacity is None else capacity
+        if state.size <= capacity:
+            return state
+        self.cap_hits += 1
+        log.warning("GMPHD: component cap hit (%d components, capacity %d): lowest weights dropped",
+                    state.size, capacity)
+        idx = torch.topk(state.log_weight.detach(), capacity).indices
+        return state.select(idx)
+
+    def merge(self, state: MixtureState, keep_label: Tensor | None = None) -> MixtureState:
+        """Merge components within squared Mahalanobis distance ``merge_threshold`` (see :func:`merge`)."""
+        return merge(state, self.merge_threshold, self.merge_rounds, keep_label)
+
+    def reduce(self, state: MixtureState, keep_label: Tensor | None = None) -> MixtureState:
+        """Prune, merge, cap (Vo & Ma 2006, Table II); ``keep_label (P,)`` labels that win a merge
+        (see :func:`merge`)."""
+        return self.cap(self.merge(self.prune(state), keep_label))
+
+    def extract(self, state: MixtureState) -> Tensor:
+        """Bool mask ``(J,)`` of components reported as targets (weight above ``extract_threshold``)."""
+        return state.mask & (state.log_weight > math.log(self.extract_threshold))
+
+    def gaussian_birth(self, mean: Tensor, std: Tensor, log_weight: Tensor, label: Tensor) -> MixtureState:
+        """Birth components ``N(mean, diag(std²))`` with log-weights ``log_weight``; ``mean, std (B, n)``."""
+        cov = torch.diag_embed(std.pow(2))
+        return MixtureState(log_weight, mean, cov, label, torch.ones_like(label, dtype=torch.bool))
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """Quantile of the χ² distribution (closed form for 2 dof, scipy otherwise); ``inf`` for ``p = 1``."""
+    if p >= 1.0:
+        return float("inf")
+    if dof == 2:
+        return -2.0 * math.log1p(-p)
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(p, dof))
+
+
+def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Tensor | None = None) -> MixtureState:
+    """Merge a mixture by a bounded number of vectorised greedy rounds (Vo & Ma 2006, Table II).
+
+    Components are ordered by weight. Component ``i`` is *within reach* of ``j`` when
+    ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U``. Each round, the live components with no live
+    higher-weight component within reach become *leaders*; every live non-leader with a leader within
+    reach joins its highest-weight one. Leftovers after ``rounds`` rounds stay on their own. Groups
+    are moment-matched (weights add, mean and covariance match, label of the leader)::
+
+        w = Σ wᵢ,  m = Σ wᵢ mᵢ / w,  P = Σ wᵢ (Pᵢ + (mᵢ − m)(mᵢ − m)ᵀ) / w
+
+    This equals the sequential greedy merge except when a component is within reach of two leaders
+    of which the heavier only becomes a leader in a later round. Membership is a stop-gradient
+    selection; the moment matching is differentiable.
+
+    With ``keep_label (P,)`` (the labels reported at the previous frame), a group containing one of those
+    labels keeps it (the highest-weight such member's) instead of the leader's label, so an established
+    identity is not taken over by a younger duplicate merging into it.
+    """
+    J = state.size
+    if J <= 1 or threshold <= 0:
+        return state.select(state.mask)
+    state = state.select(state.mask)
+    J = state.size
+    order = torch.argsort(state.log_weight.detach(), descending=True)
+    state = state.select(order)
+    mean, cov, log_w = state.mean, state.cov, state.log_weight
+    with torch.no_grad():
+        L, _ = torch.linalg.cholesky_ex(cov.detach())
+        diff = mean.detach().unsqueeze(0) - mean.detach().unsqueeze(1)       # [i, j] = m_j − m_i
+        y = torch.linalg.solve_triangular(L, diff.transpose(1, 2), upper=False)   # (i, n, j)
+        near = y.pow(2).sum(1) <= threshold                                  # [i, j]: i within reach of j
+        idx = torch.arange(J, device=mean.device)
+        higher = idx.unsqueeze(0) < idx.unsqueeze(1)                          # [i, j]: j heavier than i
+        near_higher = near & higher
+        alive = torch.ones(J, dtype=torch.bool, device=mean.device)
+        owner = idx.clone()
+        for _ in range(rounds):
+            leader = alive & ~(near_higher & alive.unsqueeze(0)).any(1)
+            cand = near_higher & leader.unsqueeze(0)
+            joins = alive & ~leader & cand.any(1)
+            first = cand.to(torch.int8).argmax(1)
+            owner = torch.where(joins, first, owner)
+            alive = alive & ~leader & ~joins
+            if not bool(alive.any()):
+                break
+        is_head = owner == idx
+        group = torch.cumsum(is_head.long(), 0) - 1
+        gid = group[owner]
+        G = int(is_head.sum())
+    if G == J:
+        return state
+    w_max = log_w.max()
+    w = torch.exp(log_w - w_max)                                             # (J,)
+    wsum = torch.zeros(G, dtype=w.dtype, device=w.device).index_add(0, gid, w)
+    mu = torch.zeros(G, mean.shape[1], dtype=w.dtype, device=w.device).index_add(0, gid, w.unsqueeze(1) * mean)
+    mu = mu / wsum.unsqueeze(1)
+    d = mean - mu[gid]
+    spread = cov + d.unsqueeze(-1) * d.unsqueeze(-2)
+    P = torch.zeros(G, *cov.shape[1:], dtype=w.dtype, device=w.device).index_add(
+        0, gid, w.view(-1, 1, 1) * spread) / wsum.view(-1, 1, 1)
+    heads = is_head.nonzero(as_tuple=True)[0]
+    label = state.label[heads]
+    if keep_label is not None and keep_label.numel():
+        with torch.no_grad():
+            key = torch.isin(state.label, keep_label).to(w.dtype) * 2.0 + w / wsum[gid]
+            best = torch.full((G,), -1.0, dtype=w.dtype, device=w.device).scatter_reduce(0, gid, key, "amax")
+            win = key == best[gid]
+            label = label.clone().scatter_(0, gid[win], state.label[win])
+    return MixtureState(torch.log(wsum) + w_max, mu, symmetrize(P), label,
+                        torch.ones(G, dtype=torch.bool, device=w.device))

@@ -1,0 +1,154 @@
+"""Label management for the labelled GM-PHD: the label fix (Aguilar et al. 2023, section 2.3) and
+per-label estimate extraction (Panta, Clark & Vo 2009).
+
+Both are discrete, stop-gradient selections over the extracted (high-weight) components; they touch
+only the integer ``label`` of a :class:`~torchtrack.filters.gmphd.MixtureState`.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchtrack.filters.gmphd import MixtureState
+
+
+def _first_of_label(label: Tensor, order: Tensor) -> Tensor:
+    """Given an ordering, stable-sort it by label and mark the first entry of each label group.
+
+    Returns ``(o, first)``: the permutation (indices into ``label``) and a bool mask over it.
+    """
+    o = order[torch.sort(label[order], stable=True).indices]
+    ls = label[o]
+    first = torch.ones_like(ls, dtype=torch.bool)
+    first[1:] = ls[1:] != ls[:-1]
+    return o, first
+
+
+def distance_to_previous(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Tensor) -> Tensor:
+    """Euclidean distance ``(E,)`` from each ``pos (E, d)`` to the previous estimate of its label.
+
+    ``prev_label (P,)`` are unique; a label without a previous estimate gets ``inf``.
+    """
+    if prev_label.numel() == 0:
+        return torch.full(label.shape, float("inf"), dtype=pos.dtype, device=pos.device)
+    sorted_prev, perm = torch.sort(prev_label)
+    loc = torch.searchsorted(sorted_prev, label).clamp(max=sorted_prev.numel() - 1)
+    found = sorted_prev[loc] == label
+    d = (pos - prev_pos[perm[loc]].to(pos.dtype)).norm(dim=-1)
+    return torch.where(found, d, torch.full_like(d, float("inf")))
+
+
+def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_pos: Tensor,
+              next_label: int, pos_dim: int = 2) -> tuple[MixtureState, int]:
+    """The label fix of section 2.3: among extracted components sharing a label, the one closest to that
+    label's previous estimate ``(x̂_{k−1}, ℓ)`` keeps it (ties and labels without a previous estimate:
+    the highest weight); every other one gets a fresh label ``ℓ_α`` from the latent space
+    ``next_label, next_label + 1, …``.
+
+    Args:
+        state: the posterior mixture; ``estimate (J,)`` bool mask of extracted components.
+        prev_label (P,), prev_pos (P, pos_dim): the previous frame's estimates.
+        next_label: first unused label.
+
+    Returns the relabelled state and the new first unused label.
+    """
+    idx = estimate.nonzero(as_tuple=True)[0]
+    if idx.numel() < 2:
+        return state, next_label
+    with torch.no_grad():
+        lab = state.label[idx]
+        pos = state.mean[idx, :pos_dim].detach()
+        dist = distance_to_previous(lab, pos, prev_label, prev_pos)
+        by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
+        by_dist = by_weight[torch.sort(dist[by_weight], stable=True).indices]
+        o, first = _first_of_label(lab, by_dist)
+        losers = idx[o[~first]]
+        n = int(losers.numel())
+    if n == 0:
+        return state, next_label
+    label = state.label.clone()
+    label[losers] = torch.arange(next_label, next_label + n, dtype=label.dtype, device=label.device)
+    return state._replace(label=label), next_label + n
+
+
+def best_per_label(state: MixtureState, estimate: Tensor) -> Tensor:
+    """Indices of the extracted components to report, one per label (the highest weight), as in the plain
+    labelled GM-PHD: duplicates of a label are not reported."""
+    idx = estimate.nonzero(as_tuple=True)[0]
+    if idx.numel() < 2:
+        return idx
+    by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
+    o, first = _first_of_label(state.label[idx], by_weight)
+    return idx[o[first]]
+
+
+def relabel(state: MixtureState, old: Tensor, new: Tensor) -> MixtureState:
+    """Every component labelled ``old[i]`` takes label ``new[i]`` (``old`` unique)."""
+    changed = old != new
+    if not bool(changed.any()):
+        return state
+    o, n = old[changed], new[changed]
+    so, perm = torch.sort(o)
+    loc = torch.searchsorted(so, state.label).clamp(max=so.numel() - 1)
+    hit = so[loc] == state.label
+    return state._replace(label=torch.where(hit, n[perm[loc]], state.label))
+
+
+class LostLabels(NamedTuple):
+    """Labels reported recently but not at the last frame: ``label (L,)``, last ``pos, vel (L, 2)`` and
+    ``age (L,)`` frames since they were last reported."""
+
+    label: Tensor
+    pos: Tensor
+    vel: Tensor
+    age: Tensor
+
+
+def no_lost_labels(dtype: torch.dtype = torch.float32, device=None) -> LostLabels:
+    return LostLabels(torch.empty(0, dtype=torch.long, device=device), torch.empty(0, 2, dtype=dtype, device=device),
+                      torch.empty(0, 2, dtype=dtype, device=device), torch.empty(0, dtype=torch.long, device=device))
+
+
+def label_handover(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Tensor, prev_vel: Tensor,
+                   lost: LostLabels, max_distance: float, dt: float = 1.0) -> Tensor:
+    """Hand a lost label back to the estimate that continues its trajectory (extension of the label fix).
+
+    ``label (E,)``, ``pos (E, 2)``: this frame's estimates; ``prev_label, prev_pos, prev_vel``: last
+    frame's. The pool of lost labels is ``lost`` plus last frame's labels not reported now. An estimate
+    whose label is neither last frame's nor in ``lost`` is *new*; a new estimate within ``max_distance`` of
+    a lost label's expected position ``p + v (age + 1) dt`` takes that label (greedy, closest first).
+    Returns ``(E,)`` the label each estimate should carry.
+    """
+    if label.numel() == 0:
+        return label
+    gone = ~torch.isin(prev_label, label)
+    new = ~torch.isin(label, prev_label) & ~torch.isin(label, lost.label)
+    if not bool(new.any()) or (lost.label.numel() == 0 and not bool(gone.any())):
+        return label
+    from torchtrack.association.assignment import greedy
+
+    pool_label = torch.cat([lost.label, prev_label[gone]])
+    steps = torch.cat([lost.age + 1, torch.ones_like(prev_label[gone])]).to(pos.dtype) * dt
+    expected = torch.cat([lost.pos, prev_pos[gone]]) + torch.cat([lost.vel, prev_vel[gone]]) * steps.unsqueeze(1)
+    ni = new.nonzero(as_tuple=True)[0]
+    dist = torch.cdist(pos[ni].detach(), expected.to(pos.dtype))
+    rows, cols = greedy(dist, dist <= max_distance)
+    out = label.clone()
+    out[ni[rows]] = pool_label[cols]
+    return out
+
+
+def update_lost(lost: LostLabels, prev_label: Tensor, prev_pos: Tensor, prev_vel: Tensor, label: Tensor,
+                max_age: int) -> LostLabels:
+    """The lost-label pool after a frame reporting ``label``: last frame's labels that are not reported
+    now join it, reported labels leave it, the others age by one; ``age`` counts the frames between the
+    last report and the frame just processed, and entries older than ``max_age`` expire."""
+    gone = ~torch.isin(prev_label, label)
+    keep = ~torch.isin(lost.label, label) & (lost.age + 1 <= max_age)
+    return LostLabels(torch.cat([lost.label[keep], prev_label[gone]]),
+                      torch.cat([lost.pos[keep], prev_pos[gone].to(lost.pos.dtype)]),
+                      torch.cat([lost.vel[keep], prev_vel[gone].to(lost.vel.dtype)]),
+                      torch.cat([lost.age[keep] + 1, torch.ones_like(prev_label[gone])]))

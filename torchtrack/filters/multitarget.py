@@ -1,0 +1,69 @@
+"""The common streaming interface of the multi-target trackers, and the factory that builds them.
+
+A tracker is fed one frame at a time::
+
+    tracker = make_tracker("gmphd", config)          # gmphd, labelled-gmphd, sort, greedy, ...
+    tracker.reset()
+    ids, positions = tracker.step(frame, positions, velocities)   # (K, 2) tensors; velocities or None
+
+``step`` returns the **confirmed** estimates of that frame: ``ids (E,)`` int64 (unique within a frame)
+and ``positions (E, 2)`` in the detections' coordinates. ``frame`` is the frame number (increasing;
+gaps are time steps without detections).
+
+New trackers register a factory ``config -> tracker`` here by module path (imported on first use).
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable, Iterable
+from typing import Protocol
+
+from torch import Tensor
+
+from torchtrack.errors import TorchtrackError
+
+
+class Tracker(Protocol):
+    """What every tracker offers."""
+
+    def reset(self) -> None: ...
+
+    def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]: ...
+
+
+TRACKERS: dict[str, str] = {
+    "gmphd": "torchtrack.filters.baselines:enhanced_gmphd",
+    "labelled-gmphd": "torchtrack.filters.baselines:labelled_gmphd",
+    "sort": "torchtrack.filters.baselines:SORT.from_config",
+    "greedy": "torchtrack.filters.baselines:GreedyTracker.from_config",
+}
+"""Tracker name → ``module:factory`` taking the tracker's config mapping (or None)."""
+
+
+def tracker_names() -> list[str]:
+    """Registered tracker names, in registration order."""
+    return list(TRACKERS)
+
+
+def _resolve(path: str) -> Callable:
+    module, _, attr = path.partition(":")
+    obj = importlib.import_module(module)
+    for part in attr.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def make_tracker(name: str, config: dict | None = None) -> Tracker:
+    """Build the tracker ``name`` from its config mapping (``None``: defaults)."""
+    if name not in TRACKERS:
+        raise TorchtrackError(f"unknown tracker {name!r}; choose one of {', '.join(TRACKERS)}")
+    tracker = _resolve(TRACKERS[name])(config)
+    tracker.reset()
+    return tracker
+
+
+def run_tracker(tracker: Tracker, frames: Iterable[tuple[int, Tensor, Tensor | None]]
+                ) -> list[tuple[int, Tensor, Tensor]]:
+    """Feed ``(frame, positions, velocities)`` triples through ``tracker``; returns ``(frame, ids, positions)``."""
+    return [(frame, *tracker.step(frame, z, v)) for frame, z, v in frames]
