@@ -86,7 +86,8 @@ class _Distance:
         if self.iou is not None:
             d = _iou_distance(a[:, None], b[None, :])
             return np.where(d > 1.0 - self.iou, np.nan, d)
-        d2 = np.sum((a[:, None] - b[None, :]) ** 2, axis=-1)
+        dx, dy = a[:, None, 0] - b[None, :, 0], a[:, None, 1] - b[None, :, 1]
+        d2 = dx * dx + dy * dy
         d2[d2 > self.threshold**2] = np.nan
         return np.sqrt(d2)
 
