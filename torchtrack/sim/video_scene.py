@@ -168,8 +168,8 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     # car parks with slots in rows; slot spacing = length + gap (2-5 px)
     slot_xy, slot_angle = [], []
     for _ in range(cfg.car_parks):
-        cw, ch = rng.uniform(50, 110), rng.uniform(40, 90)
-        cx, cy = rng.uniform(cw, w - cw), rng.uniform(ch, h - ch)
+        cw, ch = min(rng.uniform(50, 110), 0.4 * w), min(rng.uniform(40, 90), 0.4 * h)
+        cx, cy = rng.uniform(cw / 2, w - cw / 2), rng.uniform(ch / 2, h - ch / 2)
         ang = rng.uniform(0, np.pi)
         box = cv2.boxPoints(((cx, cy), (cw, ch), np.degrees(ang))).astype(np.float32)
         tone = float(rng.uniform(70, 95))

@@ -1,0 +1,49 @@
+"""Checkpoints: one format for training (``last.pt``) and the shipped weights, read with
+``torch.load(..., weights_only=True)`` and validated, so that a truncated or foreign file is a clear error.
+
+Content: ``format`` (``"torchtrack-detector"``), ``version``, ``config`` (the :class:`DetectorConfig`
+as a dict), ``model`` (state dict), and for training checkpoints ``epoch``, ``optimizer``, ``history``.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from detector.config import config_from_dict
+from torchtrack.errors import TorchtrackError
+
+FORMAT = "torchtrack-detector"
+VERSION = 1
+
+
+def save_checkpoint(path: str | Path, payload: dict) -> None:
+    """Write ``payload`` (plus format and version) atomically (temporary file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save({"format": FORMAT, "version": VERSION, **payload}, tmp)
+    tmp.replace(path)
+
+
+def load_checkpoint(path: str | Path) -> dict:
+    """Read and validate a detector checkpoint; raise :class:`TorchtrackError` naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise TorchtrackError(f"detector checkpoint {path}: no such file")
+    try:
+        data = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise TorchtrackError(f"detector checkpoint {path}: unreadable, truncated or not a torch file "
+                              f"({type(exc).__name__}: {str(exc).splitlines()[0][:120]})") from exc
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise TorchtrackError(f"detector checkpoint {path}: not a torchtrack detector checkpoint "
+                              f"(no 'format': '{FORMAT}' entry)")
+    if data.get("version") != VERSION:
+        raise TorchtrackError(f"detector checkpoint {path}: version {data.get('version')}, expected {VERSION}")
+    for key in ("config", "model"):
+        if key not in data:
+            raise TorchtrackError(f"detector checkpoint {path}: missing '{key}'")
+    data["config"] = config_from_dict(data["config"], f"detector checkpoint {path}")
+    return data

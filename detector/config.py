@@ -1,0 +1,107 @@
+"""Detector training configuration (``configs/detector.yaml``): model, data, train and decode sections."""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import yaml
+
+from torchtrack.errors import TorchtrackError
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    widths: tuple[int, int, int] = (32, 48, 64)
+    head: int = 32
+
+
+@dataclass(frozen=True)
+class DataConfig:
+    train_sequences: int = 48
+    val_sequences: int = 4
+    frames: int = 12                   # per cached sequence
+    cache: str = "data/cache/detector"
+    crop: int = 128                    # training crop (multiple of 16)
+    video: dict = field(default_factory=dict)   # overrides of torchtrack.sim.video.VideoConfig
+    prior_sigma: float = 1.5           # px, prior heatmap of the previous detections
+    target_sigma: float = 0.8          # output cells, heatmap target
+    prior_jitter: float = 1.0          # px (CenterTrack: centre jitter)
+    prior_drop: float = 0.2            # probability to drop a previous peak
+    prior_false: float = 0.1           # probability per object of a false peak near it
+    prior_clutter: float = 2.0         # mean number of false peaks anywhere per crop
+    same_frame: float = 0.05           # probability that the pair is (frame, frame) with an empty prior
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    epochs: int = 10
+    steps_per_epoch: int = 150
+    batch: int = 16                    # global batch (divided among torchrun ranks)
+    lr: float = 2e-3
+    weight_decay: float = 0.0
+    offset_weight: float = 1.0
+    velocity_weight: float = 0.1
+    out: str = "runs/detector"
+    val_frames: int = 8                # frames of each validation sequence scored per epoch
+
+
+@dataclass(frozen=True)
+class DecodeConfig:
+    threshold: float = 0.3
+    top_k: int = 1000
+    radius: float = 10.0               # px, match distance for precision / recall / F1
+
+
+@dataclass(frozen=True)
+class DetectorConfig:
+    model: ModelConfig = field(default_factory=ModelConfig)
+    data: DataConfig = field(default_factory=DataConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+    decode: DecodeConfig = field(default_factory=DecodeConfig)
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _section(cls, values, where: str):
+    if values is None:
+        return cls()
+    if not isinstance(values, dict):
+        raise TorchtrackError(f"{where}: expected a mapping")
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise TorchtrackError(f"{where}: unknown key(s) {unknown}; known: {sorted(names)}")
+    kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
+    return cls(**kwargs)
+
+
+def config_from_dict(values: dict, source: str = "config") -> DetectorConfig:
+    """Build a :class:`DetectorConfig`; unknown sections or keys raise naming ``source``."""
+    sections = {"model": ModelConfig, "data": DataConfig, "train": TrainConfig, "decode": DecodeConfig}
+    unknown = sorted(set(values) - set(sections))
+    if unknown:
+        raise TorchtrackError(f"{source}: unknown section(s) {unknown}; known: {sorted(sections)}")
+    cfg = DetectorConfig(**{k: _section(c, values.get(k), f"{source}: {k}") for k, c in sections.items()})
+    if cfg.data.crop % 16:
+        raise TorchtrackError(f"{source}: data.crop must be a multiple of 16, got {cfg.data.crop}")
+    if cfg.data.video:
+        from torchtrack.sim.video_config import from_dict
+
+        from_dict(cfg.data.video, f"{source}: data.video")   # validates the keys
+    return cfg
+
+
+def load_config(path: str | Path | None) -> DetectorConfig:
+    """Read ``configs/detector.yaml``-style YAML; ``None`` gives the defaults."""
+    if path is None:
+        return DetectorConfig()
+    path = Path(path)
+    if not path.is_file():
+        raise TorchtrackError(f"detector config {path}: no such file")
+    data = yaml.safe_load(path.read_text()) or {}
+    if not isinstance(data, dict):
+        raise TorchtrackError(f"detector config {path}: expected a mapping at the top level")
+    return config_from_dict(data, str(path))

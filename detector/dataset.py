@@ -1,0 +1,173 @@
+"""Training data: cached synthetic sequences and a dataset of perturbed frame pairs (CenterTrack).
+
+The cache holds ``S`` sequences of ``T`` frames from :func:`torchtrack.sim.video.generate_sequence`
+(uint8) with their truth, saved once under ``data.cache`` (a file named by a hash of everything that
+determines it). :class:`PairDataset` item ``i`` of epoch ``e`` is a pure function of ``(seed, e, i)``:
+a random sequence and frame ``k >= 1``, a random crop and one of the 8 flips/rotations, the previous
+frame ``k-1`` and the prior heatmap of the previous truth perturbed as in CenterTrack (centre jitter,
+dropped peaks, false peaks near objects and anywhere). Being a pure function of the index is what makes
+``torchrun`` training with a ``DistributedSampler`` equal to single-process training.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+from typing import NamedTuple
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from detector.config import DetectorConfig
+from detector.network import STRIDE
+from detector.targets import Targets, gaussian_heatmap, make_targets
+from torchtrack.errors import TorchtrackError
+
+CACHE_VERSION = 1
+
+
+class SequenceCache(NamedTuple):
+    """frames (S, T, H, W) uint8; per frame ``f = s*T + t`` the truth rows ``start[f]:start[f+1]`` of
+    ids (R,) int64, xy (R, 2) and velocity (R, 2) float32 (NaN where unknown)."""
+
+    frames: torch.Tensor
+    start: torch.Tensor
+    ids: torch.Tensor
+    xy: torch.Tensor
+    velocity: torch.Tensor
+
+    def truth(self, s: int, t: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        f = s * self.frames.shape[1] + t
+        a, b = int(self.start[f]), int(self.start[f + 1])
+        return self.ids[a:b], self.xy[a:b], self.velocity[a:b]
+
+
+def normalise(frame: torch.Tensor) -> torch.Tensor:
+    """``(I - mean) / (std + 1)`` of a whole frame (H, W) -> float32; the same at training and inference."""
+    f = frame.float()
+    return (f - f.mean()) / (f.std() + 1.0)
+
+
+def split_seed(seed: int, split: str, index: int) -> int:
+    """Generator seed of sequence ``index`` of a split: train, val and test never share a seed."""
+    return {"train": 0, "val": 1, "test": 2}[split] * 10_000_000 + seed * 10_000 + index
+
+
+def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = None,
+                progress: bool = False) -> SequenceCache:
+    """Load the cached sequences of ``split`` or generate and save them (see module docstring)."""
+    from torchtrack.sim.video import VideoConfig, generate_sequence
+    from torchtrack.sim.video_config import from_dict
+
+    count = count if count is not None else (cfg.data.train_sequences if split == "train" else cfg.data.val_sequences)
+    video = from_dict({**cfg.data.video, "frames": cfg.data.frames}, "data.video")
+    key = json.dumps({"v": CACHE_VERSION, "video": repr(video), "split": split, "seed": seed, "n": count},
+                     sort_keys=True)
+    path = Path(cfg.data.cache) / f"{split}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.pt"
+    if path.is_file():
+        try:
+            return SequenceCache(**torch.load(path, weights_only=True))
+        except Exception as exc:  # a damaged cache is regenerated
+            print(f"detector cache {path} unreadable ({exc}); regenerating")
+    assert isinstance(video, VideoConfig)
+    frames, ids, xy, vel, start = [], [], [], [], [0]
+    it = range(count)
+    if progress:
+        from tqdm import tqdm
+
+        it = tqdm(it, desc=f"generating {split} sequences", unit="seq")
+    for i in it:
+        seq = []
+        for f in generate_sequence(video, torch.Generator().manual_seed(split_seed(seed, split, i))):
+            seq.append(torch.from_numpy(f.image))
+            ids.append(torch.from_numpy(f.ids))
+            xy.append(torch.from_numpy(f.xy).float())
+            vel.append(torch.from_numpy(f.velocity).float())
+            start.append(start[-1] + len(f.ids))
+        frames.append(torch.stack(seq))
+    cache = SequenceCache(torch.stack(frames), torch.tensor(start), torch.cat(ids), torch.cat(xy), torch.cat(vel))
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_suffix(".tmp")
+    torch.save(cache._asdict(), tmp)
+    tmp.replace(path)
+    return cache
+
+
+def _dihedral(img: torch.Tensor, pts: torch.Tensor, vec: torch.Tensor, code: int, size: int):
+    """Apply flip/transposition ``code`` in 0..7 to images (..., n, n), points and vectors (N, 2)."""
+    pts, vec = pts.clone(), vec.clone()
+    if code & 1:                                     # horizontal flip
+        img = img.flip(-1)
+        pts[:, 0] = size - 1 - pts[:, 0]
+        vec[:, 0] = -vec[:, 0]
+    if code & 2:                                     # vertical flip
+        img = img.flip(-2)
+        pts[:, 1] = size - 1 - pts[:, 1]
+        vec[:, 1] = -vec[:, 1]
+    if code & 4:                                     # transpose
+        img = img.transpose(-1, -2)
+        pts, vec = pts.flip(-1), vec.flip(-1)
+    return img, pts, vec
+
+
+class PairDataset(Dataset):
+    """``len = steps_per_epoch * batch``; item ``i`` -> ``(input (3, c, c), Targets at stride 2)``."""
+
+    def __init__(self, cache: SequenceCache, cfg: DetectorConfig, seed: int) -> None:
+        s, t, h, w = cache.frames.shape
+        c = cfg.data.crop
+        if t < 2:
+            raise TorchtrackError("detector data: need at least 2 frames per sequence")
+        if c > min(h, w):
+            raise TorchtrackError(f"detector data: crop {c} is larger than the frames ({h}x{w})")
+        self.cache, self.cfg, self.seed, self.epoch = cache, cfg, seed, 0
+        fr = cache.frames.float()
+        self.mean = fr.mean((2, 3))
+        self.std = fr.std((2, 3)) + 1.0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.cfg.train.steps_per_epoch * self.cfg.train.batch
+
+    def __getitem__(self, i: int) -> tuple[torch.Tensor, Targets]:
+        d, cache = self.cfg.data, self.cache
+        rng = np.random.default_rng([self.seed, self.epoch, i])
+        n_seq, n_t, h, w = cache.frames.shape
+        s, t = int(rng.integers(n_seq)), int(rng.integers(1, n_t))
+        same = rng.random() < d.same_frame
+        tp = t if same else t - 1
+        c = d.crop
+        y0, x0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+        cur = (cache.frames[s, t, y0:y0 + c, x0:x0 + c].float() - self.mean[s, t]) / self.std[s, t]
+        prev = (cache.frames[s, tp, y0:y0 + c, x0:x0 + c].float() - self.mean[s, tp]) / self.std[s, tp]
+        _, xy, vel = cache.truth(s, t)
+        xy = xy - torch.tensor([x0, y0], dtype=torch.float32)
+        vel = torch.zeros_like(vel) if same else vel
+        if same:
+            prior_xy = torch.zeros(0, 2)
+        else:
+            _, pxy, _ = cache.truth(s, tp)
+            pxy = pxy - torch.tensor([x0, y0], dtype=torch.float32)
+            keep = torch.from_numpy(rng.random(len(pxy)) >= d.prior_drop)
+            jitter = torch.from_numpy(rng.normal(0, d.prior_jitter, (len(pxy), 2))).float()
+            near = torch.from_numpy(rng.random(len(pxy)) < d.prior_false)
+            false_near = pxy[near] + torch.from_numpy(rng.normal(0, 4.0, (int(near.sum()), 2))).float()
+            clutter = torch.from_numpy(rng.uniform(0, c, (rng.poisson(d.prior_clutter), 2))).float()
+            prior_xy = torch.cat([(pxy + jitter)[keep], false_near, clutter])
+        img = torch.stack([cur, prev])
+        code = int(rng.integers(8))
+        img, xy, vel = _dihedral(img, xy, vel, code, c)
+        _, prior_xy, _ = _dihedral(img[:0], prior_xy, prior_xy, code, c)
+        prior = gaussian_heatmap(prior_xy, (c, c), d.prior_sigma)
+        x = torch.cat([img, prior[None]]).contiguous()
+        return x, make_targets(xy, vel, (c, c), STRIDE, d.target_sigma)
+
+
+def collate(batch: list[tuple[torch.Tensor, Targets]]) -> tuple[torch.Tensor, Targets]:
+    """Stack inputs and targets into ``(B, 3, c, c)`` and a batched :class:`Targets`."""
+    xs, ts = zip(*batch)
+    return torch.stack(xs), Targets(*(torch.stack(parts) for parts in zip(*ts)))

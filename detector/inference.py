@@ -1,0 +1,95 @@
+"""Per-frame inference for a streaming pipeline: :class:`Detector` and :func:`load_detector`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+from detector.checkpoint import load_checkpoint
+from detector.config import DetectorConfig
+from detector.dataset import normalise
+from detector.decode import Detections, decode
+from detector.network import MULTIPLE, STRIDE, CenterTrackNet
+from detector.targets import gaussian_heatmap
+from torchtrack.errors import TorchtrackError
+
+DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "centertrack_small.pt"
+
+
+def _as_frame(frame, name: str) -> torch.Tensor:
+    t = torch.as_tensor(np.ascontiguousarray(frame)) if isinstance(frame, np.ndarray) else torch.as_tensor(frame)
+    if t.dim() == 3 and t.shape[-1] in (3, 4):         # colour (H, W, C) -> grey
+        t = t[..., :3].float().mean(-1)
+    if t.dim() != 2:
+        raise TorchtrackError(f"detector: {name} must be a grey image (H, W), got shape {tuple(t.shape)}")
+    return t
+
+
+class Detector(nn.Module):
+    """A :class:`CenterTrackNet` with its pre- and post-processing.
+
+    ``detect(frame, prev_frame=None, prev_points=None) -> Detections`` for one frame: ``frame`` and
+    ``prev_frame`` grey ``(H, W)`` arrays or tensors of the same size (uint8 or float in 0..255;
+    ``prev_frame=None`` uses ``frame``, as CenterTrack does on a first frame), ``prev_points`` ``(N, 2)``
+    the previous detections (x, y) px (``None``: empty prior). Returns the trimmed detections: ``xy``
+    (K, 2) px, ``score`` (K,), ``velocity`` (K, 2) px/frame, ``x_k - x_{k-1}``.
+    """
+
+    def __init__(self, config: DetectorConfig | None = None) -> None:
+        super().__init__()
+        self.config = config or DetectorConfig()
+        m = self.config.model
+        self.net = CenterTrackNet(tuple(m.widths), m.head).to(memory_format=torch.channels_last)
+
+    def prepare(self, frame, prev_frame=None, prev_points=None) -> tuple[torch.Tensor, tuple[int, int]]:
+        """Network input ``(1, 3, H', W')`` (padded to a multiple of 16) and the original size."""
+        cur = _as_frame(frame, "frame")
+        prev = cur if prev_frame is None else _as_frame(prev_frame, "prev_frame")
+        if prev.shape != cur.shape:
+            raise TorchtrackError(f"detector: frame {tuple(cur.shape)} and prev_frame {tuple(prev.shape)} "
+                                  "have different sizes")
+        h, w = cur.shape
+        pts = torch.zeros(0, 2) if prev_points is None else torch.as_tensor(prev_points, dtype=torch.float32)
+        if pts.dim() != 2 or pts.shape[-1] != 2:
+            raise TorchtrackError(f"detector: prev_points must have shape (N, 2), got {tuple(pts.shape)}")
+        prior = gaussian_heatmap(pts.reshape(-1, 2), (h, w), self.config.data.prior_sigma)
+        x = torch.stack([normalise(cur), normalise(prev), prior])[None]
+        ph, pw = (-h) % MULTIPLE, (-w) % MULTIPLE
+        if ph or pw:
+            x = F.pad(x, (0, pw, 0, ph))
+        return x.contiguous(memory_format=torch.channels_last), (h, w)
+
+    def forward(self, x: torch.Tensor):
+        return self.net(x)
+
+    @torch.inference_mode()
+    def detect(self, frame, prev_frame=None, prev_points=None, threshold: float | None = None) -> Detections:
+        x, (h, w) = self.prepare(frame, prev_frame, prev_points)
+        hm, off, vel = self.net(x)
+        hm = hm[..., : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
+        off = off[..., : hm.shape[-2], : hm.shape[-1]]
+        vel = vel[..., : hm.shape[-2], : hm.shape[-1]]
+        d = self.config.decode
+        det = decode(hm, off, vel, STRIDE, d.threshold if threshold is None else threshold, d.top_k)
+        keep = det.mask[0]
+        return Detections(det.xy[0, keep], det.score[0, keep], det.velocity[0, keep], keep[keep])
+
+
+def detector_from_checkpoint(data: dict) -> Detector:
+    """A :class:`Detector` in eval mode from a validated checkpoint dict (see :mod:`detector.checkpoint`)."""
+    det = Detector(data["config"])
+    try:
+        det.net.load_state_dict(data["model"])
+    except RuntimeError as exc:
+        raise TorchtrackError(f"detector checkpoint: weights do not fit the model ({str(exc)[:200]})") from exc
+    return det.eval()
+
+
+def load_detector(path: str | Path | None = None) -> Detector:
+    """The shipped detector (``detector/weights/centertrack_small.pt``) or the checkpoint at ``path``,
+    in eval mode."""
+    return detector_from_checkpoint(load_checkpoint(DEFAULT_WEIGHTS if path is None else path))

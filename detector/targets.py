@@ -1,0 +1,75 @@
+"""Gaussian heatmaps (prior and training targets) and the dense regression targets.
+
+Convention (input pixels, ``x`` = column, ``y`` = row): a centre ``c`` falls in output cell
+``floor(c / s)`` (``s`` the stride) with sub-pixel offset ``c / s - floor(c / s)`` in ``[0, 1)``; the
+heatmap target is a Gaussian ``exp(-|cell - floor(c/s)|^2 / (2 sigma^2))`` peaking at 1 in that cell
+(CenterNet/CenterTrack), the element-wise maximum over objects.
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import torch
+
+
+def gaussian_heatmap(points: torch.Tensor, shape: tuple[int, int], sigma: float,
+                     weight: torch.Tensor | None = None) -> torch.Tensor:
+    """Max over points of ``w_i exp(-|p - c_i|^2 / (2 sigma^2))`` on the pixel grid ``shape`` = (H, W).
+
+    points: (N, 2) as (x, y) in pixels (any float); weight: optional (N,). Returns (H, W) float32,
+    computed on a ``(2r+1)^2`` window (``r = ceil(3 sigma)``) around each point, no loop over points.
+    """
+    h, w = shape
+    out = torch.zeros(h * w, dtype=torch.float32, device=points.device)
+    if points.numel() == 0:
+        return out.view(h, w)
+    r = max(1, int(torch.ceil(torch.tensor(3.0 * sigma)).item()))
+    d = torch.arange(-r, r + 1, device=points.device)
+    base = torch.round(points).long()                                  # (N, 2)
+    gx = base[:, 0, None, None] + d[None, None, :]                     # (N, 1, K)
+    gy = base[:, 1, None, None] + d[None, :, None]                     # (N, K, 1)
+    val = torch.exp(-((gx - points[:, 0, None, None]) ** 2 + (gy - points[:, 1, None, None]) ** 2)
+                    / (2 * sigma ** 2)).float()
+    if weight is not None:
+        val = val * weight[:, None, None]
+    gx, gy = torch.broadcast_tensors(gx, gy)
+    ok = (gx >= 0) & (gx < w) & (gy >= 0) & (gy < h)
+    out.scatter_reduce_(0, (gy * w + gx)[ok], val[ok], reduce="amax")
+    return out.view(h, w)
+
+
+class Targets(NamedTuple):
+    """Dense training targets at output resolution ``(h, w) = (H/s, W/s)``.
+
+    heatmap (1, h, w); offset (2, h, w) in cells; velocity (2, h, w) px/frame; centre (h, w) bool: a
+    centre cell (offset supervised); has_velocity (h, w) bool: a centre cell with a known velocity.
+    """
+
+    heatmap: torch.Tensor
+    offset: torch.Tensor
+    velocity: torch.Tensor
+    centre: torch.Tensor
+    has_velocity: torch.Tensor
+
+
+def make_targets(xy: torch.Tensor, velocity: torch.Tensor, in_shape: tuple[int, int], stride: int,
+                 sigma: float) -> Targets:
+    """Targets for objects at ``xy`` (N, 2) px with ``velocity`` (N, 2) px/frame (NaN: unknown)."""
+    h, w = in_shape[0] // stride, in_shape[1] // stride
+    c = xy.float() / stride
+    cell = torch.floor(c)
+    inside = (cell[:, 0] >= 0) & (cell[:, 0] < w) & (cell[:, 1] >= 0) & (cell[:, 1] < h)
+    c, cell, vel = c[inside], cell[inside].long(), velocity[inside].float()
+    heat = gaussian_heatmap(cell.float(), (h, w), sigma)[None]
+    idx = cell[:, 1] * w + cell[:, 0]
+    offset = torch.zeros(2, h * w)
+    offset[:, idx] = (c - cell).T
+    centre = torch.zeros(h * w, dtype=torch.bool)
+    centre[idx] = True
+    known = ~torch.isnan(vel).any(dim=1)
+    v = torch.zeros(2, h * w)
+    v[:, idx[known]] = vel[known].T
+    has_v = torch.zeros(h * w, dtype=torch.bool)
+    has_v[idx[known]] = True
+    return Targets(heat, offset.view(2, h, w), v.view(2, h, w), centre.view(h, w), has_v.view(h, w))

@@ -1,0 +1,155 @@
+"""Training loop, single process or under ``torchrun`` with ``DistributedDataParallel``.
+
+``torchrun --nproc_per_node N -m torchtrack train-detector --config configs/detector.yaml`` runs the
+same code: the process group comes from the environment (gloo on CPU, NCCL on GPU), each rank takes
+``batch / N`` items of every global batch through a ``DistributedSampler`` (same permutation on every
+rank), and since items are pure functions of their index and the loss is a mean of per-sample terms,
+the averaged gradient equals the single-process gradient of the global batch. Rank 0 writes the
+caches, the checkpoints (``last.pt`` every epoch, ``best.pt`` by validation F1) and the progress bar.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import os
+import time
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader, DistributedSampler
+
+from detector.checkpoint import load_checkpoint, save_checkpoint
+from detector.config import DetectorConfig
+from detector.dataset import PairDataset, build_cache, collate
+from detector.evaluate import evaluate_cache
+from detector.inference import Detector
+from detector.losses import detection_loss
+from detector.targets import Targets
+from torchtrack.errors import TorchtrackError
+
+
+def _init_distributed() -> tuple[int, int, torch.device]:
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    rank = int(os.environ.get("RANK", "0"))
+    device = torch.device("cpu")
+    if world > 1:
+        if torch.cuda.is_available():
+            local = int(os.environ.get("LOCAL_RANK", "0"))
+            device = torch.device("cuda", local)
+            torch.cuda.set_device(device)
+        if not dist.is_initialized():
+            dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
+        if device.type == "cpu":
+            torch.set_num_threads(max(1, min(torch.get_num_threads(), (os.cpu_count() or 1) // world)))
+    elif torch.cuda.is_available():
+        device = torch.device("cuda")
+    return world, rank, device
+
+
+def _barrier(world: int) -> None:
+    if world > 1:
+        dist.barrier()
+
+
+def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bool = True,
+          log=print) -> dict:
+    """Train (or resume) the detector of ``cfg``; returns ``{"history": [...], "best": path}``.
+
+    Each history entry: epoch, mean loss parts, samples/s and the validation scores (precision,
+    recall, f1, velocity_error_px) on the held-out ``val`` sequences.
+    """
+    world, rank, device = _init_distributed()
+    t = cfg.train
+    if t.batch % world:
+        raise TorchtrackError(f"train.batch {t.batch} is not divisible by the number of processes {world}")
+    torch.manual_seed(seed)
+    det = Detector(cfg)
+    model = det.net.to(device)
+    net = DistributedDataParallel(model) if world > 1 else model
+    opt = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
+    total = t.epochs * t.steps_per_epoch
+    warm = min(50, max(1, total // 10))
+    sched = torch.optim.lr_scheduler.LambdaLR(
+        opt, lambda s: min(1.0, (s + 1) / warm) * 0.5 * (1 + math.cos(math.pi * min(s, total) / total)))
+    out = Path(t.out)
+    start, history, best_f1 = 0, [], -1.0
+    if resume:
+        ck = load_checkpoint(out / "last.pt")
+        if dataclasses.replace(ck["config"], train=dataclasses.replace(ck["config"].train, epochs=t.epochs)) != cfg:
+            raise TorchtrackError(f"--resume: {out / 'last.pt'} was trained with a different config")
+        model.load_state_dict(ck["model"])
+        opt.load_state_dict(ck["optimizer"])
+        sched.load_state_dict(ck["scheduler"])
+        start, history = int(ck["epoch"]) + 1, list(ck["history"])
+        best_f1 = max([h["val"]["f1"] for h in history] or [-1.0])
+        if rank == 0:
+            log(f"resuming from {out / 'last.pt'} after epoch {start}")
+    if rank == 0:
+        train_cache = build_cache(cfg, "train", seed, progress=progress)
+        val_cache = build_cache(cfg, "val", seed, progress=progress)
+    _barrier(world)
+    if rank != 0:
+        train_cache = build_cache(cfg, "train", seed)
+    data = PairDataset(train_cache, cfg, seed)
+    for epoch in range(start, t.epochs):
+        data.set_epoch(epoch)
+        sampler = DistributedSampler(data, num_replicas=world, rank=rank, shuffle=True, seed=seed, drop_last=True)
+        sampler.set_epoch(epoch)
+        loader = DataLoader(data, batch_size=t.batch // world, sampler=sampler, collate_fn=collate,
+                            num_workers=0, drop_last=True)
+        model.train()
+        bar = None
+        if progress and rank == 0:
+            from tqdm import tqdm
+
+            bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{t.epochs}", unit="step")
+        sums, n, t0 = {"loss": 0.0, "heatmap": 0.0, "offset": 0.0, "velocity": 0.0}, 0, time.perf_counter()
+        for x, tg in loader:
+            x = x.to(device).contiguous(memory_format=torch.channels_last)
+            tg = Targets(*(v.to(device) for v in tg))
+            loss, parts = detection_loss(net(x), tg, t.offset_weight, t.velocity_weight)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            sched.step()
+            n += 1
+            sums["loss"] += loss.item()
+            for k, v in parts.items():
+                sums[k] += v
+            if bar is not None:
+                rate = n * t.batch / (time.perf_counter() - t0)
+                bar.set_postfix(loss=f"{sums['loss'] / n:.3f}", samples_per_s=f"{rate:.1f}")
+                bar.update()
+        if bar is not None:
+            bar.close()
+        entry = {"epoch": epoch, **{k: v / max(1, n) for k, v in sums.items()},
+                 "samples_per_s": n * t.batch / (time.perf_counter() - t0)}
+        if rank == 0:
+            det.eval()
+            entry["val"] = evaluate_cache(det, val_cache, t.val_frames, cfg.decode.radius)
+            det.train()
+            history.append(entry)
+            v = entry["val"]
+            log(f"epoch {epoch + 1}: loss {entry['loss']:.4f}  val precision {v['precision']:.3f} recall "
+                f"{v['recall']:.3f} F1 {v['f1']:.3f} velocity error {v['velocity_error_px']:.2f} px/frame")
+            payload = {"config": cfg.as_dict(), "model": model.state_dict(), "epoch": epoch,
+                       "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "history": history,
+                       "seed": seed}
+            save_checkpoint(out / "last.pt", payload)
+            if v["f1"] > best_f1:
+                best_f1 = v["f1"]
+                save_checkpoint(out / "best.pt", payload)
+        _barrier(world)
+    return {"history": history, "best": str(out / "best.pt"), "last": str(out / "last.pt")}
+
+
+def export_weights(src: str | Path, dst: str | Path, extra: dict | None = None) -> Path:
+    """Write the model part of a training checkpoint (config, weights, history) for shipping."""
+    ck = load_checkpoint(src)
+    payload = {"config": ck["config"].as_dict(), "model": {k: v.contiguous() for k, v in ck["model"].items()},
+               "epoch": ck.get("epoch"), "history": ck.get("history", []), **(extra or {})}
+    save_checkpoint(dst, payload)
+    return Path(dst)

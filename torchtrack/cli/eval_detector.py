@@ -1,0 +1,74 @@
+"""``torchtrack eval-detector``: precision, recall, F1 and velocity error of the detector."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torchtrack.cli._common import add_common_options, format_table, write_json
+
+NAME = "eval-detector"
+HELP = "score the detector on held-out synthetic sequences and on the real WPAFB frames"
+DESCRIPTION = HELP + """
+
+A detection is a true positive when it is matched one-to-one (Hungarian) to a truth point within
+--radius px (default 10). velocity_error_px: mean |v_pred - v_true| (px/frame) over matched
+detections. fps: detector calls per second (pre-processing, network, decoding) at the frames' size.
+Held-out sequences use seeds never used in training (split 'test'). The WPAFB part runs where
+../shared/data/wpafb-aoi02 (or $TORCHTRACK_WPAFB) exists: all vehicles, and moving vehicles with
+detections on parked vehicles as don't-care.
+Example: torchtrack eval-detector --sequences 4 --frames 20 --json out/eval.json
+"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--weights", type=Path, default=None, help="checkpoint (default: shipped weights)")
+    parser.add_argument("--config", type=Path, default=None,
+                        help="video config of the held-out sequences (default: the checkpoint's training data)")
+    parser.add_argument("--sequences", type=int, default=4, help="held-out synthetic sequences (default 4)")
+    parser.add_argument("--frames", type=int, default=20, help="frames per sequence (default 20)")
+    parser.add_argument("--radius", type=float, default=10.0, help="match distance in px (default 10)")
+    parser.add_argument("--threshold", type=float, default=None, help="score threshold (default: checkpoint's)")
+    parser.add_argument("--wpafb", type=Path, default=None, help="WPAFB folder (default ../shared/data/wpafb-aoi02)")
+    parser.add_argument("--no-wpafb", action="store_true", help="skip the real frames")
+    parser.add_argument("--threads", type=int, default=None, help="torch intra-op threads")
+    add_common_options(parser)
+
+
+def run(args) -> int:
+    import dataclasses
+
+    import torch
+
+    from detector.dataset import split_seed
+    from detector.evaluate import evaluate_synthetic
+    from detector.inference import load_detector
+    from detector.wpafb import default_path, evaluate_wpafb
+    from torchtrack.sim.video_config import from_dict, load_video_config
+
+    if args.threads is not None:
+        torch.set_num_threads(args.threads)
+    det = load_detector(args.weights)
+    if args.threshold is not None:
+        det.config = dataclasses.replace(det.config, decode=dataclasses.replace(det.config.decode,
+                                                                                 threshold=args.threshold))
+    video = load_video_config(args.config) if args.config else from_dict(dict(det.config.data.video))
+    video = video.replace(frames=args.frames)
+    seeds = [split_seed(args.seed, "test", i) for i in range(args.sequences)]
+    result = evaluate_synthetic(det, video, seeds, args.radius)
+    rows = [["synthetic (held out)", result["precision"], result["recall"], result["f1"],
+             result["velocity_error_px"], result["frames"], result["fps"]]]
+    payload = {k: result[k] for k in ("precision", "recall", "f1", "velocity_error_px", "frames", "fps")}
+    payload["synthetic"] = result
+    path = args.wpafb or default_path()
+    if not args.no_wpafb and (path / "transformed_object_states.csv").is_file():
+        real = evaluate_wpafb(det, path, args.radius)
+        payload["wpafb"] = real
+        for name in ("all", "moving"):
+            r = real[name]
+            rows.append([f"WPAFB real, {name} vehicles", r["precision"], r["recall"], r["f1"],
+                         r["velocity_error_px"], r["frames"], r["fps"]])
+    elif not args.no_wpafb:
+        print(f"(no WPAFB data at {path}; real frames skipped)")
+    print(format_table(["data", "precision", "recall", "F1", "vel err px/fr", "frames", "fps"], rows))
+    write_json(args.json, payload)
+    return 0
