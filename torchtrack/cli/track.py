@@ -18,6 +18,7 @@ import yaml
 from torchtrack.cli._common import add_common_options, format_table, write_json
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import Tracker, make_tracker, tracker_names
+from torchtrack.pipeline.cli_options import add_frame_options, run_frame_inputs
 
 NAME = "track"
 HELP = "run a multi-target tracker (gmphd, labelled-gmphd, sort, greedy) on detections and score it"
@@ -58,6 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: the per-frame "
                         "work is small, more threads only add overhead)")
     add_common_options(parser)
+    add_frame_options(parser)
 
 
 # --------------------------------------------------------------------------- configs
@@ -183,6 +185,9 @@ def compare(det, config: dict, out: Path, gt, threshold: float, trackers: list[s
 def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(max(1, args.threads))
     torch.manual_seed(args.seed)
+    rc = run_frame_inputs(args, load_tracker_config(args.config).get(args.tracker))
+    if rc is not None:
+        return rc
     if args.benchmark is not None:
         from torchtrack.cli._wpafb_benchmark import run_benchmark
 

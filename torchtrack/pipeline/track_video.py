@@ -40,10 +40,13 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from detector import load_detector
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.multitarget import make_tracker
 from torchtrack.io.frames import FrameSource
 from torchtrack.io.mot import MOTData, MOTWriter, from_points, read_mot
 from torchtrack.io.video_writer import AnnotatedVideoWriter, apply_homography, save_png
+from torchtrack.metrics import clear_mot
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.registration import Registration, transfer_error
 
@@ -98,8 +101,9 @@ def _numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
 class Detection:
     """Registration + detection of a frame stream (steps 1–2 of the module docstring).
 
-    ``detector`` has ``detect(frame, prev_frame, prev_points) -> (positions, scores, velocities)``
-    (``(K, 2)``, ``(K,)``, ``(K, 2)``, frame pixel coordinates, velocities in px/frame).
+    ``detector`` has ``detect(frame, prev_frame, prev_points)`` returning an object with ``xy (K, 2)``,
+    ``score (K,)`` and ``velocity (K, 2)`` (:class:`detector.Detections`: frame pixel coordinates,
+    velocities ``x_k − x_{k-1}`` in px/frame).
     """
 
     def __init__(self, detector, registration: Registration, timer: StageTimer) -> None:
@@ -124,8 +128,8 @@ class Detection:
                                            borderMode=cv2.BORDER_REPLICATE)
             prior = apply_homography(self.prior_ref, h_inv)
         with self.timer("detection"):
-            pos, scores, vel = self.detector.detect(image, prev, prior)
-        pos, vel, scores = _numpy(pos, (2,)), _numpy(vel, (2,)), _numpy(scores, ())
+            found = self.detector.detect(image, prev, prior)
+        pos, vel, scores = _numpy(found.xy, (2,)), _numpy(found.velocity, (2,)), _numpy(found.score, ())
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
@@ -138,7 +142,12 @@ def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple
     """One ``tracker.step`` on a frame's detections; returns ``ids (N,)`` and reference ``positions (N, 2)``."""
     ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype),
                                   torch.as_tensor(det.velocities, dtype=dtype))
-    return _numpy(ids, ()).astype(np.int64), _numpy(positions, (2,))
+    ids = _numpy(ids, ()).astype(np.int64)
+    unique, counts = np.unique(ids, return_counts=True)
+    if np.any(counts > 1):
+        raise TorchtrackError(f"tracker {type(tracker).__name__} reported identity {int(unique[counts > 1][0])} "
+                              f"twice in frame {det.index}; identities must be unique within a frame")
+    return ids, _numpy(positions, (2,))
 
 
 def _truth_by_frame(gt: MOTData | None) -> dict[int, np.ndarray]:
@@ -155,12 +164,11 @@ def check_truth_frames(gt: MOTData, gt_path: str, frames: int) -> None:
                               f"video has only {frames} frames")
 
 
-def score(gt: MOTData, tracks: MOTData, threshold: float) -> dict:
-    """CLEAR-MOT of ``tracks`` against ``gt`` (centre distance ``threshold`` px)."""
-    from torchtrack.metrics import clear_mot
-
+def score(gt: MOTData, tracks: MOTData, threshold: float, ignore: np.ndarray | None = None) -> dict:
+    """CLEAR-MOT of ``tracks`` against ``gt`` (centre distance ``threshold`` px; ``ignore (K,)`` marks
+    don't-care truth lines, e.g. parked vehicles under the paper's moving-objects protocol)."""
     return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in
-            clear_mot(gt, tracks, threshold=threshold).items()}
+            clear_mot(gt, tracks, threshold=threshold, ignore=ignore).items()}
 
 
 def write_json_atomic(path: Path, payload: dict) -> None:
@@ -179,15 +187,9 @@ class PipelineResult:
     detections: list[FrameDetections] = field(default_factory=list)
 
 
-def make_tracker(name: str, options: dict):
-    """The tracker ``name`` of :func:`torchtrack.filters.multitarget.make_tracker`."""
-    from torchtrack.filters.multitarget import make_tracker as _make
-
-    return _make(name, options)
-
-
 def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | None = None, detector=None,
-                gt: MOTData | None = None, gt_path: str = "gt.txt", camera: np.ndarray | None = None,
+                gt: MOTData | None = None, gt_path: str = "gt.txt", ignore: np.ndarray | None = None,
+                camera: np.ndarray | None = None,
                 keep_detections: bool = False, progress: bool = True) -> PipelineResult:
     """Run the pipeline on ``source`` and write ``tracks.txt``, ``detections.txt``, ``annotated.mp4`` and
     ``metrics.json`` under ``out``.
@@ -196,7 +198,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         source: frames (grey).
         config: :class:`PipelineConfig` (defaults: enhanced GM-PHD, LK registration).
         detector: object with ``detect`` (default: the shipped weights, ``detector.load_detector``).
-        gt: truth (frame coordinates) to score against and draw; ``gt_path`` names it in errors.
+        gt: truth (frame coordinates) to score against and draw; ``gt_path`` names it in errors;
+            ``ignore (K,)`` bool over its lines marks don't-care objects (not drawn, not scored).
         camera: true homographies ``(T, 3, 3)`` reference → frame ``k`` of a synthetic sequence; when
             given, the registration error against them is measured and reported.
         keep_detections: also return every frame's :class:`FrameDetections` (to run other trackers on
@@ -211,14 +214,12 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
     if gt is not None and n_frames:
         check_truth_frames(gt, gt_path, n_frames)
     if detector is None:
-        from detector import load_detector
-
         detector = load_detector(cfg.detector_weights)
     dtype = getattr(torch, cfg.dtype)
     timer = StageTimer()
     detection = Detection(detector, Registration(cfg.registration), timer)
-    tracker = make_tracker(cfg.tracker, cfg.tracker_options)
-    truth = _truth_by_frame(gt)
+    tracker = make_tracker(cfg.tracker, cfg.tracker_options or None)
+    truth = _truth_by_frame(gt if ignore is None or gt is None else gt.select(~ignore))
     files = {"tracks": out / "tracks.txt", "detections": out / "detections.txt"}
     video = AnnotatedVideoWriter(out / "annotated.mp4", fps=cfg.video_fps, trail=cfg.trail, box=cfg.box,
                                  scale=cfg.scale) if cfg.video else None
@@ -281,8 +282,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                      "frame_size": list(source.shape)}
     if gt is not None:
         check_truth_frames(gt, gt_path, frames)
-        metrics["clear_mot"] = score(gt, read_mot(files["tracks"]), cfg.threshold)
-        det_scores = score(gt, _detections_as_tracks(files["detections"]), cfg.threshold)
+        metrics["clear_mot"] = score(gt, read_mot(files["tracks"]), cfg.threshold, ignore)
+        det_scores = score(gt, _detections_as_tracks(files["detections"]), cfg.threshold, ignore)
         metrics["detector"] = {k: det_scores[k] for k in ("TP", "FP", "FN", "precision", "recall", "MOTP")}
     seconds = dict(timer.seconds)
     metrics["timings_s"] = {**seconds, "total": wall}

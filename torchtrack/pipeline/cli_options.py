@@ -1,0 +1,120 @@
+"""The frame-input options of ``torchtrack track``: ``--video FILE``, ``--frames DIR``, ``--sequences DIR``.
+
+``torchtrack/cli/track.py`` calls :func:`add_frame_options` on its parser and, before its own
+``--detections`` path, :func:`run_frame_inputs`, which returns ``None`` when no frame option was given.
+Options it reads from that parser when present: ``--tracker``, ``--gt``, ``--out``, ``--json``; the
+tracker's options come from ``torchtrack track --config`` through ``tracker_options``.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from torchtrack.cli._common import format_table, write_json
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.frames import open_frames
+from torchtrack.io.mot import MOTData, read_mot
+from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
+from torchtrack.pipeline.config import load_pipeline_config
+from torchtrack.pipeline.sequences import destroy, run_sequences
+from torchtrack.pipeline.track_video import track_video
+from torchtrack.sim.video import read_camera
+
+SCORE_COLUMNS = ["GT", "MT", "PT", "ML", "FP", "FN", "IDS", "MOTA", "MOTP", "IDF1"]
+
+
+def add_frame_options(parser: argparse.ArgumentParser) -> None:
+    """Add the video pipeline's options to ``torchtrack track``."""
+    g = parser.add_argument_group("frames (the video pipeline: registration → detector → tracker)")
+    src = g.add_mutually_exclusive_group()
+    src.add_argument("--video", type=Path, metavar="FILE", help="track the objects of a video file")
+    src.add_argument("--frames", type=Path, metavar="DIR", help="track a folder of images (natural order)")
+    src.add_argument("--sequences", type=Path, metavar="DIR",
+                     help="evaluate every sequence folder in DIR and aggregate (shards over torchrun ranks)")
+    g.add_argument("--pipeline-config", type=Path, metavar="YAML", default=None,
+                   help="pipeline settings (configs/pipeline.yaml); default: the embedded ones")
+    g.add_argument("--weights", type=Path, metavar="PT", default=None,
+                   help="detector weights (default: the shipped ones)")
+    g.add_argument("--camera", type=Path, metavar="JSON", default=None,
+                   help="true camera motion (camera.json of a synthetic sequence) to measure registration")
+    g.add_argument("--truth-csv", type=Path, metavar="CSV", default=None,
+                   help="score against a WPAFB truth CSV (transformed_object_states.csv) with the paper's "
+                        "protocol: moving vehicles are targets, the others don't-care; frame 1 of the CSV "
+                        "is the first frame; CSV frames beyond the video are not scored")
+    g.add_argument("--no-video", action="store_true", help="do not write annotated.mp4")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+
+
+def _score_row(name: str, m: dict | None, fps: float) -> list:
+    if m is None:
+        return [name, *["-"] * len(SCORE_COLUMNS), fps]
+    return [name, *[m[k] for k in SCORE_COLUMNS], fps]
+
+
+def wpafb_truth(csv: Path, frames: int) -> tuple[MOTData, np.ndarray, Path]:
+    """The WPAFB CSV's truth over its first ``frames`` frames and the don't-care mask (not moving by the
+    paper's rule, computed on the whole CSV so that the history before the first frame counts)."""
+    full = read_wpafb_csv(csv)
+    moving = moving_mask(full)
+    keep = full.frame <= frames
+    return full.select(keep), ~moving[keep], csv
+
+
+def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = None) -> int | None:
+    """Run the pipeline for ``--video``/``--frames``/``--sequences``; ``None`` if none was given."""
+    if not (args.video or args.frames or args.sequences):
+        return None
+    if getattr(args, "detections", None):
+        raise TorchtrackError("give either --detections or one of --video/--frames/--sequences, not both")
+    config = load_pipeline_config(args.pipeline_config)
+    changes = {"tracker": getattr(args, "tracker", None) or config.tracker}
+    if tracker_options:
+        changes["tracker_options"] = tracker_options
+    if args.weights:
+        changes["detector_weights"] = str(args.weights)
+    if args.no_video:
+        changes["video"] = False
+    config = config.replace(**changes)
+    out = Path(getattr(args, "out", None) or "out/track")
+    header = ["sequence", *SCORE_COLUMNS, "FPS"]
+    if args.sequences:
+        if getattr(args, "gt", None):
+            raise TorchtrackError("--gt does not apply to --sequences: each sequence folder holds its gt.txt")
+        try:
+            summary = run_sequences(args.sequences, out, config, progress=not args.no_progress)
+        finally:
+            destroy()
+        if summary is None:  # a torchrun rank other than 0
+            return 0
+        rows = [_score_row(n, m.get("clear_mot"), m["fps"]["end_to_end"]) for n, m in summary["sequences"].items()]
+        if "aggregate" in summary:
+            rows.append(_score_row("ALL", summary["aggregate"], summary["fps_per_process"]))
+        print(format_table(header, rows, floatfmt=".3f"))
+        print(f"{len(summary['sequences'])} sequences, {summary['frames']} frames, tracker {config.tracker}, "
+              f"{summary['world_size']} process(es); wrote {out}/metrics.json and {out}/<sequence>/")
+        write_json(getattr(args, "json", None), summary)
+        return 0
+    source = open_frames(args.video or args.frames)
+    gt_path = getattr(args, "gt", None)
+    gt = read_mot(gt_path) if gt_path else None
+    ignore = None
+    if args.truth_csv:
+        if gt is not None:
+            raise TorchtrackError("give either --gt or --truth-csv, not both")
+        gt, ignore, gt_path = wpafb_truth(args.truth_csv, len(source))
+    camera = read_camera(args.camera) if args.camera else None
+    result = track_video(source, out, config, gt=gt, gt_path=str(gt_path), ignore=ignore, camera=camera,
+                         progress=not args.no_progress)
+    m = result.metrics
+    print(format_table(header, [_score_row(Path(source.path).name, m.get("clear_mot"), m["fps"]["end_to_end"])],
+                       floatfmt=".3f"))
+    timings = ", ".join(f"{k} {v:.2f}s" for k, v in m["timings_s"].items())
+    print(f"{m['frames']} frames, tracker {config.tracker}: {timings}")
+    if "registration_error_px" in m:
+        print(f"registration error vs camera truth: median {m['registration_error_px']['median']:.3f} px")
+    print("wrote " + ", ".join(str(p) for p in result.files.values()))
+    write_json(getattr(args, "json", None), m)
+    return 0
