@@ -1,0 +1,85 @@
+"""``torchtrack tune --config configs/tune-*.yaml``: fit filter parameters by gradient."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+NAME = "tune"
+HELP = "fit filter parameters (noise, p_D, clutter, birth, transition matrices) to data by gradient"
+DESCRIPTION = """Fit the trainable parameters of a filter to data by gradient descent.
+
+The YAML config names the filter (kalman, imm, gmphd, pf), its builder options (start values), the
+trainable parameters by dotted name (everything else frozen), the data (simulated or from files,
+split into training and held-out sequences or windows), the loss (marginal log-likelihood, PHD
+predictive likelihood, particle estimate, soft GOSPA) and the optimiser (adam or lbfgs, mini-batches,
+early stopping on the held-out loss). See docs/tune.md.
+
+Writes OUT/params.yaml (the fitted parameters; torchtrack.tune.load_params / load_filter read it,
+and for the multi-target filters OUT/track.yaml is a `torchtrack track --config` file) and
+OUT/loss.png (the loss curve). A non-finite loss stops training, keeps the last parameters with a
+finite loss, writes them, and exits with status 1.
+
+Examples:
+  torchtrack tune --config configs/tune-kalman.yaml
+  torchtrack tune --config configs/tune-gmphd-wpafb.yaml --out out/tune-gmphd --json out/tune-gmphd.json
+"""
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from torchtrack.cli._common import add_common_options
+
+    parser.add_argument("--config", type=Path, required=True, metavar="YAML", help="tune config (configs/tune-*.yaml)")
+    parser.add_argument("--out", type=Path, default=None, metavar="DIR",
+                        help="output folder (default: the config's output.dir, else out/tune-FILTER)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (default 1: small per-step matrices are fastest on one thread)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_common_options(parser, seed=None)
+    for action in parser._actions:
+        if action.dest == "seed":
+            action.help = "random seed (default: the config's seed, else 0)"
+
+
+def _rows(report: dict) -> list[list]:
+    rows = []
+    for name, fitted in report["fitted"].items():
+        start = report["start"].get(name)
+        truth = report["truth"].get(name, "")
+        rel = report["relative_error"].get(name)
+        rows.append([name, _fmt(start), _fmt(fitted), _fmt(truth) if truth != "" else "-",
+                     f"{100 * rel:.1f}%" if rel is not None else "-"])
+    return rows
+
+
+def _fmt(v) -> str:
+    if isinstance(v, list):
+        return "[" + ", ".join(_fmt(x) for x in v) + "]"
+    return f"{v:.4g}" if isinstance(v, float) else str(v)
+
+
+def run(args) -> int:
+    import torch
+
+    from torchtrack.cli._common import format_table, write_json
+    from torchtrack.tune import tune
+
+    torch.set_num_threads(max(1, args.threads))
+    report = tune(args.config, out=args.out, seed=args.seed, progress=not args.no_progress)
+    print(format_table(["parameter", "start", "fitted", "truth", "error"], _rows(report)))
+    before, after = report["held_out_before"], report["held_out_after"]
+    keys = [k for k in before if k in after]
+    print()
+    print(format_table(["held-out", "before", "after"], [[k, float(before[k]), float(after[k])] for k in keys],
+                       floatfmt=".4g"))
+    print(f"\n{report['steps']} steps ({report['stopped']}; kept step {report['best_step']}), "
+          f"{report['filter_evaluations']} item evaluations ({report['training_passes']:.1f} training passes), "
+          f"{report['seconds']:.1f} s")
+    for key, path in report["output"].items():
+        print(f"{key}: {path}")
+    write_json(args.json, report)
+    if report["stopped"] == "non-finite":
+        print(f"torchtrack tune: warning: {report['message']}", file=sys.stderr)
+        return 1
+    return 0

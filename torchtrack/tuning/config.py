@@ -1,0 +1,128 @@
+"""Tune configs (what to fit) and fitted-parameter files (what was fitted).
+
+A **fitted-parameter file** is YAML::
+
+    filter: kalman            # registry name (torchtrack.tuning.registry)
+    model: {...}              # the builder options the filter was built from
+    params:                   # constrained values, by dotted name — edit these by hand if you like
+      measurement.sigma: 5.02
+      motion.q: 0.98
+    raw:                      # the unconstrained values the optimiser found (bit-exact round-trip)
+      measurement.sigma: 4.995
+      motion.q: 0.524
+
+:func:`load_params` copies ``raw`` when it still maps to ``params`` (so loading reproduces the fitted
+filter's output exactly) and otherwise — ``params`` edited by hand, or ``raw`` absent — sets each
+parameter from its constrained value through the inverse transform.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+import yaml
+from torch import nn
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.tuning.parameters import get_raw, get_values, set_raw, set_values, tunable_parameters
+
+TUNE_KEYS = ("filter", "model", "trainable", "data", "loss", "optimizer", "early_stopping", "output", "seed",
+             "evaluate")
+
+
+def read_yaml(path: str | os.PathLike) -> dict:
+    """A YAML mapping from ``path``; errors name the file (and line for syntax errors)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise TorchtrackError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        raise TorchtrackError(f"{where}: invalid YAML: {getattr(exc, 'problem', exc)}") from exc
+    if not isinstance(data, dict):
+        raise TorchtrackError(f"{path}: expected a mapping at the top level")
+    return data
+
+
+def read_tune_config(path: str | os.PathLike) -> dict:
+    """A tune config with its keys checked (``filter`` and ``trainable`` required)."""
+    cfg = read_yaml(path)
+    extra = sorted(set(cfg) - set(TUNE_KEYS))
+    if extra:
+        raise TorchtrackError(f"{path}: unknown key(s) {', '.join(map(repr, extra))}; allowed: "
+                              f"{', '.join(TUNE_KEYS)}")
+    for key in ("filter", "trainable", "data"):
+        if key not in cfg:
+            raise TorchtrackError(f"{path}: missing required key {key!r}")
+    if isinstance(cfg["trainable"], str):
+        cfg["trainable"] = [cfg["trainable"]]
+    return cfg
+
+
+def _plain(t: torch.Tensor):
+    return t.detach().cpu().double().tolist()
+
+
+def params_document(module: nn.Module, filter_name: str, model: Mapping[str, Any] | None = None,
+                    names: Iterable[str] | None = None, extra: Mapping[str, Any] | None = None) -> dict:
+    """The fitted-parameter document for ``module`` (all tunable parameters unless ``names``)."""
+    names = list(tunable_parameters(module)) if names is None else list(names)
+    doc = {"filter": filter_name, "model": dict(model or {}),
+           "params": {n: _plain(v) for n, v in get_values(module, names).items()},
+           "raw": {n: _plain(v) for n, v in get_raw(module, names).items()}}
+    if extra:
+        doc.update(extra)
+    return doc
+
+
+def save_params(module: nn.Module, path: str | os.PathLike, filter_name: str,
+                model: Mapping[str, Any] | None = None, names: Iterable[str] | None = None,
+                extra: Mapping[str, Any] | None = None) -> Path:
+    """Write the fitted-parameter file (floats written with full precision, so reading is exact)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(yaml.safe_dump(params_document(module, filter_name, model, names, extra), sort_keys=False))
+    return path
+
+
+def load_params(module: nn.Module, path: str | os.PathLike) -> dict[str, torch.Tensor]:
+    """Set ``module``'s parameters from a fitted-parameter file; returns the constrained values set.
+
+    Names not in the module raise :class:`TorchtrackError` listing the valid names. The module's
+    ``requires_grad`` flags are left unchanged.
+    """
+    doc = read_yaml(path)
+    params = doc.get("params")
+    if not isinstance(params, Mapping) or not params:
+        raise TorchtrackError(f"{path}: needs a non-empty 'params' mapping of name: value")
+    raw = doc.get("raw") or {}
+    if not isinstance(raw, Mapping):
+        raise TorchtrackError(f"{path}: 'raw' must be a mapping of name: value")
+    valid = tunable_parameters(module)
+    unknown = [n for n in params if n not in valid]
+    if unknown:
+        raise TorchtrackError(f"{path}: unknown parameter(s) {', '.join(map(repr, unknown))} for "
+                              f"{type(module).__name__}; valid names: {', '.join(sorted(valid))}")
+    for name, value in params.items():
+        ref = valid[name].raw
+        try:
+            value_t = torch.as_tensor(value, dtype=ref.dtype, device=ref.device)
+        except (TypeError, ValueError) as exc:
+            raise TorchtrackError(f"{path}: params.{name} is not a number or a list of numbers") from exc
+        if value_t.shape != ref.shape:
+            raise TorchtrackError(f"{path}: params.{name} must have shape {tuple(ref.shape)}; got "
+                                  f"{tuple(value_t.shape)}")
+        if name in raw:
+            set_raw(module, {name: torch.as_tensor(raw[name], dtype=ref.dtype)})
+            if torch.allclose(get_values(module, [name])[name], value_t, rtol=1e-6, atol=1e-12):
+                continue  # raw still maps to the written value: keep it, bit-exact
+        set_values(module, {name: value_t})
+    return get_values(module, list(params))

@@ -1,0 +1,34 @@
+"""Loss-curve plot of a fit (PNG, matplotlib Agg backend)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from torchtrack.tuning.trainer import FitResult
+
+
+def plot_loss_curve(result: FitResult, path: str | Path, title: str = "") -> Path:
+    """Training loss per step and held-out loss per evaluation; the chosen step marked."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig, ax = plt.subplots(figsize=(6, 4))
+    steps = range(1, len(result.train_loss) + 1)
+    ax.plot(steps, result.train_loss, label="training (mini-batch)", lw=1)
+    if result.held_out:
+        s, v = zip(*result.held_out)
+        ax.plot(s, v, "o-", label="held-out", ms=3)
+    if result.best_step:
+        ax.axvline(result.best_step, color="k", ls=":", lw=1, label=f"kept (step {result.best_step})")
+    ax.set_xlabel("step")
+    ax.set_ylabel("loss")
+    ax.set_title(title or "torchtrack tune")
+    ax.legend()
+    fig.tight_layout()
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+    return path

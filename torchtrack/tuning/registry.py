@@ -1,0 +1,114 @@
+"""Registry of tunable filters: name → builder, data loader and losses.
+
+A tunable filter is a :class:`Tunable` subclass registered under a name (``kalman``, ``imm``,
+``gmphd``, ``pf``) in its own module of this package; modules are imported on first use, so a filter
+whose module is missing only fails when asked for.
+"""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Mapping, Sequence
+from typing import Any, NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchtrack.errors import TorchtrackError
+
+# name → module defining it (imported lazily)
+_MODULES = {
+    "kalman": "torchtrack.tuning.kalman",
+    "imm": "torchtrack.tuning.imm",
+    "gmphd": "torchtrack.tuning.gmphd",
+    "pf": "torchtrack.tuning.pf",
+}
+_REGISTRY: dict[str, type[Tunable]] = {}
+
+
+class TuneData(NamedTuple):
+    """Training and held-out items (sequences or windows; the item type belongs to the tunable)."""
+
+    train: list
+    held_out: list
+
+
+class Tunable:
+    """Base class. Subclasses set ``name``, ``losses`` (the first is the default) and implement
+    :meth:`build`, :meth:`load_data` and :meth:`loss`; :meth:`evaluate` is optional."""
+
+    name: str = ""
+    losses: tuple[str, ...] = ()
+    options_help: str = ""
+
+    def __init__(self, options: Mapping[str, Any] | None = None):
+        self.options = dict(options or {})
+
+    def build(self) -> nn.Module:
+        """The filter module from ``self.options`` (start values of the parameters included)."""
+        raise NotImplementedError
+
+    def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
+        """Training and held-out items from the ``data`` section of a tune config."""
+        raise NotImplementedError
+
+    def loss(self, module: nn.Module, items: Sequence, loss: str) -> Tensor:
+        """Scalar loss (a mean per measurement / frame) of ``module`` on a batch of ``items``."""
+        raise NotImplementedError
+
+    def evaluate(self, module: nn.Module, items: Sequence) -> dict[str, float]:
+        """Task metrics on held-out items (e.g. MOTA, OSPA); none by default."""
+        return {}
+
+    def truth(self, data_config: Mapping[str, Any]) -> dict[str, Any]:
+        """True parameter values ``{dotted name: value}`` where the data are simulated; none by default."""
+        return {}
+
+
+def register(cls: type[Tunable]) -> type[Tunable]:
+    """Class decorator adding a :class:`Tunable` to the registry under ``cls.name``."""
+    _REGISTRY[cls.name] = cls
+    return cls
+
+
+def tunable_names() -> list[str]:
+    return sorted(_MODULES)
+
+
+def get_tunable(name: str, options: Mapping[str, Any] | None = None) -> Tunable:
+    """An instance of the tunable filter ``name`` with builder ``options``."""
+    if name not in _MODULES:
+        raise TorchtrackError(f"unknown filter {name!r}; tunable filters: {', '.join(tunable_names())}")
+    if name not in _REGISTRY:
+        try:
+            importlib.import_module(_MODULES[name])
+        except ModuleNotFoundError as exc:
+            raise TorchtrackError(f"filter {name!r} cannot be tuned in this installation: {exc}") from exc
+    return _REGISTRY[name](options)
+
+
+def check_keys(section: Mapping[str, Any], allowed: Sequence[str], where: str) -> None:
+    """Raise naming ``where`` when ``section`` has keys outside ``allowed``."""
+    if not isinstance(section, Mapping):
+        raise TorchtrackError(f"{where} must be a mapping; got {type(section).__name__}")
+    extra = sorted(set(section) - set(allowed))
+    if extra:
+        raise TorchtrackError(f"unknown key(s) {', '.join(map(repr, extra))} in {where}; allowed: "
+                              f"{', '.join(sorted(allowed))}")
+
+
+def split_items(items: list, held_out, where: str) -> TuneData:
+    """Split ``items`` into training and held-out: ``held_out`` is a count (the last items) or a
+    fraction in (0, 1)."""
+    n = len(items)
+    if held_out is None or held_out == 0:
+        k = 0
+    elif isinstance(held_out, float) and 0 < held_out < 1:
+        k = max(1, int(round(held_out * n)))
+    elif isinstance(held_out, int) and held_out > 0:
+        k = held_out
+    else:
+        raise TorchtrackError(f"{where}.held_out must be a count >= 0 or a fraction in (0, 1); got {held_out!r}")
+    if k >= n:
+        raise TorchtrackError(f"{where}: held_out ({k}) leaves no training data out of {n} item(s)")
+    return TuneData(items[: n - k], items[n - k:])

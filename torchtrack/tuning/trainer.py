@@ -1,0 +1,204 @@
+"""The optimisation loop: mini-batches, Adam or L-BFGS, early stopping, non-finite guard.
+
+Every step draws a mini-batch of training items (without replacement within an epoch), evaluates
+the tunable's loss, and moves the selected unconstrained parameters. Every ``eval_every`` steps the
+held-out loss is computed; training stops when it has not improved by ``min_delta`` for ``patience``
+evaluations, and the parameters with the best held-out loss are restored. A non-finite loss or
+gradient stops training at once with a message and restores the last parameters whose loss was
+finite. L-BFGS (``torch.optim.LBFGS`` with strong-Wolfe line search) re-evaluates the same batch
+inside a step, so it is used with full batches by default.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.tuning.parameters import get_raw, get_values, select_trainable, set_raw
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys
+
+OPTIMIZER_KEYS = ("name", "lr", "steps", "batch_size", "max_iter", "eval_every")
+EARLY_KEYS = ("patience", "min_delta", "restore_best")
+
+
+class NonFiniteLoss(RuntimeError):
+    """Raised inside a step when the loss or a gradient is not finite."""
+
+
+@dataclass
+class FitResult:
+    """What :func:`fit` did: the per-step training loss, held-out evaluations, the chosen step."""
+
+    train_loss: list[float] = field(default_factory=list)          # one per step
+    held_out: list[tuple[int, float]] = field(default_factory=list)  # (step, loss)
+    best_step: int | None = None
+    stopped: str = "finished"          # finished | early-stopped | non-finite
+    message: str = ""
+    evaluations: int = 0               # items filtered (training + held-out), forward passes
+    seconds: float = 0.0
+    start: dict[str, Tensor] = field(default_factory=dict)
+    final: dict[str, Tensor] = field(default_factory=dict)
+
+
+def _batches(n: int, batch_size: int, generator: torch.Generator):
+    """Endless index batches, a fresh permutation each epoch."""
+    while True:
+        perm = torch.randperm(n, generator=generator).tolist()
+        for s in range(0, n, batch_size):
+            yield perm[s: s + batch_size]
+
+
+def _finite(t: Tensor) -> bool:
+    return bool(torch.isfinite(t).all())
+
+
+def evaluate_loss(tunable: Tunable, module: nn.Module, items: Sequence, loss: str, batch_size: int) -> float:
+    """Mean loss over ``items`` in batches (weights: batch sizes), without gradients."""
+    total, count = 0.0, 0
+    with torch.no_grad():
+        for s in range(0, len(items), batch_size):
+            chunk = items[s: s + batch_size]
+            total += float(tunable.loss(module, chunk, loss)) * len(chunk)
+            count += len(chunk)
+    return total / max(count, 1)
+
+
+def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: TuneData, loss: str | None = None,
+        optimizer: Mapping[str, Any] | None = None, early_stopping: Mapping[str, Any] | None = None,
+        generator: torch.Generator | None = None, progress: bool = True) -> FitResult:
+    """Fit ``trainable`` parameters of ``module`` on ``data.train``; early-stop on ``data.held_out``.
+
+    ``optimizer``: ``name`` (``adam`` | ``lbfgs``), ``lr``, ``steps``, ``batch_size`` (items per
+    step; default all for L-BFGS, 8 for Adam), ``max_iter`` (L-BFGS iterations per step),
+    ``eval_every`` (steps between held-out evaluations; default one epoch).
+    ``early_stopping``: ``patience`` (evaluations without improvement), ``min_delta``,
+    ``restore_best`` (default true: end with the parameters of the best held-out evaluation; false:
+    keep the last ones).
+    """
+    optimizer = dict(optimizer or {})
+    early_stopping = dict(early_stopping or {})
+    check_keys(optimizer, OPTIMIZER_KEYS, "optimizer")
+    check_keys(early_stopping, EARLY_KEYS, "early_stopping")
+    loss = loss or tunable.losses[0]
+    if loss not in tunable.losses:
+        raise TorchtrackError(f"unknown loss {loss!r} for filter {tunable.name!r}; choose from "
+                              f"{', '.join(tunable.losses)}")
+    if not data.train:
+        raise TorchtrackError("the training set is empty: data selects no training sequence/window")
+    generator = generator or torch.Generator().manual_seed(0)
+    name = str(optimizer.get("name", "adam")).lower()
+    if name not in ("adam", "lbfgs"):
+        raise TorchtrackError(f"optimizer.name must be 'adam' or 'lbfgs'; got {name!r}")
+    n_train = len(data.train)
+    batch_size = int(optimizer.get("batch_size", n_train if name == "lbfgs" else min(8, n_train)))
+    if batch_size < 1:
+        raise TorchtrackError(f"optimizer.batch_size must be >= 1; got {batch_size}")
+    batch_size = min(batch_size, n_train)
+    steps = int(optimizer.get("steps", 20 if name == "lbfgs" else 200))
+    eval_every = int(optimizer.get("eval_every", max(1, math.ceil(n_train / batch_size))))
+    patience = int(early_stopping.get("patience", 5))
+    min_delta = float(early_stopping.get("min_delta", 1e-4))
+    restore_best = bool(early_stopping.get("restore_best", True))
+
+    params = select_trainable(module, trainable)
+    leaves = [p.raw for p in params.values()]
+    if name == "adam":
+        opt = torch.optim.Adam(leaves, lr=float(optimizer.get("lr", 0.05)))
+    else:
+        opt = torch.optim.LBFGS(leaves, lr=float(optimizer.get("lr", 1.0)),
+                                max_iter=int(optimizer.get("max_iter", 10)), line_search_fn="strong_wolfe")
+
+    result = FitResult(start=get_values(module, trainable))
+    last_good = get_raw(module, trainable)
+    best = (math.inf, None, last_good)
+    bad_evals = 0
+    t0 = time.perf_counter()
+    batches = _batches(n_train, batch_size, generator)
+
+    def closure_for(items):
+        def closure():
+            nonlocal last_good
+            opt.zero_grad()
+            current = get_raw(module, trainable)
+            value = tunable.loss(module, items, loss)
+            result.evaluations += len(items)
+            if not _finite(value):
+                raise NonFiniteLoss(f"loss is {float(value.detach())}")
+            value.backward()
+            for n, p in params.items():
+                if p.raw.grad is not None and not _finite(p.raw.grad):
+                    raise NonFiniteLoss(f"gradient of {n} is not finite")
+            last_good = current
+            return value
+        return closure
+
+    from tqdm import tqdm
+
+    bar = tqdm(range(1, steps + 1), desc=f"tune {tunable.name}", disable=not progress, leave=False)
+    try:
+        for step in bar:
+            items = [data.train[i] for i in next(batches)]
+            closure = closure_for(items)
+            try:
+                if name == "adam":
+                    value = closure()
+                    opt.step()
+                else:
+                    value = opt.step(closure)
+            except NonFiniteLoss as exc:
+                set_raw(module, last_good)
+                result.stopped = "non-finite"
+                result.message = (f"stopped at step {step}: {exc}; kept the last parameters with a finite loss "
+                                  f"({_describe(get_values(module, trainable))})")
+                break
+            result.train_loss.append(float(value.detach()))
+            postfix = {"loss": f"{result.train_loss[-1]:.4g}"}
+            if data.held_out and (step % eval_every == 0 or step == steps):
+                held = evaluate_loss(tunable, module, data.held_out, loss, max(batch_size, 1))
+                result.evaluations += len(data.held_out)
+                result.held_out.append((step, held))
+                postfix["held_out"] = f"{held:.4g}"
+                if not math.isfinite(held):
+                    bad_evals = patience  # treat as no improvement
+                elif held < best[0] - min_delta:
+                    best = (held, step, get_raw(module, trainable))
+                    bad_evals = 0
+                else:
+                    if held < best[0]:
+                        best = (held, step, get_raw(module, trainable))
+                    bad_evals += 1
+                if bad_evals >= patience:
+                    result.stopped = "early-stopped"
+                    result.message = f"held-out loss did not improve for {patience} evaluations (step {step})"
+                    break
+            bar.set_postfix(postfix)
+    finally:
+        bar.close()
+    if result.stopped != "non-finite" and best[1] is not None and restore_best:
+        set_raw(module, best[2])
+        result.best_step = best[1]
+    elif result.stopped != "non-finite":
+        result.best_step = len(result.train_loss)
+    for p in module.parameters():
+        p.requires_grad_(False)
+    for p in params.values():
+        p.raw.requires_grad_(True)
+        p.raw.grad = None
+    result.final = get_values(module, trainable)
+    result.seconds = time.perf_counter() - t0
+    return result
+
+
+def _describe(values: Mapping[str, Tensor]) -> str:
+    return ", ".join(f"{n}={_fmt(v)}" for n, v in values.items())
+
+
+def _fmt(v: Tensor) -> str:
+    return f"{float(v):.6g}" if v.numel() == 1 else str([round(x, 6) for x in v.flatten().tolist()])
