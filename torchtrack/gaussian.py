@@ -26,13 +26,70 @@ def symmetrize(P: Tensor) -> Tensor:
     return 0.5 * (P + P.transpose(-1, -2))
 
 
+# Below this size, many small factorisations and triangular solves are done as unrolled
+# elementwise arithmetic over the batch (LAPACK's per-matrix call overhead dominates otherwise).
+SMALL_N = 4
+SMALL_BATCH = 64
+
+
+def _is_small(A: Tensor, B: Tensor | None = None) -> bool:
+    batch = A[..., 0, 0].numel() if B is None else max(A[..., 0, 0].numel(), B[..., 0, 0].numel())
+    return A.shape[-1] <= SMALL_N and batch >= SMALL_BATCH
+
+
+def _cholesky_unrolled(P: Tensor) -> tuple[Tensor, Tensor]:
+    """Cholesky–Banachiewicz on ``(*, n, n)`` for small ``n``, elementwise over the batch."""
+    n = P.shape[-1]
+    L: list[list[Tensor | None]] = [[None] * n for _ in range(n)]
+    ok = torch.ones(P.shape[:-2], dtype=torch.bool, device=P.device)
+    for j in range(n):
+        s = P[..., j, j]
+        for k in range(j):
+            s = s - L[j][k] ** 2
+        ok = ok & (s > 0)
+        d = torch.sqrt(torch.where(s > 0, s, torch.ones_like(s)))
+        L[j][j] = d
+        for i in range(j + 1, n):
+            t = P[..., i, j]
+            for k in range(j):
+                t = t - L[i][k] * L[j][k]
+            L[i][j] = t / d
+    zero = torch.zeros_like(P[..., 0, 0])
+    rows = [torch.stack([L[i][j] if j <= i else zero for j in range(n)], -1) for i in range(n)]
+    return torch.stack(rows, -2), (~ok).to(torch.int32)
+
+
+def _solve_lower_unrolled(L: Tensor, B: Tensor) -> Tensor:
+    """Forward substitution ``L X = B`` for small ``n``; ``L (*, n, n)``, ``B (*, n, k)``."""
+    n = L.shape[-1]
+    X: list[Tensor] = []
+    for i in range(n):
+        t = B[..., i, :]
+        for j in range(i):
+            t = t - L[..., i, j, None] * X[j]
+        X.append(t / L[..., i, i, None])
+    return torch.stack(X, -2)
+
+
+def _solve_upper_t_unrolled(L: Tensor, B: Tensor) -> Tensor:
+    """Back substitution ``Lᵀ X = B`` for small ``n``."""
+    n = L.shape[-1]
+    X: list[Tensor | None] = [None] * n
+    for i in reversed(range(n)):
+        t = B[..., i, :]
+        for j in range(i + 1, n):
+            t = t - L[..., j, i, None] * X[j]
+        X[i] = t / L[..., i, i, None]
+    return torch.stack(X, -2)
+
+
 def cholesky(P: Tensor, what: str = "covariance", check: bool = True) -> Tensor:
     """Lower Cholesky factor ``L`` with ``L Lᵀ = P``; shape ``(*batch, n, n)``.
 
     With ``check`` a failed factorisation raises :class:`TorchtrackError` naming ``what`` (one host
     synchronisation); without it a failed factor is left as returned by ``cholesky_ex``.
     """
-    L, info = torch.linalg.cholesky_ex(P)
+    L, info = _cholesky_unrolled(P) if _is_small(P) else torch.linalg.cholesky_ex(P)
     if check and bool((info != 0).any()):
         bad = int((info != 0).sum())
         raise TorchtrackError(f"{what} is not positive definite ({bad} of {info.numel()} matrices failed "
@@ -41,13 +98,25 @@ def cholesky(P: Tensor, what: str = "covariance", check: bool = True) -> Tensor:
 
 
 def solve_lower(L: Tensor, B: Tensor) -> Tensor:
-    """``L⁻¹ B`` for lower-triangular ``L (*, n, n)`` and ``B (*, n, k)``."""
+    """``L⁻¹ B`` for lower-triangular ``L (*, n, n)`` and ``B (*, n, k)`` (batch dims broadcast)."""
+    if _is_small(L, B):
+        return _solve_lower_unrolled(L, B)
     return torch.linalg.solve_triangular(L, B, upper=False)
 
 
 def chol_solve(L: Tensor, B: Tensor) -> Tensor:
     """``P⁻¹ B`` from the Cholesky factor ``L`` of ``P``; ``B (*, n, k)``."""
+    if _is_small(L, B):
+        return _solve_upper_t_unrolled(L, _solve_lower_unrolled(L, B))
     return torch.cholesky_solve(B, L)
+
+
+def matmul(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B`` that runs a shared 2-D ``A (n, k)`` against a batch ``B (*, k, m)`` as one GEMM
+    (``(Bᵀ Aᵀ)ᵀ``) instead of ``torch.matmul``'s expand-and-batch; otherwise plain ``@``."""
+    if A.dim() == 2 and B.dim() > 2:
+        return (B.transpose(-1, -2) @ A.transpose(0, 1)).transpose(-1, -2)
+    return A @ B
 
 
 def log_det_from_cholesky(L: Tensor) -> Tensor:

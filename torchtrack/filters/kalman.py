@@ -26,6 +26,7 @@ from torchtrack.gaussian import (
     chol_solve,
     cholesky,
     log_det_from_cholesky,
+    matmul,
     solve_lower,
     symmetrize,
 )
@@ -70,7 +71,7 @@ def joseph_cov(P: Tensor, K: Tensor, H: Tensor, R: Tensor) -> Tensor:
     """Joseph-form posterior covariance ``(I − K H) P (I − K H)ᵀ + K R Kᵀ`` (symmetrised)."""
     eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
     A = eye - K @ H
-    return symmetrize(A @ P @ A.transpose(-1, -2) + K @ R @ K.transpose(-1, -2))
+    return symmetrize(A @ P @ A.transpose(-1, -2) + K @ matmul(R, K.transpose(-1, -2)))
 
 
 def _presence(z: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
@@ -183,16 +184,16 @@ class KalmanFilter(_GaussianFilter):
         _check_state(state, self.state_dim, self.name)
         F = self.motion.transition_matrix(dt)
         Q = self.motion.process_noise(dt)
-        mean = (F @ state.mean.unsqueeze(-1)).squeeze(-1)
-        cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + Q)
+        mean = matmul(F, state.mean.unsqueeze(-1)).squeeze(-1)
+        cov = symmetrize(matmul(F, state.cov) @ F.transpose(-1, -2) + Q)
         return GaussianState(mean, cov)
 
     def _moments(self, state):
         H = self.measurement.matrix()
         R = self.measurement.noise_cov()
         C = state.cov @ H.transpose(-1, -2)
-        S = symmetrize(H @ C + R)
-        return (H @ state.mean.unsqueeze(-1)).squeeze(-1), S, C
+        S = symmetrize(matmul(H, C) + R)
+        return matmul(H, state.mean.unsqueeze(-1)).squeeze(-1), S, C
 
     def _posterior_cov(self, state, K, S):
         return joseph_cov(state.cov, K, self.measurement.matrix(), self.measurement.noise_cov())
