@@ -1,0 +1,422 @@
+"""Poisson multi-Bernoulli filtering: the track-oriented marginal MeMBer/Poisson (TOMB/P) filter.
+
+Williams (2015), "Marginal multi-Bernoulli filters", Sec. IV; linear-Gaussian, batched over any leading
+dimensions (Monte Carlo runs, independent scenes) and differentiable in the continuous parameters.
+
+The multi-target density is Poisson multi-Bernoulli (PMB):
+
+* **undetected targets**: a Poisson point process with Gaussian-mixture intensity
+  ``D_u(x) = Σ_k w_k N(x; m_k, P_k)`` (fixed capacity ``K``; empty slots have ``log w = -inf``);
+* **detected targets**: ``N`` Bernoulli tracks with existence ``r_i``, Gaussian ``N(x; m_i, P_i)`` and
+  an integer label (``-1`` marks an empty slot).
+
+Prediction (Williams 2015, eqs. 38–40)::
+
+    w_k ← p_S w_k, r_i ← p_S r_i, (m, P) ← (F m, F P Fᵀ + Q);  D_u ← D_u + D_b   (birth intensity)
+
+Update with measurements ``Z = {z_1 … z_M}``, ``z = H x + v, v ~ N(0, R)``, clutter intensity ``κ``:
+
+* track ``i`` misses: weight ``w_i0 = 1 − r_i p_D``; posterior existence
+  ``r_i (1 − p_D) / (1 − r_i p_D)``, state unchanged (eq. 43);
+* track ``i`` takes ``z_j`` (inside the gate ``ν_ijᵀ S_i⁻¹ ν_ij < γ``): weight
+  ``w_ij = r_i p_D N(z_j; H m_i, S_i)``, existence 1, Kalman-updated state (eq. 44);
+* ``z_j`` is the first detection of a target or clutter: weight ``λ_j = e_j + κ(z_j)`` with
+  ``e_j = p_D Σ_k w_k N(z_j; H m_k, S_k)``; the new Bernoulli has existence ``e_j / λ_j`` and the
+  moment-matched mixture of the Kalman updates of the Poisson components (eqs. 45–46);
+* the Poisson intensity becomes ``(1 − p_D) D_u``.
+
+The marginal association probabilities ``p_i(0), p_i(j), p_j(new)`` come from loopy belief
+propagation (:func:`torchtrack.association.lbp.lbp_marginals`) and the **track-oriented merge**
+(TOMB, eq. 47) collapses each track's hypotheses to one Bernoulli by moment matching::
+
+    r_i' = p_i(0) r_i^miss + Σ_j p_i(j)
+    m_i' = (p_i(0) r_i^miss m_i + Σ_j p_i(j) m_ij) / r_i'
+    P_i' = (p_i(0) r_i^miss (P_i + d_0 d_0ᵀ) + Σ_j p_i(j) (P_i⁺ + d_j d_jᵀ)) / r_i'
+    r_j^new = p_j(new) e_j / λ_j
+
+Discrete steps — gating, pruning tracks with ``r < prune_existence`` and Poisson components with
+``w < prune_poisson``, keeping the ``capacity`` most likely Bernoullis — are stop-gradient selections;
+everything else is differentiable. Estimates are the tracks with ``r > estimate_threshold``; labels
+are given once, when a measurement creates its Bernoulli, and follow that Bernoulli afterwards.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import NamedTuple
+
+import torch
+from scipy.stats import chi2
+from torch import Tensor, nn
+
+from torchtrack.association.lbp import LBPResult, lbp_marginals
+from torchtrack.errors import TorchtrackError
+from torchtrack.gaussian import (
+    LOG_2PI,
+    cholesky,
+    log_det_from_cholesky,
+    moment_match,
+    solve_lower,
+    symmetrize,
+)
+from torchtrack.models.measurement import MeasurementModel
+from torchtrack.models.motion import MotionModel
+from torchtrack.params import Positive, Probability
+
+log = logging.getLogger(__name__)
+
+NEG_INF = float("-inf")
+
+
+class PMBState(NamedTuple):
+    """A PMB density with ``K`` Poisson components and ``N`` Bernoulli slots, batch shape ``*``."""
+
+    poisson_log_weight: Tensor  # (*, K)       log w_k (-inf: empty)
+    poisson_mean: Tensor        # (*, K, n)
+    poisson_cov: Tensor         # (*, K, n, n)
+    existence: Tensor           # (*, N)       r_i (0 in empty slots)
+    mean: Tensor                # (*, N, n)
+    cov: Tensor                 # (*, N, n, n) (identity in empty slots)
+    label: Tensor               # (*, N)       int64, -1: empty slot
+    next_label: Tensor          # (*,)         int64, the next label to give
+
+    @property
+    def valid(self) -> Tensor:
+        """``(*, N)`` bool: the slot holds a Bernoulli."""
+        return self.label >= 0
+
+
+class PMBUpdateInfo(NamedTuple):
+    """What an update reveals besides the new state."""
+
+    marginals: LBPResult       # association marginals of the existing tracks (*, N, M) and new targets (*, M)
+    log_new_weight: Tensor     # (*, M) log λ_j = log(e_j + κ)
+    new_existence: Tensor      # (*, M) r_j of the Bernoulli each measurement created (before pruning)
+    gated: Tensor              # (*, N, M) bool, pair inside the gate
+
+
+class Estimates(NamedTuple):
+    """Tracks whose existence exceeds the threshold."""
+
+    mask: Tensor       # (*, N) bool
+    mean: Tensor       # (*, N, n)
+    label: Tensor      # (*, N)
+    existence: Tensor  # (*, N)
+
+
+class _Fixed(nn.Module):
+    """A constant (not learnable) value, for probabilities of exactly 0 or 1 and a zero intensity."""
+
+    def __init__(self, value: float):
+        super().__init__()
+        self.register_buffer("value", torch.tensor(float(value)))
+
+    def forward(self) -> Tensor:
+        return self.value
+
+
+def _probability(value: float, name: str, learnable: bool) -> nn.Module:
+    if not 0.0 <= value <= 1.0:
+        raise TorchtrackError(f"{name} must lie in [0, 1]; got {value!r}")
+    return Probability(value, name, requires_grad=learnable) if 0.0 < value < 1.0 else _Fixed(value)
+
+
+def _log(x: Tensor) -> Tensor:
+    """``log x`` with ``log 0 = -inf`` and a finite gradient at 0."""
+    tiny = torch.finfo(x.dtype).tiny
+    return torch.where(x > 0, torch.log(x.clamp_min(tiny)), torch.full_like(x, NEG_INF))
+
+
+class _Hypotheses(NamedTuple):
+    log_lik: Tensor   # (*, C, M) log N(z_j; H m_c, S_c)
+    d2: Tensor        # (*, C, M) Mahalanobis distance squared
+    mean: Tensor      # (*, C, M, n) Kalman-updated means
+    cov: Tensor       # (*, C, n, n) Kalman-updated covariance (the same for every z_j)
+
+
+def _small_mm(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B`` for batches of tiny matrices, by broadcasting (batched BLAS is slow for 2×2 and 4×4)."""
+    return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+
+
+def _small_mv(A: Tensor, x: Tensor) -> Tensor:
+    """``A_c x_cm`` for ``A (*, C, p, q)`` and ``x (*, C, M, q)`` → ``(*, C, M, p)``."""
+    return (A.unsqueeze(-3) * x.unsqueeze(-2)).sum(-1)
+
+
+def _shared_left(H: Tensor, P: Tensor) -> Tensor:
+    """``H @ P`` for one shared ``H (p, q)`` and batched ``P (*, q, r)`` as one folded matrix product."""
+    return (P.transpose(-1, -2) @ H.transpose(-1, -2)).transpose(-1, -2)
+
+
+def _kalman_all_pairs(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor, what: str) -> _Hypotheses:
+    """Kalman updates of ``C`` Gaussians with each of ``M`` measurements at once.
+
+    ``mean (*, C, n)``, ``cov (*, C, n, n)``, ``z (*, M, d)``, ``H (d, n)``, ``R (*, d, d)``.
+    ``S_c = H P_c Hᵀ + R = L_c L_cᵀ`` is factorised once per component; with ``W_c = P_c Hᵀ L_c⁻ᵀ``
+    (a triangular solve) the gain is ``K_c = W_c L_c⁻¹``, the whitened innovation ``L_c⁻¹ ν_cm``
+    gives the Mahalanobis distance, and ``P_c⁺ = P_c − W_c W_cᵀ`` (``= P − K S Kᵀ``, symmetric by
+    construction).
+    """
+    PHt = cov @ H.transpose(-1, -2)                                  # (*, C, n, d)
+    S = symmetrize(_shared_left(H, PHt) + R.unsqueeze(-3))           # (*, C, d, d)
+    L = cholesky(S, what)
+    d = z.shape[-1]
+    eye_d = torch.eye(d, dtype=S.dtype, device=S.device)
+    Linv = solve_lower(L, eye_d.expand_as(L))                        # (*, C, d, d)
+    nu = z.unsqueeze(-3) - (mean @ H.transpose(-1, -2)).unsqueeze(-2)  # (*, C, M, d)
+    white = _small_mv(Linv, nu)
+    d2 = white.pow(2).sum(-1)
+    log_lik = -0.5 * (d2 + log_det_from_cholesky(L).unsqueeze(-1) + d * LOG_2PI)
+    W = _small_mm(PHt, Linv.transpose(-1, -2))                       # (*, C, n, d)
+    K = _small_mm(W, Linv)                                           # (*, C, n, d)
+    upd_mean = mean.unsqueeze(-2) + _small_mv(K, nu)
+    upd_cov = symmetrize(cov - _small_mm(W, W.transpose(-1, -2)))
+    return _Hypotheses(log_lik, d2, upd_mean, upd_cov)
+
+
+class PMBFilter(nn.Module):
+    """The TOMB/P filter (module docstring) for a linear motion and a linear measurement model.
+
+    Args:
+        motion: linear :class:`~torchtrack.models.motion.MotionModel` (``F``, ``Q``).
+        measurement: linear measurement model with ``matrix()`` ``H`` and ``noise_cov()`` ``R``.
+        p_survival, p_detection: probabilities in [0, 1] (learnable when strictly inside).
+        clutter_intensity: ``κ``, expected clutter per unit measurement volume (>= 0; learnable when > 0).
+        birth_weight, birth_mean, birth_cov: the birth intensity ``D_b = w_b N(m_b, P_b)`` (weight
+            learnable; ``birth_weight=0`` for no birth).
+        capacity: Bernoulli slots ``N`` kept after each update (the most likely; a cap hit is logged).
+        poisson_capacity: Poisson components ``K`` kept (the birth component is always added).
+        gate: gate probability; pairs with ``ν ᵀ S⁻¹ ν`` above its chi-square quantile are not hypotheses.
+        lbp_iterations, lbp_tol: LBP cap and tolerance (``lbp_tol=None``: fixed iterations, for autograd).
+        prune_existence, prune_poisson: pruning thresholds for ``r`` and ``w_k``.
+        estimate_threshold: a track is reported when ``r`` exceeds it.
+    """
+
+    def __init__(self, motion: MotionModel, measurement: MeasurementModel, p_survival: float = 0.99,
+                 p_detection: float = 0.9, clutter_intensity: float = 1e-4, birth_weight: float = 0.05,
+                 birth_mean: Tensor | None = None, birth_cov: Tensor | None = None, capacity: int = 64,
+                 poisson_capacity: int = 8, gate: float = 0.9999, lbp_iterations: int = 50,
+                 lbp_tol: float | None = 1e-7, prune_existence: float = 1e-4, prune_poisson: float = 1e-6,
+                 estimate_threshold: float = 0.5, learnable: bool = True):
+        super().__init__()
+        if not motion.is_linear:
+            raise TorchtrackError("PMBFilter needs a linear motion model")
+        if capacity < 1 or poisson_capacity < 2:
+            raise TorchtrackError(f"capacity must be >= 1 and poisson_capacity >= 2; got {capacity}, "
+                                  f"{poisson_capacity}")
+        if not 0.0 < gate <= 1.0:
+            raise TorchtrackError(f"gate must be a probability in (0, 1]; got {gate!r}")
+        if clutter_intensity < 0 or birth_weight < 0:
+            raise TorchtrackError("clutter_intensity and birth_weight must be >= 0")
+        self.motion = motion
+        self.measurement = measurement
+        n = motion.state_dim
+        self.p_survival = _probability(p_survival, "p_survival", learnable)
+        self.p_detection = _probability(p_detection, "p_detection", learnable)
+        self.clutter_intensity = (Positive(clutter_intensity, "clutter intensity", requires_grad=learnable)
+                                  if clutter_intensity > 0 else _Fixed(0.0))
+        self.birth_weight = (Positive(birth_weight, "birth weight", requires_grad=learnable)
+                             if birth_weight > 0 else _Fixed(0.0))
+        bm = torch.zeros(n) if birth_mean is None else torch.as_tensor(birth_mean, dtype=torch.get_default_dtype())
+        bc = torch.eye(n) if birth_cov is None else torch.as_tensor(birth_cov, dtype=torch.get_default_dtype())
+        if bm.shape != (n,) or bc.shape != (n, n):
+            raise TorchtrackError(f"birth_mean must be ({n},) and birth_cov ({n}, {n})")
+        self.register_buffer("birth_mean", bm)
+        self.register_buffer("birth_cov", bc)
+        self.capacity = capacity
+        self.poisson_capacity = poisson_capacity
+        self.gate_d2 = float(chi2.ppf(gate, measurement.meas_dim)) if gate < 1 else float("inf")
+        self.lbp_iterations = lbp_iterations
+        self.lbp_tol = lbp_tol
+        self.prune_existence = prune_existence
+        self.prune_poisson = prune_poisson
+        self.estimate_threshold = estimate_threshold
+        self._cap_logged = False
+
+    # ------------------------------------------------------------------ state
+    def init_state(self, batch_shape: tuple[int, ...] = (), undetected_weight: float = 0.0,
+                   undetected_mean: Tensor | None = None, undetected_cov: Tensor | None = None,
+                   dtype: torch.dtype = torch.float64, device=None) -> PMBState:
+        """No tracks; the Poisson intensity ``undetected_weight · N(mean, cov)`` (default: the birth)."""
+        n, N, K = self.motion.state_dim, self.capacity, self.poisson_capacity
+        kw = {"dtype": dtype, "device": device}
+        um = self.birth_mean if undetected_mean is None else torch.as_tensor(undetected_mean)
+        uc = self.birth_cov if undetected_cov is None else torch.as_tensor(undetected_cov)
+        lw = torch.full((*batch_shape, K), NEG_INF, **kw)
+        if undetected_weight > 0:
+            lw[..., 0] = float(torch.log(torch.tensor(undetected_weight, dtype=torch.float64)))
+        eye = torch.eye(n, **kw)
+        return PMBState(
+            poisson_log_weight=lw,
+            poisson_mean=um.to(**kw).expand(*batch_shape, K, n).clone(),
+            poisson_cov=uc.to(**kw).expand(*batch_shape, K, n, n).clone(),
+            existence=torch.zeros(*batch_shape, N, **kw),
+            mean=torch.zeros(*batch_shape, N, n, **kw),
+            cov=eye.expand(*batch_shape, N, n, n).clone(),
+            label=torch.full((*batch_shape, N), -1, dtype=torch.long, device=device),
+            next_label=torch.zeros(batch_shape, dtype=torch.long, device=device),
+        )
+
+    # ------------------------------------------------------------------ predict
+    def predict(self, state: PMBState, dt=1.0) -> PMBState:
+        """Prediction (eqs. 38–40): survival, motion, and the birth component added to the Poisson part."""
+        ref = state.mean
+        F = self.motion.transition_matrix(dt).to(ref)
+        Q = self.motion.process_noise(dt).to(ref)
+        ps = self.p_survival().to(ref)
+        mean = state.mean @ F.transpose(-1, -2)
+        cov = symmetrize(_shared_left(F, state.cov @ F.transpose(-1, -2)) + Q)
+        existence = ps * state.existence
+        pmean = state.poisson_mean @ F.transpose(-1, -2)
+        pcov = symmetrize(_shared_left(F, state.poisson_cov @ F.transpose(-1, -2)) + Q)
+        plw = state.poisson_log_weight + _log(ps)
+        # keep the K-1 heaviest components, then append the birth (a stop-gradient selection)
+        keep = torch.topk(plw.detach(), self.poisson_capacity - 1, dim=-1).indices
+        plw = plw.gather(-1, keep)
+        n = pmean.shape[-1]
+        pmean = pmean.gather(-2, keep.unsqueeze(-1).expand(*keep.shape, n))
+        pcov = pcov.gather(-3, keep[..., None, None].expand(*keep.shape, n, n))
+        batch = plw.shape[:-1]
+        blw = _log(self.birth_weight().to(ref)).expand(*batch, 1)
+        plw = torch.cat([plw, blw], -1)
+        pmean = torch.cat([pmean, self.birth_mean.to(ref).expand(*batch, 1, n)], -2)
+        pcov = torch.cat([pcov, self.birth_cov.to(ref).expand(*batch, 1, n, n)], -3)
+        return state._replace(poisson_log_weight=plw, poisson_mean=pmean, poisson_cov=pcov,
+                              existence=existence, mean=mean, cov=cov)
+
+    # ------------------------------------------------------------------ update
+    def update(self, state: PMBState, z: Tensor, mask: Tensor | None = None,
+               extra_noise: Tensor | None = None) -> tuple[PMBState, PMBUpdateInfo]:
+        """TOMB/P update with the measurement set of one scan.
+
+        Args:
+            state: predicted :class:`PMBState`, batch ``*``.
+            z: ``(*, M, d)`` measurements (padding allowed, see ``mask``); ``M`` may be 0.
+            mask: ``(*, M)`` bool, True for real measurements (default: all).
+            extra_noise: ``(*, d, d)`` added to ``R`` (variance inflation by an uncertain sensor).
+
+        Returns:
+            the updated state (pruned, at most ``capacity`` Bernoullis) and :class:`PMBUpdateInfo`.
+        """
+        ref = state.mean
+        d = self.measurement.meas_dim
+        if z.shape[-1] != d or z.shape[:-2] != state.existence.shape[:-1]:
+            raise TorchtrackError(f"PMB update: z must be (*, M, {d}) with batch {tuple(state.existence.shape[:-1])}; "
+                                  f"got {tuple(z.shape)}")
+        z = z.to(ref)
+        M = z.shape[-2]
+        batch = z.shape[:-2]
+        zmask = torch.ones(z.shape[:-1], dtype=torch.bool, device=z.device) if mask is None else mask.bool()
+        if not bool(torch.isfinite(torch.where(zmask.unsqueeze(-1), z, torch.zeros_like(z))).all()):
+            raise TorchtrackError("PMB update: measurements contain NaN or infinite values")
+        H = self.measurement.matrix().to(ref)
+        R = self.measurement.noise_cov().to(ref).expand(*batch, d, d)
+        if extra_noise is not None:
+            R = R + extra_noise.to(ref)
+        pd = self.p_detection().to(ref)
+        log_pd = _log(pd)
+        tiny = torch.finfo(ref.dtype).tiny
+
+        # single-target hypotheses of the existing Bernoullis (eqs. 43–44)
+        valid = state.valid
+        r = state.existence
+        trk = _kalman_all_pairs(state.mean, state.cov, z, H, R, "PMB: track innovation covariance")
+        gated = (trk.d2 < self.gate_d2) & valid.unsqueeze(-1) & zmask.unsqueeze(-2)
+        log_r = _log(torch.where(valid, r, torch.ones_like(r)))
+        log_w = torch.where(gated, log_r.unsqueeze(-1) + log_pd + trk.log_lik, torch.full_like(trk.log_lik, NEG_INF))
+        log_miss = _log((1.0 - r * pd).clamp_min(0.0))
+
+        # new-target hypotheses from the Poisson intensity and clutter (eqs. 45–46)
+        poi = _kalman_all_pairs(state.poisson_mean, state.poisson_cov, z, H, R,
+                                "PMB: Poisson innovation covariance")
+        l_kj = state.poisson_log_weight.unsqueeze(-1) + log_pd + poi.log_lik     # (*, K, M)
+        log_e = torch.logsumexp(l_kj, dim=-2)                                   # (*, M)
+        log_kappa = _log(self.clutter_intensity().to(ref))
+        log_lam = torch.logaddexp(log_e, log_kappa.expand_as(log_e)).clamp_min(float(torch.log(torch.tensor(tiny))))
+        log_new = torch.where(zmask, log_lam, torch.zeros_like(log_lam))
+        r_new_hyp = torch.exp(torch.clamp(log_e - log_lam, max=0.0))
+        any_poisson = torch.isfinite(l_kj).any(-2, keepdim=True)
+        l_safe = torch.where(any_poisson, l_kj, torch.zeros_like(l_kj)).transpose(-1, -2)  # (*, M, K)
+        K_ = state.poisson_log_weight.shape[-1]
+        n = state.mean.shape[-1]
+        new_mean, new_cov = moment_match(l_safe, poi.mean.transpose(-2, -3),
+                                         poi.cov.unsqueeze(-4).expand(*batch, M, K_, n, n))
+
+        # marginal association probabilities (Williams & Lau 2014)
+        marg = lbp_marginals(log_w, log_miss, log_new, iterations=self.lbp_iterations, tol=self.lbp_tol,
+                             check=False)
+
+        # track-oriented merge (eq. 47)
+        r_miss = r * (1.0 - pd) / (1.0 - r * pd).clamp_min(tiny)
+        a0 = marg.miss * r_miss                                                  # (*, N)
+        aj = marg.assoc                                                          # (*, N, M)
+        a_det = aj.sum(-1)
+        r_post = a0 + a_det
+        denom = r_post.clamp_min(tiny)
+        mean_post = (a0.unsqueeze(-1) * state.mean + (aj.unsqueeze(-1) * trk.mean).sum(-2)) / denom.unsqueeze(-1)
+        d0 = state.mean - mean_post
+        dj = trk.mean - mean_post.unsqueeze(-2)
+        spread = ((aj[..., None, None] * dj.unsqueeze(-1)) * dj.unsqueeze(-2)).sum(-3)
+        cov_post = (a0[..., None, None] * (state.cov + d0.unsqueeze(-1) * d0.unsqueeze(-2))
+                    + a_det[..., None, None] * trk.cov + spread) / denom[..., None, None]
+        r_new = torch.where(zmask, marg.new * r_new_hyp, torch.zeros_like(r_new_hyp))
+        new_label = torch.where(zmask, state.next_label.unsqueeze(-1) + torch.cumsum(zmask.long(), -1) - 1,
+                                torch.full_like(zmask, -1, dtype=torch.long))
+        next_label = state.next_label + zmask.long().sum(-1)
+
+        existence = torch.cat([r_post, r_new], -1)
+        mean = torch.cat([mean_post, new_mean], -2)
+        cov = torch.cat([symmetrize(cov_post), symmetrize(new_cov)], -3)
+        label = torch.cat([torch.where(valid, state.label, torch.full_like(state.label, -1)), new_label], -1)
+        existence, mean, cov, label = self._compact(existence, mean, cov, label)
+
+        plw = state.poisson_log_weight + _log(1.0 - pd)
+        plw = torch.where(plw < torch.log(torch.tensor(self.prune_poisson)).to(plw), torch.full_like(plw, NEG_INF), plw)
+        new_state = PMBState(plw, state.poisson_mean, state.poisson_cov, existence, mean, cov, label, next_label)
+        return new_state, PMBUpdateInfo(marg, log_lam, r_new, gated)
+
+    def _compact(self, existence: Tensor, mean: Tensor, cov: Tensor, label: Tensor):
+        """Prune ``r < prune_existence`` and keep the ``capacity`` most likely slots (stop-gradient)."""
+        keep = (label >= 0) & (existence >= self.prune_existence)
+        N = self.capacity
+        if existence.shape[-1] < N:
+            pad = N - existence.shape[-1]
+            n = mean.shape[-1]
+            existence = torch.cat([existence, existence.new_zeros(*existence.shape[:-1], pad)], -1)
+            mean = torch.cat([mean, mean.new_zeros(*mean.shape[:-2], pad, n)], -2)
+            cov = torch.cat([cov, cov.new_zeros(*cov.shape[:-3], pad, n, n)], -3)
+            label = torch.cat([label, label.new_full((*label.shape[:-1], pad), -1)], -1)
+            keep = torch.cat([keep, keep.new_zeros(*keep.shape[:-1], pad)], -1)
+        score = torch.where(keep, existence.detach(), torch.full_like(existence, -1.0))
+        idx = torch.topk(score, N, dim=-1).indices
+        if not self._cap_logged and bool((keep.sum(-1) > N).any()):
+            log.warning("PMB: more than %d Bernoullis above the pruning threshold; the least likely were "
+                        "dropped (raise capacity)", N)
+            self._cap_logged = True
+        n = mean.shape[-1]
+        keep = keep.gather(-1, idx)
+        existence = torch.where(keep, existence.gather(-1, idx), torch.zeros_like(keep, dtype=existence.dtype))
+        mean = torch.where(keep.unsqueeze(-1), mean.gather(-2, idx.unsqueeze(-1).expand(*idx.shape, n)),
+                           torch.zeros_like(mean[..., :N, :]))
+        eye = torch.eye(n, dtype=cov.dtype, device=cov.device)
+        cov = torch.where(keep[..., None, None], cov.gather(-3, idx[..., None, None].expand(*idx.shape, n, n)), eye)
+        label = torch.where(keep, label.gather(-1, idx), torch.full_like(idx, -1))
+        return existence, mean, cov, label
+
+    # ------------------------------------------------------------------ outputs
+    def step(self, state: PMBState, z: Tensor, mask: Tensor | None = None, dt=1.0,
+             extra_noise: Tensor | None = None) -> tuple[PMBState, PMBUpdateInfo]:
+        """``predict`` then ``update``."""
+        return self.update(self.predict(state, dt), z, mask, extra_noise)
+
+    def estimate(self, state: PMBState, threshold: float | None = None) -> Estimates:
+        """Tracks with ``r > threshold`` (default ``estimate_threshold``)."""
+        thr = self.estimate_threshold if threshold is None else threshold
+        mask = state.valid & (state.existence > thr)
+        return Estimates(mask, state.mean, state.label, state.existence)
+
+
+def expected_count(state: PMBState) -> tuple[Tensor, Tensor]:
+    """Expected number of targets ``(Σ_i r_i, Σ_k w_k)``: detected (Bernoulli) and undetected (Poisson); ``(*,)``."""
+    return state.existence.sum(-1), torch.exp(state.poisson_log_weight).sum(-1)
