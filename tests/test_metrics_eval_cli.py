@@ -64,3 +64,12 @@ def test_eval_cli_moving_only(tmp_path, capsys):
     # moving from frame 4 on (6 px > 5 over the window): 27 lines of object 1 scored, none of object 2
     assert (got["GT"], got["GT_objects"], got["FP"], got["TP"], got["MOTA"]) == (1, 27, 0, 27, 1.0)
     assert got["moving_only"] is True
+
+
+def test_eval_cli_ospa(tmp_path):
+    js = tmp_path / "o.json"
+    assert main(["eval", "--gt", str(TUD / "gt.txt"), "--pred", str(TUD / "test.txt"), "--ospa", "50",
+                 "--json", str(js)]) == 0
+    got = json.loads(js.read_text())
+    assert 0 < got["OSPA"] <= 50 and got["GOSPA"] > 0
+    assert got["OSPA_cardinality"] > 0 and got["GOSPA_missed"] > 0  # the tracker misses people

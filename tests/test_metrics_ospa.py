@@ -119,3 +119,28 @@ def test_bad_shapes():
         ospa(torch.zeros(3, 2), torch.zeros(3, 3), c=1.0)
     with pytest.raises(TorchtrackError, match="c > 0"):
         ospa(torch.zeros(3, 2), torch.zeros(3, 2), c=0.0)
+
+
+def test_per_frame_on_mot_data_matches_direct_and_chunks(monkeypatch):
+    import importlib
+
+    import numpy as np
+
+    from torchtrack.io.mot import from_points
+    from torchtrack.metrics import mot_ospa_gospa
+
+    rng = np.random.default_rng(0)
+    gt = from_points(rng.integers(1, 8, 40), np.arange(40), rng.uniform(0, 30, 40), rng.uniform(0, 30, 40))
+    pred = from_points(rng.integers(3, 11, 30), np.arange(30), rng.uniform(0, 30, 30), rng.uniform(0, 30, 30))
+    frames, o, g = mot_ospa_gospa(gt, pred, c=6.0, p_ospa=1.0, p_gospa=2.0)
+    np.testing.assert_array_equal(frames, np.union1d(gt.frame, pred.frame))
+    for k, f in enumerate(frames):
+        a = torch.from_numpy(gt.centers()[gt.frame == f])
+        b = torch.from_numpy(pred.centers()[pred.frame == f])
+        assert float(o.total[k]) == pytest.approx(brute_ospa(a.tolist(), b.tolist(), 6.0, 1.0))
+        assert float(g.total[k]) == pytest.approx(float(gospa(a, b, 6.0, 2.0).total))
+    module = importlib.import_module("torchtrack.metrics.ospa")
+    monkeypatch.setattr(module, "MAX_PAIRS", 40)  # forces chunks of a frame or two
+    _, o2, g2 = mot_ospa_gospa(gt, pred, c=6.0)
+    torch.testing.assert_close(o2.total, o.total)
+    torch.testing.assert_close(g2.missed, g.missed)

@@ -20,7 +20,7 @@ row is skipped. Each vehicle becomes a {POINT_BOX_SIZE:g} x {POINT_BOX_SIZE:g} p
 (--box). Frames are renumbered from 1 unless --keep-frame-numbers.
 
 example:
-  torchtrack convert-wpafb ../shared/data/wpafb-aoi02/transformed_object_states.csv --out data/wpafb/gt.txt
+  torchtrack convert-wpafb ../shared/data/wpafb-aoi02/transformed_object_states.csv --out out/wpafb/gt.txt
 """
 
 

@@ -9,7 +9,7 @@ from pathlib import Path
 from torchtrack.cli._common import add_common_options, format_table, write_json
 from torchtrack.io.mot import read_mot
 from torchtrack.io.wpafb import moving_mask
-from torchtrack.metrics import clear_mot
+from torchtrack.metrics import clear_mot, drop_ignored, mot_ospa_gospa
 from torchtrack.metrics.clear_mot import KEYS
 
 NAME = "eval"
@@ -42,6 +42,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gate.add_argument("--iou", type=float, default=None, metavar="T", help="IoU gate instead (e.g. 0.5)")
     parser.add_argument("--moving", action="store_true",
                         help="score only objects that moved > 5 px over the last 15 frames (paper's rule)")
+    parser.add_argument("--ospa", type=float, default=None, metavar="C",
+                        help="also report the mean per-frame OSPA (p=1) and GOSPA (p=2, alpha=2) of the "
+                             "centres with cut-off C px")
     add_common_options(parser)
 
 
@@ -61,10 +64,20 @@ def format_scores(scores: dict) -> str:
 
 def run(args: argparse.Namespace) -> int:
     gt, pred = read_mot(args.gt), read_mot(args.pred)
-    ignore = ~moving_mask(gt) if args.moving else None
-    scores = clear_mot(gt, pred, threshold=args.threshold, iou=args.iou, ignore=ignore)
+    if args.moving:
+        gt, pred = drop_ignored(gt, pred, ~moving_mask(gt), threshold=args.threshold, iou=args.iou)
+    scores = clear_mot(gt, pred, threshold=args.threshold, iou=args.iou)
     gate = f"IoU >= {args.iou}" if args.iou is not None else f"centre distance <= {args.threshold} px"
     print(f"{args.pred} vs {args.gt} ({gate}{', moving objects only' if args.moving else ''})")
     print(format_scores(scores))
+    if args.ospa is not None:
+        _, o, g = mot_ospa_gospa(gt, pred, c=args.ospa, p_ospa=1.0, p_gospa=2.0)
+        om, gm = o.mean(), g.mean()
+        sets = {"OSPA": om["total"], "OSPA_localisation": om["localisation"], "OSPA_cardinality": om["cardinality"],
+                "GOSPA": gm["total"], "GOSPA_localisation": gm["localisation"], "GOSPA_missed": gm["missed"],
+                "GOSPA_false": gm["false"]}
+        print(f"mean per frame, cut-off {args.ospa:g} px (GOSPA parts in px^2)")
+        print(format_table(list(sets), [list(sets.values())], floatfmt=".3f"))
+        scores.update(sets)
     write_json(args.json, {**scores, "gate": gate, "moving_only": bool(args.moving)})
     return 0

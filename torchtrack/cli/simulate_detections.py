@@ -24,8 +24,8 @@ finite difference plus N(0, V^2) noise, standing in for the detector's velocity 
 columns 8 and 9: frame,-1,x,y,w,h,1,vx,vy,-1. Same --seed, same detections.
 
 example (the WPAFB benchmark defaults):
-  torchtrack simulate-detections --gt data/wpafb/gt.txt --pd 0.9 --sigma 1 --clutter 30 \\
-      --velocity-sigma 1 --image-size 585 496 --seed 0 --out data/wpafb/det.txt
+  torchtrack simulate-detections --gt out/wpafb/gt.txt --pd 0.9 --sigma 1 --clutter 30 \\
+      --velocity-sigma 1 --image-size 585 496 --seed 0 --out out/wpafb/det.txt
 """
 
 

@@ -191,9 +191,14 @@ def _check(data: MOTData, what: str) -> None:
         raise TorchtrackError(f"{what} has negative ids (unlabelled detections?); CLEAR-MOT needs track ids")
 
 
-def _drop_ignored(gt: MOTData, pred: MOTData, ignore: np.ndarray, metric: _Distance):
+def drop_ignored(gt: MOTData, pred: MOTData, ignore: np.ndarray, threshold: float = 10.0,
+                 iou: float | None = None) -> tuple[MOTData, MOTData]:
     """Remove don't-care objects the MOTChallenge way: per frame, the predictions assigned (Hungarian within
-    the gate, over all objects of the frame) to an ignored object are removed, then the ignored objects."""
+    the gate, over all objects of the frame) to an ignored object are removed, then the ignored objects.
+
+    ``ignore`` is a (K,) bool over ``gt``'s lines; returns the kept ``(gt, pred)``, sorted by frame and id.
+    """
+    metric = _Distance(float(threshold), iou)
     ignore = np.asarray(ignore, dtype=bool)
     if ignore.shape != (gt.size,):
         raise TorchtrackError(f"ignore must have one entry per ground-truth line ({gt.size}), got {ignore.shape}")
@@ -243,7 +248,7 @@ def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | 
     _check(pred, "prediction")
     metric = _Distance(float(threshold), iou)
     if ignore is not None:
-        gt, pred = _drop_ignored(gt, pred, ignore, metric)
+        gt, pred = drop_ignored(gt, pred, ignore, threshold, iou)
     gt, pred = gt.sorted(), pred.sorted()
     gt_ids, g = np.unique(gt.id, return_inverse=True)
     hyp_ids, h = np.unique(pred.id, return_inverse=True)

@@ -29,10 +29,12 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
+import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.mot import MOTData
 
 
 class OSPAResult(NamedTuple):
@@ -79,8 +81,10 @@ def _prepare(X: torch.Tensor, Y: torch.Tensor, x_mask, y_mask, c: float, p: floa
     X, Y = X.reshape(B, n_x, X.shape[-1]), Y.reshape(B, n_y, Y.shape[-1])
     xm, ym = xm.reshape(B, n_x), ym.reshape(B, n_y)
     # (B, N, M) cut-off distances to the power p; differentiable, sqrt kept away from 0
-    diff = X[:, :, None, :] - Y[:, None, :, :]
-    sq = (diff * diff).sum(-1)
+    sq = torch.zeros(X.shape[0], n_x, n_y, dtype=dtype, device=X.device)
+    for k in range(X.shape[-1]):  # per coordinate: no (B, N, M, d) temporary
+        diff = X[:, :, None, k] - Y[:, None, :, k]
+        sq = sq + diff * diff
     dist = torch.where(sq > 0, sq.clamp_min(torch.finfo(dtype).tiny).sqrt(), torch.zeros_like(sq))
     dc_p = dist.clamp(max=c) ** p
     return batch, dist, dc_p, xm, ym
@@ -153,3 +157,51 @@ def gospa(X: torch.Tensor, Y: torch.Tensor, c: float, p: float = 2.0, alpha: flo
         nan = torch.full_like(total, float("nan"))
         loc = missed = false = n_missed = n_false = nan
     return GOSPAResult(*(v.reshape(batch) for v in (total, loc, missed, false, n_missed, n_false)))
+
+
+MAX_PAIRS = 1 << 24
+"""Largest number of (truth, estimate) pairs evaluated in one batched chunk of frames."""
+
+
+def _padded(data: MOTData, frames: np.ndarray) -> tuple[torch.Tensor, torch.Tensor]:
+    """Centres of ``data`` in ``frames`` as (T, N, 2) float64 with a (T, N) mask (N = most in a frame)."""
+    data = data.sorted()
+    lo = np.searchsorted(data.frame, frames, "left")
+    hi = np.searchsorted(data.frame, frames, "right")
+    counts = hi - lo
+    width = int(counts.max()) if counts.size else 0
+    offsets = np.r_[0, np.cumsum(counts)[:-1]]  # where each frame starts among the points taken
+    flat = np.arange(int(counts.sum()))
+    row = np.repeat(np.arange(frames.size), counts)
+    col = flat - np.repeat(offsets, counts)
+    take = flat + np.repeat(lo - offsets, counts)
+    points = torch.zeros(frames.size, width, 2, dtype=torch.float64)
+    mask = torch.zeros(frames.size, width, dtype=torch.bool)
+    points[row, col] = torch.from_numpy(data.centers()[take])
+    mask[row, col] = True
+    return points, mask
+
+
+def mot_ospa_gospa(gt: MOTData, pred: MOTData, c: float = 10.0, p_ospa: float = 1.0,
+                   p_gospa: float = 2.0) -> tuple[np.ndarray, OSPAResult, GOSPAResult]:
+    """Per-frame OSPA and GOSPA (alpha = 2) between the box centres of ``gt`` and ``pred`` (ids ignored).
+
+    Frames are the union of the frames present in either; returns ``(frames (T,), OSPAResult,
+    GOSPAResult)`` with (T,) fields, computed in chunks of frames of at most :data:`MAX_PAIRS` pairs.
+    """
+    frames = np.union1d(gt.frame, pred.frame)
+    X, xm = _padded(gt, frames)
+    Y, ym = _padded(pred, frames)
+    if X.shape[1] * Y.shape[1] > MAX_PAIRS:
+        raise TorchtrackError(f"a frame has {X.shape[1]} truth and {Y.shape[1]} estimated points: more than "
+                              f"{MAX_PAIRS} pairs for OSPA/GOSPA")
+    step = max(1, MAX_PAIRS // max(1, X.shape[1] * Y.shape[1]))
+    o, g = [], []
+    for s in range(0, frames.size, step):
+        sl = slice(s, s + step)
+        o.append(ospa(X[sl], Y[sl], c, p_ospa, xm[sl], ym[sl]))
+        g.append(gospa(X[sl], Y[sl], c, p_gospa, 2.0, xm[sl], ym[sl]))
+    if not o:
+        empty = torch.zeros(0, dtype=torch.float64)
+        return frames, OSPAResult(*[empty] * 3), GOSPAResult(*[empty] * 6)
+    return (frames, OSPAResult(*(torch.cat(v) for v in zip(*o))), GOSPAResult(*(torch.cat(v) for v in zip(*g))))
