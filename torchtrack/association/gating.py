@@ -133,8 +133,9 @@ def mixture_log_density(x: Tensor, log_weight: Tensor, mean: Tensor, cov: Tensor
 
 
 def sample_mixture(log_weight: Tensor, mean: Tensor, cov: Tensor, num: int,
-                   generator: torch.Generator | None = None) -> Tensor:
-    """``num`` draws of a Gaussian mixture per batch element: result ``(*, num, m)``."""
+                   generator: torch.Generator | None = None, return_component: bool = False):
+    """``num`` draws of a Gaussian mixture per batch element: result ``(*, num, m)`` (and, with
+    ``return_component``, the drawn component indices ``(*, num)``)."""
     batch = torch.broadcast_shapes(log_weight.shape[:-1], mean.shape[:-2], cov.shape[:-3])
     K, m = mean.shape[-2], mean.shape[-1]
     probs = torch.softmax(log_weight, -1).expand(*batch, K).reshape(-1, K)
@@ -145,7 +146,8 @@ def sample_mixture(log_weight: Tensor, mean: Tensor, cov: Tensor, num: int,
     mu_s = torch.gather(mu, -2, idx.expand(*batch, num, m))
     L_s = torch.gather(L, -3, idx.unsqueeze(-1).expand(*batch, num, m, m))
     eps = torch.randn(*batch, num, m, 1, generator=generator, dtype=mean.dtype, device=mean.device)
-    return mu_s + (L_s @ eps).squeeze(-1)
+    z = mu_s + (L_s @ eps).squeeze(-1)
+    return (z, comp) if return_component else z
 
 
 def density_threshold(sample_log_density: Tensor, alpha: float) -> Tensor:

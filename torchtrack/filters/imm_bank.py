@@ -1,0 +1,185 @@
+"""Class-conditioned IMM bank: one IMM per target class for every track (the gate paper, §3–4).
+
+Each class ``c`` has its own model set and transition matrix (its own
+:class:`~torchtrack.filters.imm.InteractingMultipleModel` or
+:class:`~torchtrack.filters.imm_cv.ConstantVelocityIMM`); every track carries one IMM state per class
+and the class probabilities ``P(c | z_{1:k})`` (eq. 7). With a kinematic measurement ``z`` and,
+optionally, a classifier report ``ĉ`` with confusion matrix ``C[c, ĉ] = Pr{report ĉ | true class c}``
+(rows sum to one; eq. 37), the class update is::
+
+    P(c | z_{1:k}) ∝ P(c | z_{1:k-1}) · p(z_k | c, z_{1:k-1}) · C[c, ĉ_k]
+
+where ``p(z_k | c, z_{1:k-1})`` is class ``c``'s IMM likelihood ``Σ_j μ^{c,j}_{k|k-1} Λ^{c,j}`` (eq. 29–30).
+The class-conditioned measurement prediction (eq. 30) is the Gaussian mixture over class ``c``'s
+models; :meth:`ClassConditionedIMM.joint_log_density` evaluates the joint predictive density of a
+kinematic measurement and a class report, ``p(z, ĉ | track) = Σ_c P(c) C[c, ĉ] p(z | c)``, used by
+the class-conditioned gate.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NamedTuple
+
+import torch
+from torch import Tensor, nn
+
+from torchtrack.association.gating import mixture_log_density, sample_mixture
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.imm import IMMState, check_probabilities
+from torchtrack.filters.kalman import GaussianState
+from torchtrack.gaussian import moment_match
+
+
+class BankState(NamedTuple):
+    """``log_class_prob (*, C)`` and one :class:`IMMState` per class (batch ``*``)."""
+
+    log_class_prob: Tensor
+    classes: tuple[IMMState, ...]
+
+
+class BankUpdateInfo(NamedTuple):
+    log_likelihood: Tensor        # (*,) log p(z, ĉ | past) (kinematic only when no report)
+    class_log_likelihood: Tensor  # (*, C) log p(z | c, past)
+    present: Tensor               # (*,) bool
+
+
+class ClassConditionedIMM(nn.Module):
+    """A bank of per-class IMMs; ``confusion (C, C)`` (rows: true class, columns: report) is optional."""
+
+    def __init__(self, imms: Sequence[nn.Module], confusion: Tensor | None = None):
+        super().__init__()
+        if len(imms) == 0:
+            raise TorchtrackError("ClassConditionedIMM needs at least one class")
+        n = [imm.state_dim for imm in imms]
+        if len(set(n)) != 1:
+            raise TorchtrackError(f"class IMMs must share a state layout; got mismatched model state sizes {n}")
+        self.imms = nn.ModuleList(imms)
+        self.state_dim = n[0]
+        C = len(imms)
+        if confusion is not None:
+            conf = torch.as_tensor(confusion, dtype=torch.get_default_dtype())
+            if conf.shape != (C, C):
+                raise TorchtrackError(f"confusion matrix must be ({C}, {C}); got {tuple(conf.shape)}")
+            check_probabilities(conf, "rows of the confusion matrix")
+            self.register_buffer("confusion", conf)
+        else:
+            self.confusion = None
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.imms)
+
+    def initial_state(self, mean: Tensor, cov: Tensor, class_prob: Tensor | None = None) -> BankState:
+        """All classes and models start at ``mean (*, n)``, ``cov (*, n, n)``; ``class_prob (*, C)``."""
+        C = self.num_classes
+        if class_prob is None:
+            class_prob = torch.full((C,), 1.0 / C, dtype=mean.dtype, device=mean.device)
+        class_prob = torch.as_tensor(class_prob, dtype=mean.dtype, device=mean.device)
+        if class_prob.shape[-1] != C:
+            raise TorchtrackError(f"class probabilities must have {C} entries; got shape {tuple(class_prob.shape)}")
+        check_probabilities(class_prob, "class probabilities")
+        states = tuple(imm.initial_state(mean, cov) for imm in self.imms)
+        batch = states[0].log_prob.shape[:-1]
+        return BankState(torch.log(class_prob).expand(*batch, C), states)
+
+    def predict(self, state: BankState, dt=1.0) -> BankState:
+        """Each class IMM predicts; class probabilities are unchanged (the class is static)."""
+        return BankState(state.log_class_prob, tuple(imm.predict(s, dt) for imm, s in zip(self.imms, state.classes)))
+
+    def _report_log_prob(self, z_class: Tensor | None, like: Tensor) -> Tensor | None:
+        """``log C[c, ĉ]`` for reports ``ĉ (*,)`` → ``(*, C)`` (None without a report)."""
+        if z_class is None:
+            return None
+        if self.confusion is None:
+            raise TorchtrackError("a class report needs the bank's confusion matrix")
+        z_class = z_class.long()
+        if bool(((z_class < 0) | (z_class >= self.num_classes)).any()):
+            raise TorchtrackError(f"class reports must lie in [0, {self.num_classes})")
+        return torch.log(self.confusion.to(like)).transpose(0, 1)[z_class]
+
+    def update(self, state: BankState, z: Tensor, mask: Tensor | None = None,
+               z_class: Tensor | None = None) -> tuple[BankState, BankUpdateInfo]:
+        """Update every class IMM with ``z (*, m)`` and the class probabilities (with report ``z_class (*,)``)."""
+        new, lls = [], []
+        present = None
+        for imm, s in zip(self.imms, state.classes):
+            s2, info = imm.update(s, z, mask)
+            new.append(s2)
+            lls.append(info.log_likelihood)
+            present = info.present
+        ll = torch.stack(lls, -1)                                   # (*, C)
+        joint = state.log_class_prob + ll
+        rep = self._report_log_prob(z_class, joint)
+        if rep is not None:
+            joint = joint + torch.where(present.unsqueeze(-1), rep, torch.zeros_like(rep))
+        total = torch.logsumexp(joint, -1)
+        return BankState(joint - total.unsqueeze(-1), tuple(new)), BankUpdateInfo(total, ll, present)
+
+    def class_mixtures(self, state: BankState) -> tuple[Tensor, Tensor, Tensor]:
+        """Per-class measurement mixtures of a predicted state (eq. 30), padded to a common model count.
+
+        Returns ``log μ (*, C, K)`` (within-class weights; ``-inf`` for padding), ``ẑ (*, C, K, m)``,
+        ``S (*, C, K, m, m)``.
+        """
+        parts = [imm.predicted_measurement(s) for imm, s in zip(self.imms, state.classes)]
+        K = max(p[0].shape[-1] for p in parts)
+        lw, zh, S = [], [], []
+        for log_w, z_hat, cov in parts:
+            pad = K - log_w.shape[-1]
+            if pad:
+                log_w = torch.cat([log_w, torch.full((*log_w.shape[:-1], pad), -torch.inf, dtype=log_w.dtype,
+                                                     device=log_w.device)], -1)
+                z_hat = torch.cat([z_hat, z_hat[..., :1, :].expand(*z_hat.shape[:-2], pad, z_hat.shape[-1])], -2)
+                cov = torch.cat([cov, cov[..., :1, :, :].expand(*cov.shape[:-3], pad, *cov.shape[-2:])], -3)
+            lw.append(log_w)
+            zh.append(z_hat)
+            S.append(cov)
+        return torch.stack(lw, -2), torch.stack(zh, -3), torch.stack(S, -4)
+
+    def measurement_mixture(self, state: BankState, z_class: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
+        """The whole predicted measurement mixture over classes × models, flattened to ``(*, C·K)``.
+
+        With a class report ``z_class`` (a Python int or ``(*,)`` tensor) the class weights become
+        ``P(c) C[c, ĉ]`` (unnormalised: the total is ``log P(ĉ | track)``).
+        """
+        log_w, z_hat, S = self.class_mixtures(state)
+        cls = state.log_class_prob
+        if z_class is not None:
+            zc = torch.as_tensor(z_class, device=cls.device).expand(cls.shape[:-1])
+            cls = cls + self._report_log_prob(zc, cls)
+        w = cls.unsqueeze(-1) + log_w
+        return w.flatten(-2), z_hat.flatten(-3, -2), S.flatten(-4, -3)
+
+    def joint_log_density(self, state: BankState, z: Tensor, z_class: Tensor) -> Tensor:
+        """``log p(z, ĉ | track)`` at per-track points ``z (*, P, m)`` with reports ``z_class (*, P)``, for a
+        predicted state of batch ``*``; result ``(*, P)``. (For measurements shared by ``T`` tracks, expand
+        them to ``(*, T, Mz, m)``.)"""
+        out = torch.full(z.shape[:-1], -torch.inf, dtype=z.dtype, device=z.device)
+        for c in range(self.num_classes):
+            w, mu, S = self.measurement_mixture(state, c)           # (*, CK) unnormalised: Σ = P(ĉ = c)
+            total = torch.logsumexp(w, -1, keepdim=True)
+            dens = mixture_log_density(z, w, mu, S) + total
+            out = torch.where(z_class == c, dens, out)
+        return out
+
+    def sample_measurements(self, state: BankState, num: int,
+                            generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
+        """``num`` draws of ``(z, ĉ)`` from the joint predictive density per track: ``(*, num, m)``, ``(*, num)``."""
+        parts = [self.measurement_mixture(state, c) for c in range(self.num_classes)]
+        w = torch.cat([p[0] for p in parts], -1)
+        mu = torch.cat([p[1] for p in parts], -2)
+        S = torch.cat([p[2] for p in parts], -3)
+        z, comp = sample_mixture(w, mu, S, num, generator, return_component=True)
+        return z, torch.div(comp, parts[0][0].shape[-1], rounding_mode="floor")
+
+    def combine(self, state: BankState) -> GaussianState:
+        """Moment match over classes × models: ``(*, n)``, ``(*, n, n)``."""
+        w = torch.stack([state.log_class_prob[..., c:c + 1] + s.log_prob for c, s in enumerate(state.classes)], -2)
+        mean = torch.stack([s.mean for s in state.classes], -3)
+        cov = torch.stack([s.cov for s in state.classes], -4)
+        m, P = moment_match(w.flatten(-2), mean.flatten(-3, -2), cov.flatten(-4, -3))
+        return GaussianState(m, P)
+
+
+__all__ = ["BankState", "BankUpdateInfo", "ClassConditionedIMM"]

@@ -1,0 +1,57 @@
+"""Figures of the formation scenario: true tracks (paper Fig. 1) and estimates per gate (Fig. 2–4)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+from torchtrack.sim.formation import FormationData
+
+_COLOURS = ["tab:blue", "tab:red", "tab:green", "tab:orange", "tab:purple", "tab:brown"]
+
+
+def plot_formation(data: FormationData, estimates: dict[str, torch.Tensor], out_dir: Path, run: int = 0) -> list[Path]:
+    """Write ``formation_truth.png`` and ``formation_<gate>.png`` for Monte Carlo run ``run``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    truth = data.truth[run].numpy()
+    z, m, org = data.z[run].numpy(), data.z_mask[run].numpy(), data.z_origin[run].numpy()
+    classes = data.target_class.tolist()
+    paths = []
+
+    def frame(ax, title):
+        for n in range(truth.shape[1]):
+            ax.plot(truth[:, n, 0], truth[:, n, 1], "k--", lw=0.8)
+        ax.set_xlabel("x (m)")
+        ax.set_ylabel("y (m)")
+        ax.set_title(title)
+
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    frame(ax, "True formation tracks (classes " + ", ".join(str(c + 1) for c in classes) + ")")
+    ax.scatter(z[m & (org >= 0)][:, 0], z[m & (org >= 0)][:, 1], s=4, c="0.5", label="target measurements")
+    ax.scatter(z[m & (org == -1)][:, 0], z[m & (org == -1)][:, 1], s=4, c="tab:pink", marker="x", label="clutter")
+    ax.legend(loc="upper left", fontsize=8)
+    paths.append(out_dir / "formation_truth.png")
+    fig.tight_layout()
+    fig.savefig(paths[-1], dpi=120)
+    plt.close(fig)
+
+    for gate, est in estimates.items():
+        e = est[run].numpy()
+        fig, ax = plt.subplots(figsize=(8, 4.5))
+        frame(ax, f"Estimated trajectories via the {gate.replace('_', ' ')} gate")
+        for n in range(e.shape[1]):
+            ax.plot(e[:, n, 0], e[:, n, 1], "-", color=_COLOURS[n % len(_COLOURS)], lw=1.4,
+                    label=f"track {n + 1} (class {classes[n] + 1})")
+        ax.legend(loc="upper left", fontsize=8)
+        paths.append(out_dir / f"formation_{gate}.png")
+        fig.tight_layout()
+        fig.savefig(paths[-1], dpi=120)
+        plt.close(fig)
+    return paths
