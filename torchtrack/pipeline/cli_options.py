@@ -11,16 +11,14 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import numpy as np
-
 from torchtrack.cli._common import format_table, write_json
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import open_frames
-from torchtrack.io.mot import MOTData, read_mot
-from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
+from torchtrack.io.mot import read_mot
 from torchtrack.pipeline.config import load_pipeline_config
 from torchtrack.pipeline.sequences import destroy, run_sequences
 from torchtrack.pipeline.track_video import track_video
+from torchtrack.pipeline.truth import wpafb_truth
 from torchtrack.sim.video import read_camera
 
 SCORE_COLUMNS = ["GT", "MT", "PT", "ML", "FP", "FN", "IDS", "MOTA", "MOTP", "IDF1"]
@@ -52,15 +50,6 @@ def _score_row(name: str, m: dict | None, fps: float) -> list:
     if m is None:
         return [name, *["-"] * len(SCORE_COLUMNS), fps]
     return [name, *[m[k] for k in SCORE_COLUMNS], fps]
-
-
-def wpafb_truth(csv: Path, frames: int) -> tuple[MOTData, np.ndarray, Path]:
-    """The WPAFB CSV's truth over its first ``frames`` frames and the don't-care mask (not moving by the
-    paper's rule, computed on the whole CSV so that the history before the first frame counts)."""
-    full = read_wpafb_csv(csv)
-    moving = moving_mask(full)
-    keep = full.frame <= frames
-    return full.select(keep), ~moving[keep], csv
 
 
 def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = None) -> int | None:
@@ -95,6 +84,9 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
         print(format_table(header, rows, floatfmt=".3f"))
         print(f"{len(summary['sequences'])} sequences, {summary['frames']} frames, tracker {config.tracker}, "
               f"{summary['world_size']} process(es); wrote {out}/metrics.json and {out}/<sequence>/")
+        if "registration_error_px" in summary:
+            print("registration error vs camera truth: median of sequence medians "
+                  f"{summary['registration_error_px']['median_of_sequence_medians']:.3f} px")
         write_json(getattr(args, "json", None), summary)
         return 0
     source = open_frames(args.video or args.frames)
@@ -104,7 +96,8 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
     if args.truth_csv:
         if gt is not None:
             raise TorchtrackError("give either --gt or --truth-csv, not both")
-        gt, ignore, gt_path = wpafb_truth(args.truth_csv, len(source))
+        gt, ignore = wpafb_truth(args.truth_csv, len(source))
+        gt_path = args.truth_csv
     camera = read_camera(args.camera) if args.camera else None
     result = track_video(source, out, config, gt=gt, gt_path=str(gt_path), ignore=ignore, camera=camera,
                          progress=not args.no_progress)

@@ -39,18 +39,10 @@ from torchtrack.pipeline.track_video import (
     track_video,
     write_json_atomic,
 )
+from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import VideoConfig, read_camera, write_sequence
 
 TABLE_HEADER = ["Method", "GT", "MT (%)", "PT (%)", "ML (%)", "FP", "FN", "IDS", "MOTA (%)", "MOTP (px)", "FPS"]
-
-
-def parked_mask(gt: MOTData, velocity_txt: str | Path) -> np.ndarray:
-    """``(K,)`` bool over ``gt``'s lines: True where the generator's ``velocity.txt``
-    (``frame,id,vx,vy,moving``) flags the vehicle as not moving (parked) — the don't-care objects."""
-    rows = np.loadtxt(velocity_txt, delimiter=",", usecols=(0, 1, 4), ndmin=2, dtype=np.int64)
-    moving = rows[rows[:, 2] == 1]
-    key = gt.frame * (1 << 32) + gt.id
-    return ~np.isin(key, moving[:, 0] * (1 << 32) + moving[:, 1])
 
 
 def table_rows(scores: dict[str, dict]) -> list[list]:

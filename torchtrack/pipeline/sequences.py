@@ -6,8 +6,10 @@ A sequence is a sub-folder ``S`` of the folder given, holding its frames as
 * images directly in ``S``, or in ``S/frames/`` or ``S/img1/`` (the MOTChallenge layout), or
 * one video file in ``S`` (``S/video.mp4`` as written by ``torchtrack simulate-video --format mp4``),
 
-and optionally its truth ``S/gt.txt`` or ``S/gt/gt.txt`` and true camera motion ``S/camera.json``
-(the synthetic sequences'). Sub-folders holding none of these are skipped with a warning.
+and optionally its truth ``S/gt.txt`` or ``S/gt/gt.txt``, and for synthetic sequences the true camera
+motion ``S/camera.json`` (registration error is then measured) and ``S/velocity.txt`` (then only moving
+vehicles are targets, parked ones don't-care: :mod:`torchtrack.pipeline.truth`). Sub-folders holding
+none of these are skipped with a warning.
 
 Aggregation is exact: the truth and tracks of all sequences are concatenated, with frame numbers and
 identities offset so that sequences never mix, and CLEAR-MOT is computed once on the concatenation
@@ -25,11 +27,13 @@ from pathlib import Path
 import numpy as np
 import torch.distributed as dist
 
+from detector import load_detector
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.track_video import score, track_video, write_json_atomic
+from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import read_camera
 
 
@@ -41,6 +45,7 @@ class Sequence:
     frames: Path
     gt: Path | None = None
     camera: Path | None = None
+    velocity: Path | None = None
 
     def source(self) -> FrameSource:
         return open_frames(self.frames)
@@ -66,8 +71,9 @@ def describe_sequence(folder: Path) -> Sequence | None:
     if frames is None:
         return None
     gt = next((p for p in (folder / "gt.txt", folder / "gt" / "gt.txt") if p.is_file()), None)
-    camera = folder / "camera.json"
-    return Sequence(folder.name, frames, gt, camera if camera.is_file() else None)
+    camera, velocity = folder / "camera.json", folder / "velocity.txt"
+    return Sequence(folder.name, frames, gt, camera if camera.is_file() else None,
+                    velocity if velocity.is_file() and gt is not None else None)
 
 
 def find_sequences(root: str | Path) -> list[Sequence]:
@@ -91,16 +97,18 @@ def find_sequences(root: str | Path) -> list[Sequence]:
 def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, progress: bool) -> dict:
     """Run the pipeline on one sequence; returns what rank 0 needs to aggregate it."""
     gt = read_mot(seq.gt) if seq.gt else None
+    ignore = parked_mask(gt, seq.velocity) if seq.velocity else None
     camera = read_camera(seq.camera) if seq.camera else None
     t0 = time.perf_counter()
     result = track_video(seq.source(), out / seq.name, config, detector=detector, gt=gt, gt_path=str(seq.gt),
-                         camera=camera, progress=progress)
+                         ignore=ignore, camera=camera, progress=progress)
     return {"name": seq.name, "metrics": result.metrics, "seconds": time.perf_counter() - t0,
-            "gt": gt, "tracks": read_mot(result.files["tracks"]) if gt is not None else None}
+            "gt": gt, "ignore": ignore, "tracks": read_mot(result.files["tracks"]) if gt is not None else None}
 
 
 def concatenate(parts: list[tuple[MOTData, MOTData]]) -> tuple[MOTData, MOTData]:
-    """Pool ``(gt, tracks)`` pairs into one pair, offsetting frames and ids so sequences never mix."""
+    """Pool ``(gt, tracks)`` pairs into one pair, offsetting frames and ids so sequences never mix
+    (lines keep their order, so per-line masks of the parts concatenate alongside)."""
     gts, preds = [], []
     frame_off = id_off = 0
     for gt, pred in parts:
@@ -142,8 +150,6 @@ def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, det
     sequences = find_sequences(root)
     rank, world = _distributed()
     if detector is None:
-        from detector import load_detector
-
         detector = load_detector(config.detector_weights)
     mine = [run_sequence(s, out, config, detector, progress and rank == 0) for s in sequences[rank::world]]
     if world > 1:
@@ -163,8 +169,14 @@ def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, det
     summary["frames"] = frames
     summary["fps_per_process"] = frames / sum(r["seconds"] for r in results)
     if scored:
-        summary["aggregate"] = score(*concatenate([(r["gt"], r["tracks"]) for r in scored]), config.threshold)
+        masks = [r["ignore"] if r["ignore"] is not None else np.zeros(r["gt"].size, bool) for r in scored]
+        summary["aggregate"] = score(*concatenate([(r["gt"], r["tracks"]) for r in scored]), config.threshold,
+                                     np.concatenate(masks))
         summary["aggregate"]["sequences"] = len(scored)
+    reg = [r["metrics"]["registration_error_px"]["median"] for r in results if "registration_error_px" in r["metrics"]]
+    if reg:
+        summary["registration_error_px"] = {"median_of_sequence_medians": float(np.median(reg)),
+                                            "max_of_sequence_medians": float(np.max(reg))}
     out.mkdir(parents=True, exist_ok=True)
     write_json_atomic(out / "metrics.json", summary)
     if world > 1:
