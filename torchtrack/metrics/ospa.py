@@ -80,12 +80,12 @@ def _prepare(X: torch.Tensor, Y: torch.Tensor, x_mask, y_mask, c: float, p: floa
     B = batch.numel()
     X, Y = X.reshape(B, n_x, X.shape[-1]), Y.reshape(B, n_y, Y.shape[-1])
     xm, ym = xm.reshape(B, n_x), ym.reshape(B, n_y)
-    # (B, N, M) cut-off distances to the power p; differentiable, sqrt kept away from 0
-    sq = torch.zeros(X.shape[0], n_x, n_y, dtype=dtype, device=X.device)
-    for k in range(X.shape[-1]):  # per coordinate: no (B, N, M, d) temporary
-        diff = X[:, :, None, k] - Y[:, None, :, k]
-        sq = sq + diff * diff
-    dist = torch.where(sq > 0, sq.clamp_min(torch.finfo(dtype).tiny).sqrt(), torch.zeros_like(sq))
+    # (B, N, M) distances (exact differences, not the matrix-product form; zero gradient at zero distance)
+    # and cut-off distances to the power p
+    if X.shape[0] * n_x * n_y:
+        dist = torch.cdist(X, Y, compute_mode="donot_use_mm_for_euclid_dist")
+    else:
+        dist = X.new_zeros(X.shape[0], n_x, n_y)
     dc_p = dist.clamp(max=c) ** p
     return batch, dist, dc_p, xm, ym
 
