@@ -130,7 +130,8 @@ def _log(x: Tensor) -> Tensor:
 class _Hypotheses(NamedTuple):
     log_lik: Tensor   # (*, C, M) log N(z_j; H m_c, S_c)
     d2: Tensor        # (*, C, M) Mahalanobis distance squared
-    mean: Tensor      # (*, C, M, n) Kalman-updated means
+    innovation: Tensor  # (*, C, M, d) ν_cj = z_j − H m_c
+    gain: Tensor      # (*, C, n, d) K_c
     cov: Tensor       # (*, C, n, n) Kalman-updated covariance (the same for every z_j)
 
 
@@ -156,7 +157,8 @@ def _kalman_all_pairs(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor
     ``S_c = H P_c Hᵀ + R = L_c L_cᵀ`` is factorised once per component; with ``W_c = P_c Hᵀ L_c⁻ᵀ``
     (a triangular solve) the gain is ``K_c = W_c L_c⁻¹``, the whitened innovation ``L_c⁻¹ ν_cm``
     gives the Mahalanobis distance, and ``P_c⁺ = P_c − W_c W_cᵀ`` (``= P − K S Kᵀ``, symmetric by
-    construction).
+    construction). The updated means ``m_c + K_c ν_cj`` are left to the caller (the TOMB merge needs
+    only their weighted moments).
     """
     PHt = cov @ H.transpose(-1, -2)                                  # (*, C, n, d)
     S = symmetrize(_shared_left(H, PHt) + R.unsqueeze(-3))           # (*, C, d, d)
@@ -165,14 +167,13 @@ def _kalman_all_pairs(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor
     eye_d = torch.eye(d, dtype=S.dtype, device=S.device)
     Linv = solve_lower(L, eye_d.expand_as(L))                        # (*, C, d, d)
     nu = z.unsqueeze(-3) - (mean @ H.transpose(-1, -2)).unsqueeze(-2)  # (*, C, M, d)
-    white = _small_mv(Linv, nu)
+    white = nu @ Linv.transpose(-1, -2)                              # (*, C, M, d), one GEMM per component
     d2 = white.pow(2).sum(-1)
     log_lik = -0.5 * (d2 + log_det_from_cholesky(L).unsqueeze(-1) + d * LOG_2PI)
     W = _small_mm(PHt, Linv.transpose(-1, -2))                       # (*, C, n, d)
     K = _small_mm(W, Linv)                                           # (*, C, n, d)
-    upd_mean = mean.unsqueeze(-2) + _small_mv(K, nu)
     upd_cov = symmetrize(cov - _small_mm(W, W.transpose(-1, -2)))
-    return _Hypotheses(log_lik, d2, upd_mean, upd_cov)
+    return _Hypotheses(log_lik, d2, nu, K, upd_cov)
 
 
 class PMBFilter(nn.Module):
@@ -310,6 +311,7 @@ class PMBFilter(nn.Module):
         zmask = torch.ones(z.shape[:-1], dtype=torch.bool, device=z.device) if mask is None else mask.bool()
         if not bool(torch.isfinite(torch.where(zmask.unsqueeze(-1), z, torch.zeros_like(z))).all()):
             raise TorchtrackError("PMB update: measurements contain NaN or infinite values")
+        z = torch.where(zmask.unsqueeze(-1), z, torch.zeros_like(z))              # padding never leaks
         H = self.measurement.matrix().to(ref)
         R = self.measurement.noise_cov().to(ref).expand(*batch, d, d)
         if extra_noise is not None:
@@ -340,7 +342,8 @@ class PMBFilter(nn.Module):
         l_safe = torch.where(any_poisson, l_kj, torch.zeros_like(l_kj)).transpose(-1, -2)  # (*, M, K)
         K_ = state.poisson_log_weight.shape[-1]
         n = state.mean.shape[-1]
-        new_mean, new_cov = moment_match(l_safe, poi.mean.transpose(-2, -3),
+        poi_mean = state.poisson_mean.unsqueeze(-2) + poi.innovation @ poi.gain.transpose(-1, -2)  # (*, K, M, n)
+        new_mean, new_cov = moment_match(l_safe, poi_mean.transpose(-2, -3),
                                          poi.cov.unsqueeze(-4).expand(*batch, M, K_, n, n))
 
         # marginal association probabilities (Williams & Lau 2014)
@@ -354,12 +357,15 @@ class PMBFilter(nn.Module):
         a_det = aj.sum(-1)
         r_post = a0 + a_det
         denom = r_post.clamp_min(tiny)
-        mean_post = (a0.unsqueeze(-1) * state.mean + (aj.unsqueeze(-1) * trk.mean).sum(-2)) / denom.unsqueeze(-1)
-        d0 = state.mean - mean_post
-        dj = trk.mean - mean_post.unsqueeze(-2)
-        spread = ((aj[..., None, None] * dj.unsqueeze(-1)) * dj.unsqueeze(-2)).sum(-3)
-        cov_post = (a0[..., None, None] * (state.cov + d0.unsqueeze(-1) * d0.unsqueeze(-2))
-                    + a_det[..., None, None] * trk.cov + spread) / denom[..., None, None]
+        # with c = ν̄ / r', ν̄ = Σ_j p_i(j) ν_ij and V = Σ_j p_i(j) ν_ij ν_ijᵀ the merge is
+        #   m' = m + K c,  P' = (p_i(0) r^miss P + Σ_j p_i(j) P⁺) / r' + K (V / r' − c cᵀ) Kᵀ
+        nu_bar = (aj.unsqueeze(-2) @ trk.innovation).squeeze(-2)               # (*, N, d)
+        V = (aj.unsqueeze(-1) * trk.innovation).transpose(-1, -2) @ trk.innovation  # (*, N, d, d)
+        c = nu_bar / denom.unsqueeze(-1)
+        inner = V / denom[..., None, None] - c.unsqueeze(-1) * c.unsqueeze(-2)
+        mean_post = state.mean + _small_mv(trk.gain, c.unsqueeze(-2)).squeeze(-2)
+        cov_post = ((a0[..., None, None] * state.cov + a_det[..., None, None] * trk.cov) / denom[..., None, None]
+                    + _small_mm(_small_mm(trk.gain, inner), trk.gain.transpose(-1, -2)))
         r_new = torch.where(zmask, marg.new * r_new_hyp, torch.zeros_like(r_new_hyp))
         new_label = torch.where(zmask, state.next_label.unsqueeze(-1) + torch.cumsum(zmask.long(), -1) - 1,
                                 torch.full_like(zmask, -1, dtype=torch.long))
