@@ -37,6 +37,7 @@ TRACKERS: dict[str, str] = {
     "labelled-gmphd": "torchtrack.filters.baselines:labelled_gmphd",
     "sort": "torchtrack.filters.baselines:SORT.from_config",
     "greedy": "torchtrack.filters.baselines:GreedyTracker.from_config",
+    "pmb": "torchtrack.filters.pmb_tracker:PMBTracker.from_config",
 }
 """Tracker name → ``module:factory`` taking the tracker's config mapping (or None)."""
 
