@@ -8,10 +8,11 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.io.video_writer import AnnotatedVideoWriter, apply_homography, identity_color, save_png
 
 
-def test_writes_decodable_mp4_with_colours_at_tracks(tmp_path):
+@pytest.mark.parametrize("background", [True, False])
+def test_writes_decodable_mp4_with_colours_at_tracks(tmp_path, background):
     path = tmp_path / "annotated.mp4"
     shift = np.array([[1.0, 0, 5], [0, 1, -3], [0, 0, 1]])  # reference → image
-    with AnnotatedVideoWriter(path, fps=5, trail=3) as writer:
+    with AnnotatedVideoWriter(path, fps=5, trail=3, background=background) as writer:
         for k in range(6):
             image = np.full((96, 128), 40, np.uint8)
             frame = writer.write(image, [3, 7], [[20 + 4 * k, 30], [80, 60 - 2 * k]],

@@ -17,6 +17,8 @@ truncated file under the final name.
 from __future__ import annotations
 
 import colorsys
+import queue
+import threading
 from collections import deque
 from pathlib import Path
 
@@ -126,10 +128,12 @@ class AnnotatedVideoWriter:
         trail: number of past positions drawn per identity (0: none).
         box: side of the drawn box in pixels, ``None`` for dots.
         scale: integer up-scaling of the output (small frames become legible).
+        background: encode in a background thread (OpenCV releases the GIL while encoding, so the
+            encoding of frame ``k`` overlaps the processing of frame ``k + 1``); at most 4 frames wait.
     """
 
     def __init__(self, path: str | Path, fps: float = 10.0, trail: int = 12, box: int | None = None,
-                 scale: int = 1) -> None:
+                 scale: int = 1, background: bool = True) -> None:
         self.path = Path(path)
         if self.path.suffix.lower() != ".mp4":
             raise TorchtrackError(f"{self.path}: the annotated video must be an .mp4 file")
@@ -141,6 +145,31 @@ class AnnotatedVideoWriter:
         self._size: tuple[int, int] | None = None
         self.frames = 0
         self.last: np.ndarray | None = None
+        self._background = background
+        self._queue: queue.Queue | None = None
+        self._thread: threading.Thread | None = None
+        self._error: BaseException | None = None
+
+    def _encode(self) -> None:
+        while True:
+            frame = self._queue.get()
+            if frame is None:
+                return
+            try:
+                self._writer.write(frame)
+            except BaseException as exc:  # re-raised in the caller's thread by _check
+                self._error = exc
+                return
+
+    def _check(self) -> None:
+        if self._error is not None:
+            raise TorchtrackError(f"{self.partial}: video encoding failed: {self._error}")
+
+    def _stop(self) -> None:
+        if self._thread is not None:
+            self._queue.put(None)
+            self._thread.join()
+            self._thread = None
 
     def write(self, image: np.ndarray, ids, positions, truth=None, homography=None,
               label: str | None = None) -> np.ndarray:
@@ -163,10 +192,18 @@ class AnnotatedVideoWriter:
             if not self._writer.isOpened():
                 raise TorchtrackError(f"{self.partial}: OpenCV cannot open an mp4v video writer")
             self._size = (w, h)
+            if self._background:
+                self._queue = queue.Queue(maxsize=4)
+                self._thread = threading.Thread(target=self._encode, name="video-encoder", daemon=True)
+                self._thread.start()
         elif (w, h) != self._size:
             raise TorchtrackError(f"{self.path}: frame {self.frames} is {w}x{h}, the video is "
                                   f"{self._size[0]}x{self._size[1]}")
-        self._writer.write(frame)
+        self._check()
+        if self._thread is not None:
+            self._queue.put(frame)
+        else:
+            self._writer.write(frame)
         self.last = frame
         return frame
 
@@ -174,6 +211,8 @@ class AnnotatedVideoWriter:
         """Finish the file and give it its final name; returns the path."""
         if self._writer is None:
             raise TorchtrackError(f"{self.path}: no frame was written")
+        self._stop()
+        self._check()
         self._writer.release()
         self._writer = None
         self.partial.replace(self.path)
@@ -182,6 +221,7 @@ class AnnotatedVideoWriter:
     def abort(self) -> None:
         """Release the writer without renaming: the ``.partial.mp4`` file stays, marked incomplete."""
         if self._writer is not None:
+            self._stop()
             self._writer.release()
             self._writer = None
 
