@@ -127,3 +127,27 @@ def test_homography_jacobian_matches_finite_differences():
     num = np.stack([(tv.apply_homography(p + eps * e, h) - tv.apply_homography(p - eps * e, h)) / (2 * eps)
                     for e in np.eye(2)], axis=2)
     np.testing.assert_allclose(tv.homography_jacobian(h, p), num, rtol=1e-7, atol=1e-9)
+
+
+class OnePoint:
+    def detect(self, frame, prev_frame, prev_points):
+        return SimpleNamespace(xy=torch.tensor([[40.0, 50.0]]), score=torch.ones(1), velocity=torch.zeros(1, 2))
+
+
+def test_size_change_mid_run_names_the_file_and_leaves_no_complete_results(tmp_path, sequence, monkeypatch):
+    frames = tmp_path / "frames"
+    frames.mkdir()
+    for k, f in enumerate(sequence[:4], start=1):
+        image = f.image if k != 3 else f.image[:100]
+        cv2.imwrite(str(frames / f"{k:03d}.png"), image)
+    monkeypatch.setattr(tv, "make_tracker", lambda name, options: RecordingTracker())
+    from torchtrack.errors import TorchtrackError
+    from torchtrack.io.frames import FolderSource
+
+    out = tmp_path / "out"
+    (out).mkdir()
+    (out / "metrics.json").write_text("{}")  # a previous run's result must not survive beside the new files
+    with pytest.raises(TorchtrackError, match=r"003\.png: frame size 128x100 differs from 128x128"):
+        tv.track_video(FolderSource(frames), out, PipelineConfig(), detector=OnePoint(), progress=False)
+    assert not (out / "metrics.json").exists() and not (out / "annotated.mp4").exists()
+    assert read_mot(out / "tracks.txt").frames().tolist() == [1, 2]  # complete up to the last good frame

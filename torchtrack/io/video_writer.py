@@ -107,11 +107,11 @@ def render_frame(image: np.ndarray, ids: np.ndarray, positions: np.ndarray,
     return canvas
 
 
-def save_png(path: str | Path, image: np.ndarray) -> Path:
-    """Write ``image`` as a PNG (maximum compression), creating the folder; error names the file."""
+def save_png(path: str | Path, image: np.ndarray, compression: int = 3) -> Path:
+    """Write ``image`` as a PNG (zlib ``compression`` 0–9), creating the folder; error names the file."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, 9]):
+    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]):
         raise TorchtrackError(f"{path}: could not write PNG")
     return path
 
