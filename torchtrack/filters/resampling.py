@@ -6,7 +6,7 @@ rows of the batch are resampled at once, without Python loops over rows or parti
 
 * multinomial — ``a_i ~ Cat(w)`` i.i.d.;
 * stratified  — ``a_i = F⁻¹((i + U_i)/N)``, ``U_i ~ U[0, 1)`` i.i.d.;
-* systematic  — ``a_i = F⁻¹((i + U)/N)``, one ``U ~ U[0, 1)`` per row;
+* systematic  — ``a_i = F⁻¹((i + U)/N)``, one ``U ~ U[0, 1)`` per row (computed in ``O(N)``);
 * residual    — ``⌊N w_j⌋`` deterministic copies of each ``j``, the remaining ``N − Σ⌊N w_j⌋``
   drawn multinomially from the residual weights ``N w_j − ⌊N w_j⌋`` (Liu & Chen 1998).
 
@@ -77,11 +77,24 @@ def stratified(log_weight: Tensor, generator: torch.Generator | None = None) -> 
 
 
 def systematic(log_weight: Tensor, generator: torch.Generator | None = None) -> Tensor:
-    """One uniform shared by all strata of a row."""
+    """One uniform shared by all strata of a row; see :func:`systematic_from_uniform`."""
     w = normalized_weights(log_weight)
-    n = w.shape[-1]
-    i = torch.arange(n, dtype=w.dtype, device=w.device)
-    return _inverse_cdf(w, (i + _uniform((*w.shape[:-1], 1), generator, w)) / n)
+    return systematic_from_uniform(w, _uniform((*w.shape[:-1], 1), generator, w))
+
+
+def systematic_from_uniform(weight: Tensor, u: Tensor) -> Tensor:
+    """Systematic ancestors for non-negative weights ``(*B, N)`` (any positive total) and ``u (*B, 1)``.
+
+    ``O(N)`` without a search: the grid points ``(i + u)/N`` below the cumulative weight ``F_j`` number
+    ``e_j = ⌈N F_j / F_N − u⌉``, so slot ``i`` descends from ``a_i = #{j : e_j ≤ i}`` — a histogram of
+    ``e`` and a cumulative sum. A row of zero weights must be handled by the caller.
+    """
+    n = weight.shape[-1]
+    cdf = torch.cumsum(weight, -1)
+    ends = torch.ceil(cdf * (n / cdf[..., -1:]) - u).clamp_(0, n).long()
+    hist = torch.zeros((*ends.shape[:-1], n + 1), dtype=torch.long, device=ends.device)
+    hist.scatter_add_(-1, ends, torch.ones_like(ends))
+    return torch.cumsum(hist[..., :n], -1).clamp_max_(n - 1)
 
 
 def residual(log_weight: Tensor, generator: torch.Generator | None = None) -> Tensor:
