@@ -92,7 +92,8 @@ def read_mot_like(rows):
 def test_single_process_and_torchrun_agree(root, tmp_path):
     cfg = PipelineConfig(tracker="greedy", video=False)
     with pytest.warns(UserWarning):
-        single = run_sequences(root, tmp_path / "one", cfg, detector=_standin(root), progress=False)
+        single = run_sequences(root, tmp_path / "one", cfg, detector=_standin(root), progress=False,
+                               compare=["greedy", "sort"])
     assert single["world_size"] == 1 and set(single["sequences"]) == {"a_seq", "b_seq", "c_seq"}
     assert single["registration_error_px"]["median_of_sequence_medians"] < 0.5
     names = ("a_seq", "b_seq", "c_seq")
@@ -102,6 +103,12 @@ def test_single_process_and_torchrun_agree(root, tmp_path):
                        ignore=parked)
     assert single["aggregate"]["MOTA"] == pytest.approx(pooled["MOTA"])
     assert single["aggregate"]["TP"] == pooled["TP"] > 0
+    # --compare: SORT ran on the same detections; its pooled scores are those of its own files.
+    sort_files = [read_mot(tmp_path / "one" / n / "trackers" / "sort.txt") for n in names]
+    pooled_sort = clear_mot(*concatenate(list(zip(gts, sort_files))), ignore=parked)
+    assert set(single["trackers"]) == {"greedy", "sort"}
+    assert single["trackers"]["sort"]["IDF1"] == pytest.approx(pooled_sort["IDF1"])
+    assert single["trackers"]["greedy"]["MOTA"] == single["aggregate"]["MOTA"]
 
     script = tmp_path / "shard.py"
     script.write_text(

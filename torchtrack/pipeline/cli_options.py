@@ -13,9 +13,11 @@ from pathlib import Path
 
 from torchtrack.cli._common import format_table, write_json
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.multitarget import tracker_names
 from torchtrack.io.frames import open_frames
 from torchtrack.io.mot import read_mot
 from torchtrack.pipeline.config import load_pipeline_config
+from torchtrack.pipeline.demo import TABLE_HEADER, table_rows
 from torchtrack.pipeline.sequences import destroy, run_sequences
 from torchtrack.pipeline.track_video import track_video
 from torchtrack.pipeline.truth import wpafb_truth
@@ -32,6 +34,8 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
     src.add_argument("--frames", type=Path, metavar="DIR", help="track a folder of images (natural order)")
     src.add_argument("--sequences", type=Path, metavar="DIR",
                      help="evaluate every sequence folder in DIR and aggregate (shards over torchrun ranks)")
+    # --compare and --trackers of torchtrack track also apply to --sequences: the detector runs once per
+    # sequence and every tracker runs on its detections.
     g.add_argument("--pipeline-config", type=Path, metavar="YAML", default=None,
                    help="pipeline settings (configs/pipeline.yaml); default: the embedded ones")
     g.add_argument("--weights", type=Path, metavar="PT", default=None,
@@ -72,8 +76,9 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
     if args.sequences:
         if getattr(args, "gt", None):
             raise TorchtrackError("--gt does not apply to --sequences: each sequence folder holds its gt.txt")
+        compare = (getattr(args, "trackers", None) or tracker_names()) if getattr(args, "compare", False) else []
         try:
-            summary = run_sequences(args.sequences, out, config, progress=not args.no_progress)
+            summary = run_sequences(args.sequences, out, config, progress=not args.no_progress, compare=compare)
         finally:
             destroy()
         if summary is None:  # a torchrun rank other than 0
@@ -84,6 +89,10 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
         print(format_table(header, rows, floatfmt=".3f"))
         print(f"{len(summary['sequences'])} sequences, {summary['frames']} frames, tracker {config.tracker}, "
               f"{summary['world_size']} process(es); wrote {out}/metrics.json and {out}/<sequence>/")
+        if "trackers" in summary:
+            print(f"all trackers on the same detections, pooled over {summary['aggregate']['sequences']} sequences "
+                  "(FPS: the tracker alone):")
+            print(format_table(TABLE_HEADER, table_rows(summary["trackers"]), floatfmt=".2f"))
         if "registration_error_px" in summary:
             print("registration error vs camera truth: median of sequence medians "
                   f"{summary['registration_error_px']['median_of_sequence_medians']:.3f} px")

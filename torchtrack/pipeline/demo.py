@@ -26,15 +26,14 @@ import torch
 
 from detector.dataset import split_seed
 from torchtrack.cli._common import format_table
-from torchtrack.filters.multitarget import make_tracker, tracker_names
+from torchtrack.filters.multitarget import tracker_names
 from torchtrack.io.frames import FolderSource
-from torchtrack.io.mot import MOTData, MOTWriter, read_mot
+from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.io.video_writer import apply_homography
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.plots import plot_scores, plot_tracks
 from torchtrack.pipeline.track_video import (
-    FrameDetections,
-    run_tracker_step,
+    rerun_tracker,
     score,
     track_video,
     write_json_atomic,
@@ -53,21 +52,6 @@ def table_rows(scores: dict[str, dict]) -> list[list]:
         rows.append([name, s["GT"], 100 * s["MT"] / gt, 100 * s["PT"] / gt, 100 * s["ML"] / gt, s["FP"], s["FN"],
                      s["IDS"], 100 * s["MOTA"], s["MOTP"], s["FPS"]])
     return rows
-
-
-def _rerun(name: str, detections: list[FrameDetections], out: Path, dtype: torch.dtype) -> tuple[Path, float]:
-    """Run tracker ``name`` on kept detections, writing ``out`` (frame coordinates); returns the file and
-    the seconds spent in the tracker."""
-    tracker = make_tracker(name, None)
-    seconds = 0.0
-    with MOTWriter(out) as writer:
-        for det in detections:
-            t0 = time.perf_counter()
-            ids, pos = run_tracker_step(tracker, det, dtype)
-            seconds += time.perf_counter() - t0
-            img = apply_homography(pos, np.linalg.inv(det.homography))
-            writer.write_frame(det.index, ids, img[:, 0], img[:, 1])
-    return out, seconds
 
 
 def _paths(data: MOTData, to_first: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -111,7 +95,7 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     scores = {cfg.tracker: {**metrics["clear_mot"], "FPS": metrics["fps"].get("tracking_only", float("inf"))}}
     dtype = getattr(torch, cfg.dtype)
     for name in [n for n in (trackers or tracker_names()) if n != cfg.tracker]:
-        path, seconds = _rerun(name, result.detections, out / "trackers" / f"{name}.txt", dtype)
+        path, seconds = rerun_tracker(name, None, result.detections, out / "trackers" / f"{name}.txt", dtype)
         scores[name] = {**score(gt, read_mot(path), cfg.threshold, ignore), "FPS": len(result.detections) / seconds}
     homographies = {d.index: d.homography for d in result.detections}
     first = next(iter(FolderSource(seq / "frames"))).image

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+import torch
 import torch.distributed as dist
 
 from detector import load_detector
@@ -32,7 +33,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.pipeline.config import PipelineConfig
-from torchtrack.pipeline.track_video import score, track_video, write_json_atomic
+from torchtrack.pipeline.track_video import rerun_tracker, score, track_video, write_json_atomic
 from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import read_camera
 
@@ -94,16 +95,24 @@ def find_sequences(root: str | Path) -> list[Sequence]:
     return found
 
 
-def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, progress: bool) -> dict:
-    """Run the pipeline on one sequence; returns what rank 0 needs to aggregate it."""
+def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, progress: bool,
+                 others: list[str] = ()) -> dict:
+    """Run the pipeline on one sequence, and the trackers ``others`` on the same detections (written to
+    ``out/<sequence>/trackers/<name>.txt``); returns what rank 0 needs to aggregate them."""
     gt = read_mot(seq.gt) if seq.gt else None
     ignore = parked_mask(gt, seq.velocity) if seq.velocity else None
     camera = read_camera(seq.camera) if seq.camera else None
     t0 = time.perf_counter()
     result = track_video(seq.source(), out / seq.name, config, detector=detector, gt=gt, gt_path=str(seq.gt),
-                         ignore=ignore, camera=camera, progress=progress)
-    return {"name": seq.name, "metrics": result.metrics, "seconds": time.perf_counter() - t0,
-            "gt": gt, "ignore": ignore, "tracks": read_mot(result.files["tracks"]) if gt is not None else None}
+                         ignore=ignore, camera=camera, keep_detections=bool(others), progress=progress)
+    seconds = time.perf_counter() - t0
+    tracks = {config.tracker: (read_mot(result.files["tracks"]), result.metrics["timings_s"].get("tracking", 0.0))}
+    for name in others:
+        path, tracker_s = rerun_tracker(name, None, result.detections,
+                                        out / seq.name / "trackers" / f"{name}.txt", getattr(torch, config.dtype))
+        tracks[name] = (read_mot(path), tracker_s)
+    return {"name": seq.name, "metrics": result.metrics, "seconds": seconds, "gt": gt, "ignore": ignore,
+            "tracks": tracks}
 
 
 def concatenate(parts: list[tuple[MOTData, MOTData]]) -> tuple[MOTData, MOTData]:
@@ -140,8 +149,10 @@ def _distributed() -> tuple[int, int]:
 
 
 def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, detector=None,
-                  progress: bool = True) -> dict | None:
-    """Evaluate every sequence of ``root`` and aggregate (module docstring).
+                  progress: bool = True, compare: list[str] = ()) -> dict | None:
+    """Evaluate every sequence of ``root`` and aggregate (module docstring); with ``compare``, those
+    trackers also run on the same detections and ``summary["trackers"]`` holds each one's pooled
+    CLEAR-MOT and tracker-only frames per second.
 
     Under ``torchrun`` rank ``r`` of ``W`` takes sequences ``r, r + W, ...``; results are gathered on
     rank 0, which writes ``out/metrics.json`` and returns the summary; other ranks return None.
@@ -151,7 +162,8 @@ def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, det
     rank, world = _distributed()
     if detector is None:
         detector = load_detector(config.detector_weights)
-    mine = [run_sequence(s, out, config, detector, progress and rank == 0) for s in sequences[rank::world]]
+    others = [n for n in compare if n != config.tracker]
+    mine = [run_sequence(s, out, config, detector, progress and rank == 0, others) for s in sequences[rank::world]]
     if world > 1:
         gathered: list = [None] * world if rank == 0 else None
         dist.gather_object(mine, gathered, dst=0)
@@ -169,10 +181,17 @@ def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, det
     summary["frames"] = frames
     summary["fps_per_process"] = frames / sum(r["seconds"] for r in results)
     if scored:
-        masks = [r["ignore"] if r["ignore"] is not None else np.zeros(r["gt"].size, bool) for r in scored]
-        summary["aggregate"] = score(*concatenate([(r["gt"], r["tracks"]) for r in scored]), config.threshold,
-                                     np.concatenate(masks))
-        summary["aggregate"]["sequences"] = len(scored)
+        masks = np.concatenate([r["ignore"] if r["ignore"] is not None else np.zeros(r["gt"].size, bool)
+                                for r in scored])
+        summary["trackers"] = {}
+        for name in [config.tracker, *others]:
+            pooled = concatenate([(r["gt"], r["tracks"][name][0]) for r in scored])
+            tracker_s = sum(r["tracks"][name][1] for r in scored)
+            summary["trackers"][name] = {**score(*pooled, config.threshold, masks),
+                                         "FPS": sum(r["metrics"]["frames"] for r in scored) / max(tracker_s, 1e-9)}
+        summary["aggregate"] = {**summary["trackers"][config.tracker], "sequences": len(scored)}
+        if not others:
+            del summary["trackers"]
     reg = [r["metrics"]["registration_error_px"]["median"] for r in results if "registration_error_px" in r["metrics"]]
     if reg:
         summary["registration_error_px"] = {"median_of_sequence_medians": float(np.median(reg)),

@@ -150,6 +150,23 @@ def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple
     return ids, _numpy(positions, (2,))
 
 
+def rerun_tracker(name: str, options: dict | None, detections: list[FrameDetections], out: Path,
+                  dtype: torch.dtype) -> tuple[Path, float]:
+    """Run tracker ``name`` on the kept detections of a pipeline run (no registration or detection
+    again), writing its tracks to ``out`` in frame coordinates; returns the file and the seconds spent
+    in the tracker."""
+    tracker = make_tracker(name, options)
+    seconds = 0.0
+    with MOTWriter(out) as writer:
+        for det in detections:
+            t0 = time.perf_counter()
+            ids, pos = run_tracker_step(tracker, det, dtype)
+            seconds += time.perf_counter() - t0
+            img = apply_homography(pos, np.linalg.inv(det.homography))
+            writer.write_frame(det.index, ids, img[:, 0], img[:, 1])
+    return out, seconds
+
+
 def _truth_by_frame(gt: MOTData | None) -> dict[int, np.ndarray]:
     if gt is None:
         return {}
