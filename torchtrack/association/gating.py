@@ -121,13 +121,17 @@ def ellipsoidal_gate(z: Tensor, z_hat: Tensor, S: Tensor, alpha: float | None = 
     return Gate(_apply_mask(mask, z_mask), ellipsoid_volume(thr, log_det_from_cholesky(L), n), nis, thr)
 
 
-def mixture_log_density(x: Tensor, log_weight: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
+def mixture_log_density(x: Tensor, log_weight: Tensor, mean: Tensor, cov: Tensor,
+                        per_component: bool = False) -> Tensor:
     """``log Σ_k w_k N(x; μ_k, Σ_k)`` at points ``x (*, P, m)``; ``log_weight (*, K)`` (normalised here),
-    ``mean (*, K, m)``, ``cov (*, K, m, m)`` or ``(m, m)``; result ``(*, P)``."""
+    ``mean (*, K, m)``, ``cov (*, K, m, m)`` or ``(m, m)``; result ``(*, P)`` (with ``per_component`` the
+    unweighted ``log N(x; μ_k, Σ_k)``, ``(*, K, P)``)."""
     L = cholesky(cov, "mixture component covariance")
     d2 = _whitened_sq(x, mean, L)                                         # (*, K, P)
     m = x.shape[-1]
     comp = -0.5 * (d2 + log_det_from_cholesky(L).unsqueeze(-1) + m * LOG_2PI)
+    if per_component:
+        return comp
     logw = torch.log_softmax(log_weight, -1).unsqueeze(-1)
     return torch.logsumexp(comp + logw, -2)
 

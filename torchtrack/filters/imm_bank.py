@@ -154,14 +154,19 @@ class ClassConditionedIMM(nn.Module):
     def joint_log_density(self, state: BankState, z: Tensor, z_class: Tensor) -> Tensor:
         """``log p(z, ĉ | track)`` at per-track points ``z (*, P, m)`` with reports ``z_class (*, P)``, for a
         predicted state of batch ``*``; result ``(*, P)``. (For measurements shared by ``T`` tracks, expand
-        them to ``(*, T, Mz, m)``.)"""
-        out = torch.full(z.shape[:-1], -torch.inf, dtype=z.dtype, device=z.device)
-        for c in range(self.num_classes):
-            w, mu, S = self.measurement_mixture(state, c)           # (*, CK) unnormalised: Σ = P(ĉ = c)
-            total = torch.logsumexp(w, -1, keepdim=True)
-            dens = mixture_log_density(z, w, mu, S) + total
-            out = torch.where(z_class == c, dens, out)
-        return out
+        them to ``(*, T, Mz, m)``.) Component densities are evaluated once; reports only reweight them."""
+        log_w, z_hat, S = self.class_mixtures(state)                  # (*, C, K), (*, C, K, m), (*, C, K, m, m)
+        comp = mixture_log_density(z, log_w.flatten(-2), z_hat.flatten(-3, -2), S.flatten(-4, -3),
+                                   per_component=True)                 # (*, CK, P)
+        C, K = log_w.shape[-2:]
+        comp = comp.unflatten(-2, (C, K))                              # (*, C, K, P)
+        in_class = torch.logsumexp(log_w.unsqueeze(-1) + comp, -2)     # (*, C, P): log p(z | c)
+        rep = torch.log(self.confusion.to(z)) if self.confusion is not None else None
+        if rep is None:
+            raise TorchtrackError("joint_log_density needs the bank's confusion matrix")
+        # log Σ_c P(c) C[c, ĉ] p(z | c), with ĉ the report of each point
+        w = state.log_class_prob.unsqueeze(-1) + rep.transpose(0, 1)[z_class.long()].movedim(-1, -2)  # (*, C, P)
+        return torch.logsumexp(w + in_class, -2)
 
     def sample_measurements(self, state: BankState, num: int,
                             generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
@@ -175,10 +180,10 @@ class ClassConditionedIMM(nn.Module):
 
     def combine(self, state: BankState) -> GaussianState:
         """Moment match over classes × models: ``(*, n)``, ``(*, n, n)``."""
-        w = torch.stack([state.log_class_prob[..., c:c + 1] + s.log_prob for c, s in enumerate(state.classes)], -2)
-        mean = torch.stack([s.mean for s in state.classes], -3)
-        cov = torch.stack([s.cov for s in state.classes], -4)
-        m, P = moment_match(w.flatten(-2), mean.flatten(-3, -2), cov.flatten(-4, -3))
+        w = torch.cat([state.log_class_prob[..., c:c + 1] + s.log_prob for c, s in enumerate(state.classes)], -1)
+        mean = torch.cat([s.mean for s in state.classes], -2)
+        cov = torch.cat([s.cov for s in state.classes], -3)
+        m, P = moment_match(w, mean, cov)
         return GaussianState(m, P)
 
 

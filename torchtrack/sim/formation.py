@@ -33,7 +33,7 @@ class FormationConfig:
     separation: float = 200.0
     classes: tuple[int, ...] = (0, 1, 0, 1)
     truth_sigma: float = 0.2           # m/s², truth acceleration noise σ_v
-    measurement_sigma: float = 60.0    # m, σ_w
+    measurement_sigma: float = 55.0    # m, σ_w
     p_detect: float = 0.96
     clutter_density: float = 1e-8      # points per m² (0.01 per km², the paper)
     margin: float = 500.0              # m, surveillance rectangle beyond the formation's extent

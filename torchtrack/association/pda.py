@@ -1,0 +1,74 @@
+"""Probabilistic data association (PDA) update, batched over tracks (Bar-Shalom & Fortmann 1988, §6.4).
+
+For a track with prediction ``x⁻, P⁻``, linear measurement model ``H, R`` (``S = H P⁻ Hᵀ + R``,
+``K = P⁻ Hᵀ S⁻¹``) and the gated measurements ``z_j`` (innovations ``ν_j``)::
+
+    L_j = p_D N(ν_j; 0, S) / λ                       (λ: clutter density)
+    β_j = L_j / (1 − p_D p_G + Σ_l L_l),   β_0 = (1 − p_D p_G) / (1 − p_D p_G + Σ_l L_l)
+    x⁺ = x⁻ + K ν,   ν = Σ_j β_j ν_j
+    P⁺ = β_0 P⁻ + (1 − β_0) (P⁻ − K S Kᵀ) + K (Σ_j β_j ν_j ν_jᵀ − ν νᵀ) Kᵀ
+
+which is the moment match of the mixture "no measurement is the target's" (weight ``β_0``) and
+"``z_j`` is" (weight ``β_j``, the Kalman update with ``z_j``). Weights are computed in the log domain;
+everything is differentiable.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.kalman import GaussianState
+from torchtrack.gaussian import LOG_2PI, chol_solve, cholesky, log_det_from_cholesky, solve_lower, symmetrize
+
+
+class PDAResult(NamedTuple):
+    state: GaussianState   # (*, T, n), (*, T, n, n)
+    weights: Tensor        # (*, T, 1 + Mz): β_0 (no detection) then β_j per measurement (0 outside the gate)
+    log_likelihood: Tensor  # (*, T) log of the PDA normaliser relative to clutter, log(1 − p_D p_G + Σ L_j)
+
+
+def pda_update(state: GaussianState, z: Tensor, gate_mask: Tensor, H: Tensor, R: Tensor, p_detect: float,
+               clutter_density: Tensor | float, p_gate: float = 1.0) -> PDAResult:
+    """PDA update of tracks ``state (*, T, n)`` with measurements ``z (*, Mz, m)``.
+
+    ``gate_mask (*, T, Mz)`` marks the validated measurements of each track; ``H (m, n)``, ``R (m, m)``;
+    ``clutter_density`` λ > 0 (scalar or ``(*, 1, 1)``-broadcastable); ``p_gate`` is the gate probability.
+    """
+    if not 0.0 < p_detect <= 1.0 or not 0.0 < p_gate <= 1.0:
+        raise TorchtrackError(f"p_detect and p_gate must lie in (0, 1]; got {p_detect}, {p_gate}")
+    lam = torch.as_tensor(clutter_density, dtype=z.dtype, device=z.device)
+    if bool((lam <= 0).any()):
+        raise TorchtrackError("clutter_density must be > 0")
+    x, P = state.mean, state.cov
+    m = z.shape[-1]
+    PHt = P @ H.transpose(-1, -2)
+    S = symmetrize(H @ PHt + R)
+    L = cholesky(S, "PDA innovation covariance S")
+    K = chol_solve(L, PHt.transpose(-1, -2)).transpose(-1, -2)                  # (*, T, n, m)
+    z_hat = (H @ x.unsqueeze(-1)).squeeze(-1)
+    nu = z.unsqueeze(-3) - z_hat.unsqueeze(-2)                                    # (*, T, Mz, m)
+    white = solve_lower(L, nu.transpose(-1, -2)).transpose(-1, -2)
+    log_n = -0.5 * (white.pow(2).sum(-1) + log_det_from_cholesky(L).unsqueeze(-1) + m * LOG_2PI)
+    log_l = math.log(p_detect) + log_n - torch.log(lam)
+    log_l = torch.where(gate_mask, log_l, torch.full_like(log_l, -math.inf))
+    miss = 1.0 - p_detect * p_gate
+    log_miss = torch.full_like(log_l[..., :1], math.log(miss) if miss > 0 else -math.inf)
+    logits = torch.cat([log_miss, log_l], -1)
+    norm = torch.logsumexp(logits, -1)
+    beta = torch.exp(logits - norm.unsqueeze(-1))
+    b0, bj = beta[..., 0], beta[..., 1:]
+    nu_c = (bj.unsqueeze(-1) * nu).sum(-2)                                        # (*, T, m)
+    mean = x + (K @ nu_c.unsqueeze(-1)).squeeze(-1)
+    outer = (bj[..., None, None] * nu.unsqueeze(-1) * nu.unsqueeze(-2)).sum(-3)
+    spread = outer - nu_c.unsqueeze(-1) * nu_c.unsqueeze(-2)
+    KSK = K @ S @ K.transpose(-1, -2)
+    cov = P - (1 - b0)[..., None, None] * KSK + K @ spread @ K.transpose(-1, -2)
+    return PDAResult(GaussianState(mean, symmetrize(cov)), beta, norm)
+
+
+__all__ = ["PDAResult", "pda_update"]
