@@ -35,7 +35,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--measurements", type=int, default=150, help="measurements per scan (default 150)")
     parser.add_argument("--scans", type=int, default=20, help="timed scans (default 20)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float64")
-    parser.add_argument("--lbp-iterations", type=int, default=15, help="fixed LBP iterations (default 15)")
+    parser.add_argument("--lbp-iterations", type=int, default=30, help="LBP iteration cap (default 30)")
+    parser.add_argument("--lbp-tol", type=float, default=1e-6,
+                        help="LBP tolerance on the miss/new marginals (default 1e-6; 0: fixed iterations)")
+    parser.add_argument("--threads", type=int, default=None,
+                        help="torch intra-op threads (default: torch's choice; 1 is faster on a loaded machine)")
     parser.add_argument("--repeats", type=int, default=3)
     from torchtrack.cli._common import add_common_options
 
@@ -58,13 +62,13 @@ def make_scans(targets: int, meas: int, scans: int, gen: torch.Generator) -> tup
     return torch.stack(out), x
 
 
-def build(targets: int, meas: int, lbp_iterations: int) -> PMBFilter:
+def build(targets: int, meas: int, lbp_iterations: int, lbp_tol: float | None) -> PMBFilter:
     clutter = (meas - 0.9 * targets) / (2 * HALF) ** 2
     return PMBFilter(ConstantVelocity(2, q=1.0, learnable=False), LinearPosition(2, sigma=SIGMA, learnable=False),
                      p_survival=0.99, p_detection=0.9, clutter_intensity=clutter, birth_weight=0.01,
                      birth_cov=torch.diag(torch.tensor([HALF**2, HALF**2, 100.0, 100.0])),
                      capacity=int(1.3 * targets) + 16, poisson_capacity=4, gate=0.9999,
-                     lbp_iterations=lbp_iterations, lbp_tol=None, prune_existence=1e-3, learnable=False)
+                     lbp_iterations=lbp_iterations, lbp_tol=lbp_tol, prune_existence=1e-3, learnable=False)
 
 
 # ---------------------------------------------------------------------------------------------- NumPy
@@ -111,7 +115,7 @@ def numpy_step(st: dict, z: np.ndarray, p: dict) -> dict:
     new_m = np.einsum("km,kma->ma", w, pum)
     dn = pum - new_m[None]
     new_P = np.einsum("km,kab->mab", w, puP) + np.einsum("km,kma,kmb->mab", w, dn, dn)
-    assoc, miss = numpy_lbp(log_w, log_miss, log_lam, p["iters"])
+    assoc, miss = numpy_lbp(log_w, log_miss, log_lam, p["iters"], p["tol"])
     psi_col = assoc  # track side; the measurement side for the new targets:
     new = 1.0 - psi_col.sum(0)
     r_miss = r * (1 - pd) / (1 - r * pd)
@@ -141,13 +145,18 @@ def _to_numpy_state(st: PMBState) -> dict:
 
 
 def run(args) -> int:
+    if args.threads is not None:
+        if args.threads < 1:
+            raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
+        torch.set_num_threads(args.threads)
     if args.targets < 1 or args.measurements < 1 or args.scans < 1:
         raise TorchtrackError("--targets, --measurements and --scans must be >= 1")
     dtype = getattr(torch, args.dtype)
     gen = torch.Generator().manual_seed(args.seed)
     warm = 8
     scans, _ = make_scans(args.targets, args.measurements, warm + args.scans, gen)
-    filt = build(args.targets, args.measurements, args.lbp_iterations).to(dtype)
+    tol = args.lbp_tol if args.lbp_tol > 0 else None
+    filt = build(args.targets, args.measurements, args.lbp_iterations, tol).to(dtype)
     with torch.no_grad():
         state = filt.init_state((), undetected_weight=float(args.targets), dtype=dtype)
         for t in range(warm):
@@ -169,7 +178,7 @@ def run(args) -> int:
               "R": filt.measurement.noise_cov().double().numpy(), "pd": 0.9, "ps": 0.99,
               "kappa": float(filt.clutter_intensity()), "bw": float(filt.birth_weight()),
               "bm": filt.birth_mean.double().numpy(), "bP": filt.birth_cov.double().numpy(), "gate": filt.gate_d2,
-              "iters": args.lbp_iterations, "cap": filt.capacity}
+              "iters": args.lbp_iterations, "tol": tol, "cap": filt.capacity}
     np_start = _to_numpy_state(start.__class__(*[t.double() if t.is_floating_point() else t for t in start]))
     timed_np = timed.double().numpy()
 
@@ -186,7 +195,7 @@ def run(args) -> int:
           f"torchtrack vs numpy after {args.scans} scans: {agree:.2e}")
     n = timed.shape[0]
     report(f"TOMB/P predict+update, {args.targets} targets, {args.measurements} measurements/scan, "
-           f"capacity {filt.capacity}, {args.lbp_iterations} LBP iterations, {args.dtype}",
+           f"capacity {filt.capacity}, LBP cap {args.lbp_iterations} tol {tol}, {args.dtype}",
            n / t_ours, "numpy (same algorithm)", n / t_ref, "scans", args.json,
            extra={"confirmed_tracks": live, "ms_per_scan": 1e3 * t_ours / n, "numpy_ms_per_scan": 1e3 * t_ref / n,
                   "expected_count_difference": agree, "threads": torch.get_num_threads()})
