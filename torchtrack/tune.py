@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import yaml
 from torch import nn
 
 from torchtrack.errors import TorchtrackError
@@ -79,6 +80,7 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     batch_eval = max(1, int((cfg.get("optimizer") or {}).get("batch_size", 8)))
 
     held = data.held_out or data.train
+    start_derived = tunable.derived(module)
     before = {"loss": evaluate_loss(tunable, module, held, loss, batch_eval) if data.train else float("nan")}
     if do_eval and data.train:
         before.update(tunable.evaluate(module, held))
@@ -97,12 +99,13 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     params_path = Path(output["params"]) if "params" in output and out is None else out_dir / "params.yaml"
     plot_path = Path(output["plot"]) if "plot" in output and out is None else out_dir / "loss.png"
     fitted = _scalars(result.final)
+    fitted.update(tunable.derived(module))
     truth = tunable.truth(cfg["data"] or {})
     report = {
         "filter": tunable.name, "trainable": trainable, "loss": loss,
         "optimizer": dict(cfg.get("optimizer") or {}), "seed": seed,
         "train_items": len(data.train), "held_out_items": len(data.held_out),
-        "start": _scalars(result.start), "fitted": fitted,
+        "start": {**_scalars(result.start), **start_derived}, "fitted": fitted,
         "truth": truth, "relative_error": _relative_errors(fitted, truth),
         "held_out_before": before, "held_out_after": after,
         "steps": len(result.train_loss), "best_step": result.best_step, "stopped": result.stopped,
@@ -112,6 +115,12 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
         "output": {"params": str(params_path), "plot": str(plot_path)},
     }
     save_params(module, params_path, tunable.name, tunable.options, extra=None)
+    exported = tunable.export(module)
+    if exported is not None:
+        path = out_dir / exported[0]
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(yaml.safe_dump(exported[1], sort_keys=False))
+        report["output"][exported[0].split(".")[0]] = str(path)
     plot_loss_curve(result, plot_path, f"torchtrack tune {tunable.name} ({loss})")
     return report
 

@@ -64,6 +64,15 @@ class Tunable:
         """True parameter values ``{dotted name: value}`` where the data are simulated; none by default."""
         return {}
 
+    def derived(self, module: nn.Module) -> dict[str, Any]:
+        """Quantities computed from the parameters that users think in (e.g. a clutter rate); none by default."""
+        return {}
+
+    def export(self, module: nn.Module) -> tuple[str, dict] | None:
+        """``(file name, document)``: the fitted values as the options file of another command (e.g. a
+        ``torchtrack track --config`` file), or None."""
+        return None
+
 
 def register(cls: type[Tunable]) -> type[Tunable]:
     """Class decorator adding a :class:`Tunable` to the registry under ``cls.name``."""

@@ -1,0 +1,258 @@
+"""Tunable GM-PHD tracker (:class:`~torchtrack.filters.gmphd_tracker.GMPHDTracker`): ``p_D``, clutter
+density ``κ``, measurement and process noise, ``p_S``, birth weight and birth spreads.
+
+Items are windows of consecutive frames, :class:`FrameWindow` (measurement sets ``Z_k (M_k, 2)``, the
+detector's velocities, and the truth for scoring). The tracker starts empty at each window; its first
+``burn_in`` frames (while every target is still being born) run but do not count in the loss.
+
+Losses:
+
+- ``phd`` — the negative PHD predictive log-likelihood per frame (Poisson approximation; Mahler 2007,
+  as returned by :meth:`GMPHD.update`)::
+
+      log p(Z_k | Z_{1:k-1}) ≈ −λ_c − p_D Σ_j w_j⁻ + Σ_{z∈Z_k} log(κ + p_D Σ_j w_j⁻ N(z; H m_j⁻, S_j))
+
+  with ``λ_c = κ · area`` (``model.filter.area`` must be set, otherwise ``κ`` would grow without bound).
+- ``gospa`` — the soft GOSPA^p per frame (:func:`~torchtrack.tuning.losses.sinkhorn_gospa`) between
+  the PHD's components (estimates of mass ``min(w_j, 1)``) and the truth positions.
+
+Evaluation on held-out windows streams the tracker (as ``torchtrack track`` does) and scores CLEAR-MOT
+(``threshold`` px) and the mean OSPA (cut-off ``ospa_c``, order 1) against the truth.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.gmphd_tracker import GMPHDTracker
+from torchtrack.tuning.losses import sinkhorn_gospa
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys, register
+
+DATA_KEYS = ("wpafb", "truth", "detections", "detections_file", "train_frames", "held_out_frames", "window",
+             "burn_in", "threshold", "ospa_c", "gospa_c")
+DET_KEYS = ("pd", "sigma", "clutter", "velocity_sigma", "image_size")
+WPAFB_ENV = "TORCHTRACK_WPAFB"
+
+
+class FrameWindow(NamedTuple):
+    """Consecutive frames: numbers ``(T,)``, measurement sets ``z[t] (M_t, 2)``, velocities (or None),
+    and the truth of those frames (:class:`~torchtrack.io.mot.MOTData`, may be None)."""
+
+    frames: list[int]
+    z: list[Tensor]
+    velocity: list[Tensor | None]
+    truth: Any
+
+
+def wpafb_csv(path: str | os.PathLike) -> Path:
+    """The WPAFB truth CSV: ``$TORCHTRACK_WPAFB`` (folder or file) if set, else ``path`` (a folder holds
+    ``transformed_object_states.csv``). Raises when it is absent."""
+    p = Path(os.environ.get(WPAFB_ENV) or path)
+    if p.is_dir():
+        p = p / "transformed_object_states.csv"
+    if not p.is_file():
+        raise TorchtrackError(f"WPAFB truth not found at {p} (set {WPAFB_ENV} to the wpafb-aoi02 folder)")
+    return p
+
+
+@register
+class GMPHDTunable(Tunable):
+    """The enhanced labelled GM-PHD tracker (or ``tracker: labelled-gmphd``, the baseline)."""
+
+    name = "gmphd"
+    losses = ("phd", "gospa")
+
+    def __init__(self, options: Mapping[str, Any] | None = None):
+        super().__init__(options)
+        self.variant = self.options.get("tracker", "gmphd")
+        if self.variant not in ("gmphd", "labelled-gmphd"):
+            raise TorchtrackError(f"model.tracker must be 'gmphd' or 'labelled-gmphd'; got {self.variant!r}")
+        self.burn_in = 0
+        self.threshold, self.ospa_c, self.gospa_c = 10.0, 10.0, 10.0
+
+    def tracker_config(self) -> dict:
+        """The tracker's own options (``torchtrack track --config`` section), without ``tracker``."""
+        return {k: v for k, v in self.options.items() if k != "tracker"}
+
+    def build(self) -> GMPHDTracker:
+        from torchtrack.filters.baselines import enhanced_gmphd, labelled_gmphd
+
+        factory = enhanced_gmphd if self.variant == "gmphd" else labelled_gmphd
+        return factory(self.tracker_config())
+
+    # -- data -------------------------------------------------------------------------------------
+    def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
+        from torchtrack.io.mot import read_mot
+
+        check_keys(config, DATA_KEYS, "data (gmphd)")
+        self.burn_in = int(config.get("burn_in", 5))
+        self.threshold = float(config.get("threshold", 10.0))
+        self.ospa_c = float(config.get("ospa_c", 10.0))
+        self.gospa_c = float(config.get("gospa_c", 10.0))
+        if ("wpafb" in config) == ("truth" in config):
+            raise TorchtrackError("data (gmphd) needs exactly one of 'wpafb' (the truth CSV or its folder) or "
+                                  "'truth' (a MOTChallenge file)")
+        if "wpafb" in config:
+            from torchtrack.io.wpafb import read_wpafb_csv
+
+            truth = read_wpafb_csv(wpafb_csv(config["wpafb"]))
+        else:
+            truth = read_mot(Path(config["truth"]))
+        if ("detections" in config) == ("detections_file" in config):
+            raise TorchtrackError("data (gmphd) needs exactly one of 'detections' (simulation settings) or "
+                                  "'detections_file'")
+        if "detections" in config:
+            det = self._simulate(truth, config["detections"] or {}, generator)
+        else:
+            det = read_mot(Path(config["detections_file"]))
+        window = int(config.get("window", 50))
+        if window <= self.burn_in:
+            raise TorchtrackError(f"data.window ({window}) must be larger than data.burn_in ({self.burn_in})")
+        first, last = int(truth.frame.min()), int(truth.frame.max())
+        train = self._windows(det, truth, config.get("train_frames", [first, last]), window, "train_frames")
+        held = config.get("held_out_frames")
+        # held-out frames form one window each range (scored by streaming the tracker through it)
+        held_out = self._windows(det, truth, held, None, "held_out_frames") if held else []
+        return TuneData(train, held_out)
+
+    def _simulate(self, truth, cfg: Mapping[str, Any], generator: torch.Generator):
+        from torchtrack.sim.detections import default_image_size, simulate_detections
+
+        check_keys(cfg, DET_KEYS, "data.detections")
+        size = cfg.get("image_size") or default_image_size(truth)
+        return simulate_detections(truth, float(cfg.get("pd", 0.9)), float(cfg.get("sigma", 1.0)),
+                                   float(cfg.get("clutter", 0.0)), tuple(size), cfg.get("velocity_sigma"),
+                                   generator).detections
+
+    def _windows(self, det, truth, span, window: int | None, key: str) -> list[FrameWindow]:
+        if not (isinstance(span, (list, tuple)) and len(span) == 2 and int(span[0]) <= int(span[1])):
+            raise TorchtrackError(f"data.{key} must be [first, last] frame numbers; got {span!r}")
+        lo, hi = int(span[0]), int(span[1])
+        frames = np.arange(lo, hi + 1)
+        centres, vel = det.centers(), det.velocity()
+        idx = det.split(frames)
+        tidx = truth.split(frames)
+        length = window or len(frames)
+        out = []
+        for s in range(0, len(frames), length):
+            sl = slice(s, s + length)
+            if len(frames[sl]) <= self.burn_in:
+                continue
+            rows = np.concatenate(tidx[sl]) if tidx[sl] else np.zeros(0, np.int64)
+            out.append(FrameWindow([int(f) for f in frames[sl]],
+                                   [torch.from_numpy(centres[i]) for i in idx[sl]],
+                                   [None if vel is None else torch.from_numpy(vel[i]) for i in idx[sl]],
+                                   truth.select(rows)))
+        return out
+
+    def truth(self, data_config: Mapping[str, Any]) -> dict[str, Any]:
+        det = data_config.get("detections")
+        if not isinstance(det, Mapping):
+            return {}
+        out = {"phd.p_detection": float(det.get("pd", 0.9)), "phd.measurement.sigma": float(det.get("sigma", 1.0))}
+        area = (self.options.get("filter") or {}).get("area")
+        if area and "clutter" in det:
+            out["phd.clutter_density"] = float(det["clutter"]) / float(area)
+            out["clutter_rate"] = float(det["clutter"])
+        return out
+
+    def derived(self, module: GMPHDTracker) -> dict[str, Any]:
+        """``clutter_rate = κ · area`` (false detections per frame)."""
+        if module.phd.area is None:
+            return {}
+        with torch.no_grad():
+            return {"clutter_rate": float(module.phd.clutter_density() * module.phd.area)}
+
+    def export(self, module: GMPHDTracker) -> tuple[str, dict]:
+        """``track.yaml``: the tracker options with the fitted values, for ``torchtrack track --config``."""
+        from torchtrack.tuning.parameters import get_values
+
+        opts = {k: dict(v) if isinstance(v, Mapping) else v for k, v in self.tracker_config().items()}
+        filt, birth = dict(opts.get("filter") or {}), dict(opts.get("birth") or {})
+        for name, value in get_values(module).items():
+            v = float(value) if value.numel() == 1 else value.tolist()
+            section, _, key = name.partition(".")
+            if section == "phd":
+                filt[{"motion.q": "q", "measurement.sigma": "sigma"}.get(key, key)] = v
+            elif section == "birth":
+                birth[key] = v
+        opts["filter"], opts["birth"] = filt, birth
+        return "track.yaml", {self.variant: opts}
+
+    # -- losses -----------------------------------------------------------------------------------
+    def _run(self, module: GMPHDTracker, item: FrameWindow, want_gospa: bool) -> tuple[Tensor, int]:
+        """Summed loss over the counted frames of one window, and their number."""
+        state, memory = module.initial()
+        vmap = module.birth.new_velocity_map(module.dtype)
+        mats = module.phd.matrices(1.0)
+        total = torch.zeros((), dtype=module.dtype)
+        counted = 0
+        truth_split = item.truth.split(item.frames) if want_gospa else None
+        prev = None
+        for t, (frame, z, v) in enumerate(zip(item.frames, item.z, item.velocity)):
+            dt = 1.0 if prev is None else float(frame - prev)
+            prev = frame
+            if dt != 1.0:
+                mats = module.phd.matrices(dt)
+            res = module.advance(state, memory, z.to(module.dtype), None if v is None else v.to(module.dtype),
+                                 mats, vmap, dt)
+            state, memory = res.state, res.memory
+            if t < self.burn_in:
+                continue
+            counted += 1
+            if want_gospa:
+                y = torch.as_tensor(item.truth.centers()[truth_split[t]], dtype=module.dtype)
+                w = torch.where(state.mask, state.log_weight.exp().clamp(max=1.0), torch.zeros_like(state.log_weight))
+                total = total + sinkhorn_gospa(state.mean[:, :2], y, est_weight=w, c=self.gospa_c)
+            else:
+                total = total - res.log_likelihood
+        return total, counted
+
+    def loss(self, module: GMPHDTracker, items: Sequence[FrameWindow], loss: str) -> Tensor:
+        if loss == "phd" and module.phd.area is None:
+            raise TorchtrackError("the PHD likelihood needs model.filter.area (the surveillance area in px²) so "
+                                  "that the clutter rate is identifiable")
+        total, count = torch.zeros((), dtype=module.dtype), 0
+        for item in items:
+            s, c = self._run(module, item, loss == "gospa")
+            total, count = total + s, count + c
+        return total / max(count, 1)
+
+    def evaluate(self, module: GMPHDTracker, items: Sequence[FrameWindow]) -> dict[str, float]:
+        """CLEAR-MOT (MOTA, IDS, FP, FN) and mean OSPA of the streaming tracker over the held-out windows."""
+        from torchtrack.io.mot import from_points
+        from torchtrack.metrics import clear_mot
+        from torchtrack.metrics.ospa import mot_ospa_gospa
+
+        out: dict[str, float] = {}
+        fr, ids, cx, cy, gts = [], [], [], [], []
+        offset = 0
+        for item in items:
+            module.reset()
+            top = 0
+            for frame, z, v in zip(item.frames, item.z, item.velocity):
+                i, p = module.step(frame, z, v)
+                fr.append(np.full(i.shape[0], frame))
+                ids.append(i.numpy() + offset)
+                top = max(top, int(i.max()) + 1) if i.numel() else top
+                cx.append(p[:, 0].double().numpy())
+                cy.append(p[:, 1].double().numpy())
+            offset += top
+            gts.append(item.truth)
+        module.reset()
+        pred = from_points(np.concatenate(fr), np.concatenate(ids), np.concatenate(cx), np.concatenate(cy))
+        gt = gts[0] if len(gts) == 1 else type(gts[0])(*(None if a[0] is None else np.concatenate(a)
+                                                         for a in zip(*gts)))
+        m = clear_mot(gt, pred, threshold=self.threshold)
+        out.update({k: float(m[k]) for k in ("MOTA", "MOTP", "IDF1", "FP", "FN", "IDS")})
+        _, o, _ = mot_ospa_gospa(gt, pred, c=self.ospa_c, p_ospa=1.0)
+        out["OSPA"] = float(o[0].mean())
+        return out
