@@ -14,8 +14,9 @@ ratio matrix ``ψ_ij = w_ij / (w_i0 λ_j)`` and the iteration::
     ν_ji = 1 / (1 + Σ_{i'≠i} μ_i'j)               (measurement j → track i)
 
 started from ``ν = 1``. Each sum is formed once per iteration and the own term is subtracted
-("total minus own"), so an iteration is five passes over the ``n × m`` matrix and no loop over
-tracks; without autograd the passes write into two preallocated buffers. The marginals are
+("total minus own"); the iteration carries ``ψ_ij ν_ji`` and ``μ_ij``, so it is four elementwise
+passes and two reductions over the ``n × m`` matrix and no loop over tracks; without autograd the
+passes write into two preallocated buffers. The marginals are
 (eq. 33)::
 
     p_i(j) = ψ_ij ν_ji / (1 + Σ_j' ψ_ij' ν_j'i),  p_i(0) = 1 / (1 + Σ_j' ψ_ij' ν_j'i)
@@ -81,42 +82,40 @@ def log_ratios(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> Tensor:
 
 
 def _iterate_functional(psi: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
-    """Messages ``ν`` after the iterations, differentiable (new tensors each pass)."""
-    nu = torch.ones_like(psi)
+    """``ψ_ij ν_ji`` after the iterations, differentiable (new tensors each pass)."""
+    prod = psi                                                      # ν = 1
     last = None
     for it in range(1, iterations + 1):
-        prod = psi * nu
         total = 1.0 + prod.sum(-1, keepdim=True)                    # 1 + Σ_j' ψ_ij' ν_j'i
         mu = psi / (total - prod)                                   # eq. (30)
         col = 1.0 + mu.sum(-2, keepdim=True)                        # 1 + Σ_i' μ_i'j
-        nu = 1.0 / (col - mu)                                       # eq. (31)
+        prod = psi / (col - mu)                                     # ψ_ij ν_ji, eq. (31)
         if tol is not None:
             stat = torch.cat([1.0 / total.flatten(), 1.0 / col.flatten()]).detach()
             if last is not None and (stat.numel() == 0 or float((stat - last).abs().amax()) < tol):
-                return nu, it, True
+                return prod, it, True
             last = stat
-    return nu, iterations, False
+    return prod, iterations, False
 
 
 def _iterate_inplace(psi: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
-    """The same iteration writing into two buffers (no autograd)."""
-    nu = torch.ones_like(psi)
-    prod = torch.empty_like(psi)
+    """The same iteration in two buffers (no autograd): four elementwise passes and two reductions."""
+    prod = psi.clone()
+    mu = torch.empty_like(psi)
     last = None
     for it in range(1, iterations + 1):
-        torch.mul(psi, nu, out=prod)
         total = prod.sum(-1, keepdim=True).add_(1.0)
-        torch.sub(total, prod, out=prod)
-        torch.div(psi, prod, out=prod)                              # prod now holds μ
-        col = prod.sum(-2, keepdim=True).add_(1.0)
-        torch.sub(col, prod, out=nu)
-        nu.reciprocal_()
+        torch.sub(total, prod, out=mu)
+        torch.div(psi, mu, out=mu)
+        col = mu.sum(-2, keepdim=True).add_(1.0)
+        torch.sub(col, mu, out=prod)
+        torch.div(psi, prod, out=prod)
         if tol is not None:
             stat = torch.cat([total.flatten().reciprocal(), col.flatten().reciprocal()])
             if last is not None and (stat.numel() == 0 or float((stat - last).abs().amax()) < tol):
-                return nu, it, True
+                return prod, it, True
             last = stat
-    return nu, iterations, False
+    return prod, iterations, False
 
 
 def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: int = 50,
@@ -145,10 +144,9 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     n, m = log_w.shape[-2:]
     psi = log_ratios(log_w, log_miss, log_new).expand(*batch, n, m)
     if torch.is_grad_enabled() and psi.requires_grad:
-        nu, it, converged = _iterate_functional(psi, iterations, tol)
+        prod, it, converged = _iterate_functional(psi, iterations, tol)
     else:
-        nu, it, converged = _iterate_inplace(psi.contiguous(), iterations, tol)
-    prod = psi * nu
+        prod, it, converged = _iterate_inplace(psi.contiguous(), iterations, tol)
     denom = 1.0 + prod.sum(-1, keepdim=True)
     assoc = prod / denom                                            # eq. (33), track side
     miss = 1.0 / denom.squeeze(-1)
