@@ -36,6 +36,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-speed-constraints", action="store_true",
                         help="report the bank without speed likelihoods as the main result")
     parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="scenario YAML (default %(default)s)")
+    parser.add_argument("--particles", type=int, default=None,
+                        help="particles per class (default: the config's, 3000 as in the paper)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch intra-op threads (default 1: a 6000-particle step is too small to share, "
                              "and on a loaded machine spinning threads cost more than they give)")
@@ -118,6 +120,8 @@ def run(args) -> int:
     if args.threads < 1:
         raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
     cfg = load_config(args.config)
+    if args.particles is not None:
+        cfg["filter"]["particles"] = args.particles
     dtype = getattr(torch, str(cfg["filter"]["dtype"]), None)
     if dtype not in (torch.float32, torch.float64):
         raise TorchtrackError(f"{args.config}: filter.dtype must be float32 or float64")

@@ -6,7 +6,7 @@ A target flying at 250 m/s performs coordinated turns with normal accelerations 
 Scan ``k`` is the measurement at time ``k T``; a maneuver "in scans a–b" acts on the motion from
 time ``(k−1) T`` to ``k T`` for every ``a ≤ k ≤ b``. Positive normal acceleration turns left
 (counter-clockwise). The paper's figure gives no coordinates; the start position and heading
-here are documented defaults (``configs/jtc.yaml``) that keep the target 60–120 km from the radar.
+here are documented defaults (``configs/jtc.yaml``) that keep the target 15–69 km from the radar.
 
 The truth is integrated with the midpoint rule on ``substeps`` sub-intervals per scan
 (``v̇ = a_t t̂ + a_n n̂``, ``t̂ = v/|v|``, ``n̂`` its left normal). State layout ``[x, y, vx, vy]``.
@@ -41,7 +41,7 @@ def _accel(v: Tensor, a_n: float, a_t: float) -> Tensor:
 
 
 def jtc_trajectory(num_scans: int = 80, dt: float = 5.0, speed: float = 250.0,
-                   start=(-45_000.0, 55_000.0), heading_deg: float = 0.0, substeps: int = 50,
+                   start=(-10_000.0, 15_000.0), heading_deg: float = 0.0, substeps: int = 50,
                    maneuvers=MANEUVERS, dtype: torch.dtype = torch.float64) -> Trajectory:
     """Truth of the paper's scenario. ``heading_deg`` is the initial course counter-clockwise from +x."""
     h = math.radians(heading_deg)
