@@ -96,12 +96,16 @@ def concat(*states: MixtureState) -> MixtureState:
 
 
 class Matrices(NamedTuple):
-    """The linear-Gaussian model for one time step: ``F, Q (n, n)``, ``H (m, n)``, ``R (m, m)``."""
+    """The model for one time step, computed once per step by :meth:`GMPHD.matrices` (differentiable):
+    ``F, Q (n, n)``, ``H (m, n)``, ``R (m, m)`` and the scalars ``p_S, p_D, κ``."""
 
     F: Tensor
     Q: Tensor
     H: Tensor
     R: Tensor
+    p_survival: Tensor
+    p_detection: Tensor
+    clutter_density: Tensor
 
 
 class UpdateInfo(NamedTuple):
@@ -169,16 +173,17 @@ class GMPHD(nn.Module):
         return self.motion.state_dim
 
     def matrices(self, dt: float = 1.0) -> Matrices:
-        """``F, Q, H, R`` for a step of ``dt`` (compute once per step; differentiable)."""
+        """``F, Q, H, R, p_S, p_D, κ`` for a step of ``dt`` (compute once per step; differentiable)."""
         return Matrices(self.motion.transition_matrix(dt), self.motion.process_noise(dt),
-                        self.measurement.matrix(), self.measurement.noise_cov())
+                        self.measurement.matrix(), self.measurement.noise_cov(), self.p_survival(),
+                        self.p_detection(), self.clutter_density())
 
     def predict(self, state: MixtureState, mats: Matrices) -> MixtureState:
         """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
         F, Q = mats.F, mats.Q
         mean = state.mean @ F.transpose(-1, -2)
         cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + Q)
-        log_w = state.log_weight + torch.log(self.p_survival())
+        log_w = state.log_weight + torch.log(mats.p_survival)
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
     def update(self, state: MixtureState, z: Tensor, mats: Matrices,
@@ -194,14 +199,14 @@ class GMPHD(nn.Module):
         if z.dim() != 2 or z.shape[1] != m_dim:
             raise TorchtrackError(f"measurements must have shape (M, {m_dim}); got {tuple(z.shape)}")
         z = z.to(state.mean.dtype)
-        pd = self.p_detection()
+        pd = mats.p_detection
         log_pd = torch.log(pd)
-        kappa = self.clutter_density() if clutter is None else clutter
+        kappa = mats.clutter_density if clutter is None else clutter
         log_kappa = torch.log(kappa).expand(z.shape[0]) if z.shape[0] else torch.log(kappa).reshape(1)[:0]
         live_w = torch.where(state.mask, state.log_weight, torch.full_like(state.log_weight, NEG_INF))
 
         PHt = state.cov @ H.transpose(-1, -2)                       # (J, n, m)
-        S = symmetrize(H @ PHt + R)                                  # (J, m, m)
+        S = H @ PHt + R                          # (J, m, m); Cholesky reads its lower triangle only
         L, info = torch.linalg.cholesky_ex(S)
         if state.size and bool((info != 0).any()):
             raise TorchtrackError("GMPHD update: innovation covariance S is not positive definite "
@@ -247,7 +252,7 @@ class GMPHD(nn.Module):
         )
         loglik = log_den_t.sum() - pd * live_w.exp().sum()
         if self.area is not None:
-            loglik = loglik - self.clutter_density() * self.area
+            loglik = loglik - mats.clutter_density * self.area
         return post, UpdateInfo(loglik, log_den_t, int(jj.shape[0]))
 
     def prune(self, state: MixtureState) -> MixtureState:
@@ -272,8 +277,10 @@ class GMPHD(nn.Module):
 
     def reduce(self, state: MixtureState, keep_label: Tensor | None = None) -> MixtureState:
         """Prune, merge, cap (Vo & Ma 2006, Table II); ``keep_label (P,)`` labels that win a merge
-        (see :func:`merge`)."""
-        return self.cap(self.merge(self.prune(state), keep_label))
+        (see :func:`merge`). More than ``2 capacity`` components are capped before merging, so the
+        pairwise merge stays bounded in memory."""
+        state = self.cap(self.prune(state), 2 * self.capacity)   # bounds the O(J²) merge
+        return self.cap(self.merge(state, keep_label))
 
     def extract(self, state: MixtureState) -> Tensor:
         """Bool mask ``(J,)`` of components reported as targets (weight above ``extract_threshold``)."""
@@ -294,6 +301,33 @@ def chi2_quantile(p: float, dof: int) -> float:
     from scipy.stats import chi2
 
     return float(chi2.ppf(p, dof))
+
+
+def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> Tensor:
+    """``(J, J)`` bool ``[i, j]``: ``j < i`` and ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U``.
+
+    Pairs are first screened on the position block (the first ``min(n, 2)`` coordinates): the full
+    Mahalanobis distance is at least ``‖Δp‖² / λ_max(P_i,pos)``, so only pairs passing that bound are
+    solved exactly (through Cholesky factors), keeping the exact test sparse.
+    """
+    J, n = mean.shape
+    k = min(n, 2)
+    if k == 2:
+        a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
+        lam = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b**2)
+    else:
+        lam = cov[:, 0, 0]
+    pos = mean[:, :k]
+    d2 = (pos.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)                 # [i, j]
+    cand = torch.tril(d2 <= threshold * lam.unsqueeze(1) * (1 + 1e-4), diagonal=-1)
+    ii, jj = cand.nonzero(as_tuple=True)
+    near = torch.zeros(J, J, dtype=torch.bool, device=mean.device)
+    if ii.numel():
+        L, _ = torch.linalg.cholesky_ex(cov[ii])
+        y = torch.linalg.solve_triangular(L, (mean[jj] - mean[ii]).unsqueeze(-1), upper=False)
+        ok = y.pow(2).sum((-1, -2)) <= threshold
+        near[ii[ok], jj[ok]] = True
+    return near
 
 
 def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Tensor | None = None) -> MixtureState:
@@ -324,13 +358,8 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     state = state.select(order)
     mean, cov, log_w = state.mean, state.cov, state.log_weight
     with torch.no_grad():
-        L, _ = torch.linalg.cholesky_ex(cov.detach())
-        diff = mean.detach().unsqueeze(0) - mean.detach().unsqueeze(1)       # [i, j] = m_j − m_i
-        y = torch.linalg.solve_triangular(L, diff.transpose(1, 2), upper=False)   # (i, n, j)
-        near = y.pow(2).sum(1) <= threshold                                  # [i, j]: i within reach of j
         idx = torch.arange(J, device=mean.device)
-        higher = idx.unsqueeze(0) < idx.unsqueeze(1)                          # [i, j]: j heavier than i
-        near_higher = near & higher
+        near_higher = _within_reach(mean.detach(), cov.detach(), threshold)   # [i, j]: j heavier, i in reach
         alive = torch.ones(J, dtype=torch.bool, device=mean.device)
         owner = idx.clone()
         for _ in range(rounds):

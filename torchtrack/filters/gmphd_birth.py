@@ -24,6 +24,9 @@ velocity spread at most ``max_spread``); cells on two-way roads or unvisited cel
 
 from __future__ import annotations
 
+import math
+from typing import NamedTuple
+
 import torch
 from torch import Tensor, nn
 
@@ -86,6 +89,16 @@ class VelocityMap:
         return mean.to(pos.dtype), valid
 
 
+class BirthConstants(NamedTuple):
+    """The birth model's constrained parameters for one step: standard deviations and log-weight."""
+
+    sigma_pos: Tensor
+    sigma_vel_unknown: Tensor
+    sigma_vel_detector: Tensor
+    sigma_vel_map: Tensor
+    log_weight: Tensor
+
+
 class AdaptiveBirth(nn.Module):
     """Measurement-driven birth with velocity initialisation from a velocity map and/or the detector.
 
@@ -129,8 +142,6 @@ class AdaptiveBirth(nn.Module):
 
         ``pred_pos (J, 2)`` predicted positions ``H F x_i``, ``pred_log_w (J,)`` their log-weights.
         """
-        import math
-
         with torch.no_grad():
             keep = pred_log_w > math.log(self.suppress_weight)
             p = pred_pos.detach()[keep]
@@ -142,29 +153,32 @@ class AdaptiveBirth(nn.Module):
                 out.append(d2.amin(1) > self.distance_threshold ** 2)
             return torch.cat(out)
 
+    def constants(self) -> BirthConstants:
+        """The constrained parameters (compute once per step; differentiable)."""
+        return BirthConstants(self.sigma_pos(), self.sigma_vel_unknown(), self.sigma_vel_detector(),
+                              self.sigma_vel_map(), torch.log(self.birth_weight()))
+
     def forward(self, z: Tensor, velocity: Tensor | None, vmap: VelocityMap | None,
-                state_dim: int = 4) -> tuple[Tensor, Tensor, Tensor]:
+                consts: BirthConstants | None = None) -> tuple[Tensor, Tensor, Tensor]:
         """Birth components for birth measurements ``z (B, 2)`` (eq. 5–6).
 
         ``velocity (B, 2)`` the detector's velocities or None. Returns ``mean (B, 4)``, ``std (B, 4)``,
         ``log_weight (B,)`` (state layout ``[x, y, vx, vy]``).
         """
-        if state_dim != 4 or z.shape[1] != 2:
-            raise TorchtrackError("AdaptiveBirth needs a 2-D constant-velocity state [x, y, vx, vy]")
+        if z.shape[1] != 2:
+            raise TorchtrackError("AdaptiveBirth needs 2-D positions and a state [x, y, vx, vy]")
+        c = consts if consts is not None else self.constants()
         B = z.shape[0]
-        dtype, device = z.dtype, z.device
-        s_unknown = self.sigma_vel_unknown().to(dtype)
-        vel = torch.zeros(B, 2, dtype=dtype, device=device)
-        s_vel = s_unknown.expand(B)
+        vel = torch.zeros(B, 2, dtype=z.dtype, device=z.device)
+        s_vel = c.sigma_vel_unknown.expand(B)
         if velocity is not None and self.use_detector_velocity:
-            vel = velocity.to(dtype)
-            s_vel = self.sigma_vel_detector().to(dtype).expand(B)
+            vel = velocity
+            s_vel = c.sigma_vel_detector.expand(B)
         if vmap is not None:
             hv, valid = vmap.lookup(z)
             vel = torch.where(valid.unsqueeze(1), hv, vel)
-            s_vel = torch.where(valid, self.sigma_vel_map().to(dtype), s_vel)
+            s_vel = torch.where(valid, c.sigma_vel_map, s_vel)
         mean = torch.cat([z, vel], 1)
-        s_pos = self.sigma_pos().to(dtype).expand(B)
+        s_pos = c.sigma_pos.expand(B)
         std = torch.stack([s_pos, s_pos, s_vel, s_vel], 1)
-        log_w = torch.log(self.birth_weight()).to(dtype).expand(B)
-        return mean, std, log_w
+        return mean, std, c.log_weight.expand(B)

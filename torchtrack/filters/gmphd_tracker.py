@@ -14,6 +14,7 @@ which reports one estimate per label (the highest weight).
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -21,7 +22,7 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd import GMPHD, Matrices, MixtureState, concat, empty_mixture
-from torchtrack.filters.gmphd_birth import AdaptiveBirth, VelocityMap
+from torchtrack.filters.gmphd_birth import AdaptiveBirth, BirthConstants, VelocityMap
 from torchtrack.filters.gmphd_labels import (
     LostLabels,
     best_per_label,
@@ -68,7 +69,7 @@ class GMPHDTracker(nn.Module):
 
     def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = True,
                  settled_velocity_var: float = 4.0, handover_frames: int = 3, handover_distance: float = 6.0,
-                 dtype: torch.dtype = torch.float32):
+                 coast_threshold: float | None = None, dtype: torch.dtype = torch.float32):
         super().__init__()
         self.phd = phd if phd is not None else GMPHD()
         self.birth = birth if birth is not None else AdaptiveBirth()
@@ -76,6 +77,7 @@ class GMPHDTracker(nn.Module):
         self.settled_velocity_var = settled_velocity_var
         self.handover_frames = handover_frames
         self.handover_distance = handover_distance
+        self.coast_threshold = coast_threshold
         self.to(dtype)
         self.dtype = dtype
         self.reset()
@@ -88,7 +90,7 @@ class GMPHDTracker(nn.Module):
         cfg = dict(config or {})
         cfg.update(overrides)
         known = {"filter", "birth", "label_fix", "settled_velocity_var", "handover_frames", "handover_distance",
-                 "dtype"}
+                 "coast_threshold", "dtype"}
         unknown = set(cfg) - known
         if unknown:
             raise TorchtrackError(f"unknown GM-PHD tracker option(s) {sorted(unknown)}; known: {sorted(known)}")
@@ -106,7 +108,8 @@ class GMPHDTracker(nn.Module):
         return cls(phd, birth, label_fix=bool(cfg.get("label_fix", True)),
                    settled_velocity_var=float(cfg.get("settled_velocity_var", 4.0)),
                    handover_frames=int(cfg.get("handover_frames", 3)),
-                   handover_distance=float(cfg.get("handover_distance", 6.0)), dtype=dtype)
+                   handover_distance=float(cfg.get("handover_distance", 6.0)),
+                   coast_threshold=cfg.get("coast_threshold"), dtype=dtype)
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
@@ -117,7 +120,8 @@ class GMPHDTracker(nn.Module):
                 TrackerMemory(1, empty, e2, e2, no_lost_labels(self.dtype)))
 
     def advance(self, state: MixtureState, memory: TrackerMemory, z: Tensor, velocity: Tensor | None,
-                mats: Matrices, vmap: VelocityMap | None = None, dt: float = 1.0) -> StepResult:
+                mats: Matrices, vmap: VelocityMap | None = None, dt: float = 1.0,
+                birth_consts: BirthConstants | None = None) -> StepResult:
         """One frame of the tracker (see the module docstring); ``z (M, 2)``, ``velocity (M, 2)`` or None.
 
         The label fix compares each hypothesis with its label's previous estimate moved on by its own
@@ -134,6 +138,10 @@ class GMPHDTracker(nn.Module):
             expected = memory.prev_pos + memory.prev_vel * dt
             post, next_label = label_fix(post, est, memory.prev_label, expected, next_label)
             sel = est.nonzero(as_tuple=True)[0]
+            if self.coast_threshold is not None:
+                coast = (~est & (post.log_weight > math.log(self.coast_threshold))
+                         & torch.isin(post.label, memory.prev_label) & ~torch.isin(post.label, post.label[sel]))
+                sel = torch.cat([sel, best_per_label(post, coast)])
         else:
             sel = best_per_label(post, est)
         ids = post.label[sel]
@@ -153,7 +161,7 @@ class GMPHDTracker(nn.Module):
                 vmap.update(pos[settled], vel[settled])
         zb = z[is_birth]
         vb = velocity[is_birth] if velocity is not None else None
-        b_mean, b_std, b_logw = self.birth(zb, vb, vmap, phd.state_dim)
+        b_mean, b_std, b_logw = self.birth(zb, vb, vmap, birth_consts)
         B = int(zb.shape[0])
         b_label = torch.arange(next_label, next_label + B, dtype=torch.long, device=z.device)
         births = phd.gaussian_birth(b_mean, b_std, b_logw, b_label)
@@ -168,12 +176,15 @@ class GMPHDTracker(nn.Module):
         ``torchtrack tune``)."""
         state, memory = self.initial()
         vmap = self.birth.new_velocity_map(self.dtype)
+        if self.phd.state_dim != 4:
+            raise TorchtrackError("GMPHDTracker needs a 2-D constant-velocity state [x, y, vx, vy]")
         mats = self.phd.matrices(dt)
+        consts = self.birth.constants()
         out = []
         for t, z in enumerate(measurements):
             v = velocities[t] if velocities is not None else None
             v = None if v is None else v.to(self.dtype)
-            res = self.advance(state, memory, z.to(self.dtype), v, mats, vmap, dt)
+            res = self.advance(state, memory, z.to(self.dtype), v, mats, vmap, dt, consts)
             state, memory = res.state, res.memory
             out.append(res.log_likelihood)
         return torch.stack(out) if out else torch.zeros(0, dtype=self.dtype)
@@ -184,7 +195,8 @@ class GMPHDTracker(nn.Module):
         self._state, self._memory = self.initial()
         self._vmap = self.birth.new_velocity_map(self.dtype)
         self._last_frame: int | None = None
-        self._mats: dict[float, Matrices] = {}
+        self._mats: dict[float, Matrices] = {}      # parameters are frozen while streaming
+        self._birth_consts: BirthConstants | None = None
 
     @property
     def state(self) -> MixtureState:
@@ -204,10 +216,12 @@ class GMPHDTracker(nn.Module):
         dt = 1.0 if self._last_frame is None else float(frame - self._last_frame)
         if dt <= 0:
             raise TorchtrackError(f"frames must increase: frame {frame} after {self._last_frame}")
-        with torch.no_grad():
+        with torch.inference_mode():
             mats = self._mats.get(dt)
             if mats is None:
                 mats = self._mats[dt] = self.phd.matrices(dt)
-            res = self.advance(self._state, self._memory, z, v, mats, self._vmap, dt)
+            if self._birth_consts is None:
+                self._birth_consts = self.birth.constants()
+            res = self.advance(self._state, self._memory, z, v, mats, self._vmap, dt, self._birth_consts)
         self._state, self._memory, self._last_frame = res.state, res.memory, frame
         return res.ids, res.positions

@@ -1,0 +1,59 @@
+"""Bad input for the GM-PHD trackers: empty frames, huge frames, wrong shapes, non-increasing frames."""
+
+from __future__ import annotations
+
+import logging
+
+import pytest
+import torch
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.multitarget import make_tracker
+
+
+def _target(k: int) -> torch.Tensor:
+    return torch.tensor([[50.0 + 3.0 * k, 80.0], [200.0, 40.0 + 2.0 * k]])
+
+
+@pytest.mark.parametrize("name", ["gmphd", "labelled-gmphd"])
+def test_many_empty_frames_then_targets(name):
+    tracker = make_tracker(name, None)
+    for k in range(1, 61):
+        ids, pos = tracker.step(k, torch.zeros(0, 2), None)
+        assert ids.shape == (0,) and pos.shape == (0, 2)
+    assert tracker.state.size == 0
+    for k in range(61, 71):
+        ids, pos = tracker.step(k, _target(k), torch.tensor([[3.0, 0.0], [0.0, 2.0]]))
+    assert len(set(ids.tolist())) == 2                       # both targets confirmed after the gap
+    for k in range(71, 120):                                # targets vanish: tracks die, mixture empties
+        ids, _ = tracker.step(k, torch.zeros(0, 2), torch.zeros(0, 2))
+    assert ids.numel() == 0 and tracker.state.size == 0
+
+
+def test_tens_of_thousands_of_detections_bounded_and_reported(caplog):
+    tracker = make_tracker("gmphd", {"filter": {"capacity": 512, "chunk": 2048}})
+    g = torch.Generator().manual_seed(0)
+    with caplog.at_level(logging.WARNING, logger="torchtrack.filters.gmphd"):
+        for k in range(1, 4):
+            z = torch.rand(30000, 2, generator=g) * 600
+            tracker.step(k, z, torch.zeros(30000, 2))
+            assert tracker.state.size <= 512
+    assert tracker.cap_hits >= 1
+    assert any("cap hit" in r.getMessage() for r in caplog.records)
+    ids, _ = tracker.step(4, _target(4), None)             # and it keeps working afterwards
+    assert ids.numel() <= 512
+
+
+def test_bad_input_is_a_clear_error():
+    tracker = make_tracker("gmphd", None)
+    tracker.step(5, _target(5), None)
+    with pytest.raises(TorchtrackError, match="frames must increase"):
+        tracker.step(5, _target(5), None)
+    with pytest.raises(TorchtrackError, match="unknown tracker"):
+        make_tracker("nope", None)
+    with pytest.raises(TorchtrackError, match="unknown GM-PHD tracker option"):
+        make_tracker("gmphd", {"fliter": {}})
+    with pytest.raises(TorchtrackError, match="bad GM-PHD tracker option"):
+        make_tracker("gmphd", {"filter": {"p_detection": 0.9, "nonsense": 1}})
+    with pytest.raises(TorchtrackError, match="p_detection"):
+        make_tracker("gmphd", {"filter": {"p_detection": 1.5}})

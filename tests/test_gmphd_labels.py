@@ -1,0 +1,95 @@
+"""Labels: the label fix (section 2.3), per-label extraction, label hand-over, relabelling."""
+
+from __future__ import annotations
+
+import torch
+
+from torchtrack.filters.gmphd import MixtureState
+from torchtrack.filters.gmphd_labels import (
+    best_per_label,
+    label_fix,
+    label_handover,
+    no_lost_labels,
+    relabel,
+)
+from torchtrack.filters.multitarget import make_tracker
+
+F64 = torch.float64
+
+
+def mixture(weights, positions, labels) -> MixtureState:
+    n = len(weights)
+    pos = torch.tensor(positions, dtype=F64)
+    mean = torch.cat([pos, torch.zeros(n, 2, dtype=F64)], 1)
+    return MixtureState(torch.tensor(weights, dtype=F64).log(), mean, torch.eye(4, dtype=F64).expand(n, 4, 4),
+                        torch.tensor(labels), torch.ones(n, dtype=torch.bool))
+
+
+def test_label_fix_keeps_label_for_hypothesis_closest_to_previous_estimate():
+    # label 7 has three high-weight hypotheses; its previous estimate was at (10, 0)
+    st = mixture([0.9, 0.8, 0.95, 0.7], [[0, 0], [11, 0], [30, 0], [50, 50]], [7, 7, 7, 3])
+    est = torch.tensor([True, True, True, True])
+    out, nxt = label_fix(st, est, torch.tensor([3, 7]), torch.tensor([[50.0, 50.0], [10.0, 0.0]], dtype=F64), 100)
+    assert out.label.tolist()[1] == 7            # the closest to (10, 0) keeps it, although not the heaviest
+    assert sorted(out.label.tolist()[i] for i in (0, 2)) == [100, 101]
+    assert out.label.tolist()[3] == 3 and nxt == 102
+    # a label without a previous estimate: the heaviest keeps it
+    out, nxt = label_fix(st, est, torch.tensor([3]), torch.tensor([[50.0, 50.0]], dtype=F64), 100)
+    assert out.label.tolist()[2] == 7 and nxt == 102
+
+
+def test_best_per_label_reports_one_estimate_per_label():
+    st = mixture([0.9, 0.8, 0.95, 0.7], [[0, 0], [11, 0], [30, 0], [50, 50]], [7, 7, 7, 3])
+    idx = best_per_label(st, torch.ones(4, dtype=torch.bool))
+    assert sorted(idx.tolist()) == [2, 3]
+
+
+def test_relabel_and_handover():
+    st = mixture([0.9, 0.1, 0.8], [[0, 0], [1, 0], [20, 0]], [5, 5, 9])
+    out = relabel(st, torch.tensor([5, 9]), torch.tensor([5, 2]))
+    assert out.label.tolist() == [5, 5, 2]
+    # label 4 was reported last frame at (0, 0) moving +3 px/frame; now a new label 12 appears at (3.5, 0)
+    lost = no_lost_labels(F64)
+    handed = label_handover(torch.tensor([12, 6]), torch.tensor([[3.5, 0.0], [40.0, 0.0]], dtype=F64),
+                            torch.tensor([4, 6]), torch.tensor([[0.0, 0.0], [40.0, 0.0]], dtype=F64),
+                            torch.tensor([[3.0, 0.0], [0.0, 0.0]], dtype=F64), lost, max_distance=2.0)
+    assert handed.tolist() == [4, 6]
+    far = label_handover(torch.tensor([12]), torch.tensor([[9.0, 0.0]], dtype=F64), torch.tensor([4]),
+                         torch.tensor([[0.0, 0.0]], dtype=F64), torch.tensor([[3.0, 0.0]], dtype=F64), lost, 2.0)
+    assert far.tolist() == [12]
+
+
+def _split_scene(tracker_name: str):
+    """Two vehicles drive together (one detection, one component), then split in opposite directions."""
+    tracker = make_tracker(tracker_name, {"dtype": "float64", "handover_frames": 0})
+    reported = []
+    for k in range(1, 25):
+        if k <= 8:
+            z = torch.tensor([[100.0 + 2.0 * k, 100.0]], dtype=F64)
+        else:
+            s = k - 8
+            z = torch.tensor([[116.0 + 2.0 * s, 100.0 + 2.0 * s], [116.0 + 2.0 * s, 100.0 - 2.0 * s]], dtype=F64)
+        v = torch.tensor([[2.0, 0.0]], dtype=F64).expand(z.shape[0], 2)
+        ids, pos = tracker.step(k, z, v)
+        reported.append((ids.tolist(), pos))
+    return reported
+
+
+def test_label_fix_separates_two_tracks_that_split_from_one_component():
+    rep = _split_scene("gmphd")
+    ids_before = {i for ids, _ in rep[3:8] for i in ids}
+    assert len(ids_before) == 1                               # one track while they drive together
+    (old,) = ids_before
+    tail = rep[-8:]
+    for ids, pos in tail:
+        assert len(ids) == 2 and len(set(ids)) == 2           # two tracks with distinct labels
+    upper = {ids[int(torch.argmax(pos[:, 1]))] for ids, pos in tail}
+    lower = {ids[int(torch.argmin(pos[:, 1]))] for ids, pos in tail}
+    assert len(upper) == 1 and len(lower) == 1 and upper != lower   # each label follows one vehicle
+    assert old in upper | lower                               # the original label survives on one of them
+
+
+def test_without_label_fix_the_split_tracks_share_one_label():
+    rep = _split_scene("labelled-gmphd")
+    tail = rep[-8:]
+    assert all(len(ids) == 1 for ids, _ in tail)              # duplicates of one label: only one reported
