@@ -119,10 +119,11 @@ class KalmanTunable(Tunable):
 
     name = "kalman"
     losses = ("nll", "gospa")
+    option_keys = OPTIONS
 
     def __init__(self, options: Mapping[str, Any] | None = None):
         super().__init__(options)
-        check_keys(self.options, OPTIONS, "model (kalman)")
+        check_keys(self.options, self.option_keys, f"model ({self.name})")
         self.ndim = int(self.options.get("ndim", 2))
         self.kind = self.options.get("motion", "cv")
         if self.kind not in ("cv", "ca"):
@@ -176,9 +177,9 @@ class KalmanTunable(Tunable):
         return [Track(z[b], pos[b]) for b in range(B)]
 
     def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
-        check_keys(config, DATA_KEYS, "data (kalman)")
+        check_keys(config, DATA_KEYS, f"data ({self.name})")
         if ("simulate" in config) == ("file" in config):
-            raise TorchtrackError("data (kalman) needs exactly one of 'simulate' or 'file'")
+            raise TorchtrackError(f"data ({self.name}) needs exactly one of 'simulate' or 'file'")
         if "simulate" in config:
             items = self.simulate(config["simulate"] or {}, generator)
         else:
@@ -188,7 +189,7 @@ class KalmanTunable(Tunable):
             items = [items[i] for i in torch.randperm(len(items), generator=generator).tolist()]
         items = windows(items, config.get("window"), int(config.get("min_length", 3)))
         if not items:
-            raise TorchtrackError("data (kalman): no track with enough measurements (min_length "
+            raise TorchtrackError(f"data ({self.name}): no track with enough measurements (min_length "
                                   f"{int(config.get('min_length', 3))})")
         return split_items(items, config.get("held_out"), "data")
 
@@ -201,7 +202,7 @@ class KalmanTunable(Tunable):
     # -- losses -----------------------------------------------------------------------------------
     def initial_state(self, module: KalmanFilter, z0: Tensor) -> GaussianState:
         """``N([z_0, 0], blockdiag(R, σ_v² I, σ_a² I))`` for ``z0 (B, m)``."""
-        n, d = module.state_dim, self.ndim
+        n, d = module.motion.state_dim, self.ndim
         mean = torch.cat([z0, z0.new_zeros(z0.shape[0], n - d)], -1)
         stds = [self.vel_std] + ([self.acc_std] if n > 2 * d else [])
         tail = torch.tensor([s**2 for s in stds for _ in range(d)], dtype=z0.dtype, device=z0.device)
