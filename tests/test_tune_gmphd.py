@@ -1,0 +1,99 @@
+"""Tuning the GM-PHD tracker: PHD-likelihood and soft-GOSPA gradients vs finite differences, and a fit of
+p_D and the clutter rate from 3x off on simulated detections."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.mot import from_points, write_motdata
+from torchtrack.tune import fit, get_tunable, get_values, select_trainable
+from torchtrack.tuning.parameters import get_raw, set_raw, tunable_parameters
+
+AREA = 300.0 * 300.0
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def truth_file(tmp_path, targets=6, frames=60, seed=0):
+    g = np.random.default_rng(seed)
+    pos = g.uniform(60, 240, (targets, 2))
+    vel = g.normal(0, 1.5, (targets, 2))
+    rows = []
+    for k in range(frames):
+        for i in range(targets):
+            p = pos[i] + vel[i] * k
+            rows.append((k + 1, i + 1, p[0], p[1]))
+    f, i, x, y = map(np.array, zip(*rows))
+    path = tmp_path / "gt.txt"
+    write_motdata(path, from_points(f, i, x, y))
+    return path
+
+
+def problem(tmp_path, pd=0.8, clutter=8.0, start=None, frames=60, window=20, dtype="float64"):
+    start = start or {}
+    model = {"tracker": "labelled-gmphd", "dtype": dtype,
+             "filter": {"p_detection": start.get("pd", pd), "clutter_density": start.get("clutter", clutter) / AREA,
+                        "area": AREA, "sigma": 1.0, "q": 0.1},
+             "birth": {"birth_weight": 0.1}}
+    tun = get_tunable("gmphd", model)
+    data = tun.load_data({"truth": str(truth_file(tmp_path, frames=frames)),
+                          "detections": {"pd": pd, "sigma": 1.0, "clutter": clutter, "image_size": [300, 300]},
+                          "train_frames": [1, frames - 20], "held_out_frames": [frames - 19, frames],
+                          "window": window, "burn_in": 3}, torch.Generator().manual_seed(1))
+    return tun, tun.build(), data
+
+
+def test_gmphd_parameter_names(tmp_path):
+    _, tracker, _ = problem(tmp_path)
+    names = set(tunable_parameters(tracker))
+    assert {"phd.p_detection", "phd.clutter_density", "phd.measurement.sigma", "phd.motion.q",
+            "birth.birth_weight"} <= names
+
+
+@pytest.mark.parametrize("loss", ["phd", "gospa"])
+def test_gmphd_loss_gradients_match_finite_differences(tmp_path, loss):
+    tun, tracker, data = problem(tmp_path, frames=30, window=8)
+    names = ["phd.p_detection", "phd.clutter_density", "phd.measurement.sigma", "phd.motion.q", "birth.birth_weight"]
+    params = select_trainable(tracker, names)
+    items = data.train[:1]
+    tun.loss(tracker, items, loss).backward()
+    base = get_raw(tracker)
+    for name in names:
+        h = 1e-6
+        vals = []
+        for sign in (1, -1):
+            set_raw(tracker, {**base, name: base[name] + sign * h})
+            with torch.no_grad():
+                vals.append(tun.loss(tracker, items, loss).item())
+        set_raw(tracker, base)
+        fd = (vals[0] - vals[1]) / (2 * h)
+        assert params[name].raw.grad.item() == pytest.approx(fd, rel=1e-4, abs=1e-7), name
+
+
+def test_gmphd_fit_recovers_pd_and_clutter_rate_from_3x_off(tmp_path):
+    tun, tracker, data = problem(tmp_path, pd=0.8, clutter=8.0, start={"pd": 0.8 / 3, "clutter": 24.0})
+    res = fit(tun, tracker, ["phd.p_detection", "phd.clutter_density"], data, "phd",
+              {"name": "adam", "lr": 0.2, "steps": 24, "batch_size": 1}, {"patience": 100}, progress=False)
+    values = get_values(tracker)
+    pd, rate = values["phd.p_detection"].item(), values["phd.clutter_density"].item() * AREA
+    assert abs(math.log(pd / 0.8)) < 0.5 * math.log(3)
+    assert abs(math.log(rate / 8.0)) < 0.5 * math.log(3)
+    assert res.held_out and res.held_out[-1][1] < res.held_out[0][1] + 1e-9
+    metrics = tun.evaluate(tracker, data.held_out)
+    assert {"MOTA", "OSPA", "IDS"} <= set(metrics)
+
+
+def test_gmphd_needs_an_area_for_the_phd_likelihood(tmp_path):
+    tun = get_tunable("gmphd", {"tracker": "labelled-gmphd", "dtype": "float64"})
+    _, _, data = problem(tmp_path, frames=30)
+    with pytest.raises(TorchtrackError, match="area"):
+        tun.loss(tun.build(), data.train[:1], "phd")
