@@ -74,11 +74,23 @@ def _check(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> None:
 
 
 def log_ratios(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> Tensor:
-    """``ψ_ij = w_ij / (w_i0 λ_j)`` from log weights, clamped above at ``e^LOG_RATIO_MAX``; ``(*, n, m)``."""
-    lr = log_w - log_miss.unsqueeze(-1) - log_new.unsqueeze(-2)
-    # -inf - (-inf) is NaN: a gated-out pair stays out whatever the miss/new weights are
-    lr = torch.where(log_w == float("-inf"), torch.full_like(lr, float("-inf")), lr)
-    return torch.exp(lr.clamp(max=LOG_RATIO_MAX.get(lr.dtype, 12.0)))
+    """``ψ_ij = w_ij / (w_i0 λ_j)`` from log weights, clamped above at ``e^LOG_RATIO_MAX``; ``(*, n, m)``.
+
+    A zero miss or new-target weight (``-inf``) is replaced by the most negative finite value first, so
+    that a gated-out pair (``w_ij = 0``) stays at ``ψ = 0`` instead of ``exp(-inf + inf) = NaN`` and
+    any other pair with it saturates at the cap. Without autograd the result is built in one buffer.
+    """
+    floor = torch.finfo(log_w.dtype).min / 4
+    log_miss = log_miss.clamp_min(floor)
+    log_new = log_new.clamp_min(floor)
+    cap = LOG_RATIO_MAX.get(log_w.dtype, 12.0)
+    if torch.is_grad_enabled() and (log_w.requires_grad or log_miss.requires_grad or log_new.requires_grad):
+        return torch.exp((log_w - log_miss.unsqueeze(-1) - log_new.unsqueeze(-2)).clamp(max=cap))
+    batch = torch.broadcast_shapes(log_w.shape[:-2], log_miss.shape[:-1], log_new.shape[:-1])
+    out = torch.empty(*batch, *log_w.shape[-2:], dtype=log_w.dtype, device=log_w.device)
+    torch.sub(log_w, log_miss.unsqueeze(-1), out=out)
+    out.sub_(log_new.unsqueeze(-2)).clamp_(max=cap)
+    return out.exp_()
 
 
 def _iterate_functional(psi: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
@@ -145,13 +157,17 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     psi = log_ratios(log_w, log_miss, log_new).expand(*batch, n, m)
     if torch.is_grad_enabled() and psi.requires_grad:
         prod, it, converged = _iterate_functional(psi, iterations, tol)
+        denom = 1.0 + prod.sum(-1, keepdim=True)
+        assoc = prod / denom                                        # eq. (33), track side
+        mu = psi / (denom - prod)                                   # μ from the final ν
+        col = 1.0 + mu.sum(-2, keepdim=True)
+        meas_assoc = mu / col                                       # measurement side
     else:
         prod, it, converged = _iterate_inplace(psi.contiguous(), iterations, tol)
-    denom = 1.0 + prod.sum(-1, keepdim=True)
-    assoc = prod / denom                                            # eq. (33), track side
-    miss = 1.0 / denom.squeeze(-1)
-    mu = psi / (denom - prod)                                       # μ from the final ν
-    col = 1.0 + mu.sum(-2, keepdim=True)
-    meas_assoc = mu / col                                           # measurement side
-    new = 1.0 / col.squeeze(-2)
-    return LBPResult(assoc, miss, new, meas_assoc, it, converged)
+        denom = prod.sum(-1, keepdim=True).add_(1.0)
+        mu = torch.sub(denom, prod)
+        torch.div(psi, mu, out=mu)
+        col = mu.sum(-2, keepdim=True).add_(1.0)
+        meas_assoc = mu.div_(col)
+        assoc = prod.div_(denom)
+    return LBPResult(assoc, 1.0 / denom.squeeze(-1), 1.0 / col.squeeze(-2), meas_assoc, it, converged)

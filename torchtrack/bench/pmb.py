@@ -17,7 +17,7 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import best_time, report
-from torchtrack.bench.lbp import numpy_lbp
+from torchtrack.bench.lbp import _loadavg, best_cpu_time, numpy_lbp
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter, PMBState
 from torchtrack.models import ConstantVelocity, LinearPosition
@@ -153,7 +153,7 @@ def run(args) -> int:
         raise TorchtrackError("--targets, --measurements and --scans must be >= 1")
     dtype = getattr(torch, args.dtype)
     gen = torch.Generator().manual_seed(args.seed)
-    warm = 8
+    warm = 15
     scans, _ = make_scans(args.targets, args.measurements, warm + args.scans, gen)
     tol = args.lbp_tol if args.lbp_tol > 0 else None
     filt = build(args.targets, args.measurements, args.lbp_iterations, tol).to(dtype)
@@ -171,6 +171,7 @@ def run(args) -> int:
             return s
 
         t_ours = best_time(ours, repeats=args.repeats)
+        c_ours = best_cpu_time(ours, repeats=args.repeats)
         final = ours()
     live = int((start.existence > 0.5).sum())
     params = {"F": filt.motion.transition_matrix(1.0).double().numpy(),
@@ -189,14 +190,19 @@ def run(args) -> int:
         return s
 
     t_ref = best_time(reference, repeats=args.repeats)
+    c_ref = best_cpu_time(reference, repeats=args.repeats)
     ref_final = reference()
     agree = abs(float(final.existence.sum()) - float(ref_final["r"].sum()))
     print(f"{live} confirmed tracks at the start of the timed scans; expected-count difference "
           f"torchtrack vs numpy after {args.scans} scans: {agree:.2e}")
     n = timed.shape[0]
+    print(f"CPU time per scan: torchtrack {1e3 * c_ours / n:.2f} ms, numpy {1e3 * c_ref / n:.2f} ms "
+          f"({torch.get_num_threads()} threads, load average {_loadavg()})")
     report(f"TOMB/P predict+update, {args.targets} targets, {args.measurements} measurements/scan, "
            f"capacity {filt.capacity}, LBP cap {args.lbp_iterations} tol {tol}, {args.dtype}",
            n / t_ours, "numpy (same algorithm)", n / t_ref, "scans", args.json,
            extra={"confirmed_tracks": live, "ms_per_scan": 1e3 * t_ours / n, "numpy_ms_per_scan": 1e3 * t_ref / n,
+                  "cpu_ms_per_scan": 1e3 * c_ours / n, "numpy_cpu_ms_per_scan": 1e3 * c_ref / n,
+                  "load_average": _loadavg(),
                   "expected_count_difference": agree, "threads": torch.get_num_threads()})
     return 0
