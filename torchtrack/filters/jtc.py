@@ -125,7 +125,7 @@ class Tables(NamedTuple):
     sensor: Tensor          # (2, 1, …, 1) radar position, broadcastable to (2, *B, C, N)
     scale: Tensor           # (2,) −1/(2σ_D²), −1/(2σ_β²)
     log_norm: Tensor        # () −log(2π σ_D σ_β)
-    envelopes: Tensor | None  # (C, 4) speed envelopes
+    envelopes: Tensor | None  # (4, C) rows v_lo, v_hi, intercept, slope: g(v) = intercept + slope·clamp(v)
 
 
 class MultipleModelParticleFilter(nn.Module):
@@ -190,7 +190,11 @@ class MultipleModelParticleFilter(nn.Module):
         cum = torch.cumsum(self.transition, -1).to(dtype).reshape(C * M, M)
         cum[:, -1] = 1.0
         offset = (torch.arange(C, device=cum.device) * M).unsqueeze(-1)
-        env = None if self.speed_envelopes is None else self.speed_envelopes.to(dtype)
+        env = None
+        if self.speed_envelopes is not None:
+            lo, hi, g_lo, g_hi = self.speed_envelopes.to(dtype).unbind(-1)
+            slope = (g_hi - g_lo) / (hi - lo)
+            env = torch.stack([lo, hi, g_lo - slope * lo, slope])
         meas = self.measurement
         if isinstance(meas, RangeBearing):
             sensor = meas.sensor_position.to(dtype).reshape(2, *[1] * (batch_ndim + 2))
@@ -265,7 +269,8 @@ class MultipleModelParticleFilter(nn.Module):
         total = w.sum(-1, keepdim=True)
         log_L = (torch.log(total) + top).squeeze(-1) + tables.log_norm
         if use_speed:
-            log_L = log_L + torch.log(speed_likelihood(state.speed, tables.envelopes))
+            lo, hi, intercept, slope = tables.envelopes      # speed_likelihood(), unrolled
+            log_L = log_L + torch.log(torch.addcmul(intercept, slope, torch.clamp(state.speed, lo, hi)))
         # class probabilities, step 3 (a class with L(c) = 0 drops to 0; if all do, the prior is kept)
         log_class = state.log_class + log_L
         norm = torch.logsumexp(log_class, -1, keepdim=True)
