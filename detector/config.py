@@ -15,6 +15,8 @@ from torchtrack.errors import TorchtrackError
 class ModelConfig:
     widths: tuple[int, int, int] = (32, 48, 64)
     head: int = 32
+    motion: int = 16          # channels of the siamese motion encoder
+    radius: int = 4           # correlation radius in stride-8 cells
 
 
 @dataclass(frozen=True)

@@ -38,7 +38,7 @@ class VideoConfig:
     car_parks: int = 3
     # vehicles
     vehicle_length: tuple[float, float] = (3.0, 15.0)   # clip range of lengths
-    vehicle_length_median: float = 6.0
+    vehicle_length_median: float = 5.0
     bright_fraction: float = 0.55
     lane_density: float = 0.02            # moving vehicles per px of lane at start
     birth_rate: float = 0.06               # entries per lane and frame
@@ -52,7 +52,7 @@ class VideoConfig:
     dropout_rate: float = 0.01             # per vehicle and frame
     dropout_length: tuple[int, int] = (1, 3)
     # sensor and camera
-    psf_sigma: float = 0.8
+    psf_sigma: float = 1.0
     noise_std: float = 2.0
     gain_drift: float = 0.03
     jitter_translation: float = 1.0
