@@ -33,7 +33,7 @@ def plot_formation(data: FormationData, estimates: dict[str, torch.Tensor], out_
         ax.set_title(title)
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
-    frame(ax, "True formation tracks (classes " + ", ".join(str(c + 1) for c in classes) + ")")
+    frame(ax, f"True formation tracks, run {run} (classes " + ", ".join(str(c + 1) for c in classes) + ")")
     ax.scatter(z[m & (org >= 0)][:, 0], z[m & (org >= 0)][:, 1], s=4, c="0.5", label="target measurements")
     ax.scatter(z[m & (org == -1)][:, 0], z[m & (org == -1)][:, 1], s=4, c="tab:pink", marker="x", label="clutter")
     ax.legend(loc="upper left", fontsize=8)
@@ -45,7 +45,7 @@ def plot_formation(data: FormationData, estimates: dict[str, torch.Tensor], out_
     for gate, est in estimates.items():
         e = est[run].numpy()
         fig, ax = plt.subplots(figsize=(8, 4.5))
-        frame(ax, f"Estimated trajectories via the {gate.replace('_', ' ')} gate")
+        frame(ax, f"Estimated trajectories via the {gate.replace('_', ' ')} gate (run {run})")
         for n in range(e.shape[1]):
             ax.plot(e[:, n, 0], e[:, n, 1], "-", color=_COLOURS[n % len(_COLOURS)], lw=1.4,
                     label=f"track {n + 1} (class {classes[n] + 1})")
