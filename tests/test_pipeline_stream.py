@@ -151,3 +151,15 @@ def test_size_change_mid_run_names_the_file_and_leaves_no_complete_results(tmp_p
         tv.track_video(FolderSource(frames), out, PipelineConfig(), detector=OnePoint(), progress=False)
     assert not (out / "metrics.json").exists() and not (out / "annotated.mp4").exists()
     assert read_mot(out / "tracks.txt").frames().tolist() == [1, 2]  # complete up to the last good frame
+
+
+def test_truth_beyond_the_frames_is_refused_before_writing(tmp_path, sequence, monkeypatch):
+    from torchtrack.errors import TorchtrackError
+    from torchtrack.io.mot import from_points
+
+    monkeypatch.setattr(tv, "make_tracker", lambda name, options: RecordingTracker())
+    gt = from_points([1, 2, 7], [1, 1, 1], [10, 11, 12], [10, 10, 10])
+    with pytest.raises(TorchtrackError, match=r"my_gt\.txt: truth refers to frames up to 7, but the video has only 5"):
+        tv.track_video(ArraySource([f.image for f in sequence]), tmp_path, PipelineConfig(), detector=OnePoint(),
+                       gt=gt, gt_path="my_gt.txt", progress=False)
+    assert not (tmp_path / "tracks.txt").exists() and not (tmp_path / "metrics.json").exists()

@@ -11,8 +11,6 @@ import yaml
 from torchtrack.errors import TorchtrackError
 from torchtrack.pipeline.registration import RegistrationConfig
 
-TRACKERS = ("gmphd", "labelled-gmphd", "pmb", "sort", "greedy")
-
 
 @dataclass
 class PipelineConfig:
