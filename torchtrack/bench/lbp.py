@@ -31,8 +31,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--density", type=float, default=0.2,
                         help="fraction of track-measurement pairs inside the gate (default 0.2)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch intra-op threads (default: torch's choice; 1 is faster on a loaded machine)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1: on a shared, loaded machine more threads spin and "
+                             "wait for each other)")
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats, best is kept (default 5)")
     add_common_options(parser)
 
@@ -94,10 +95,9 @@ def _loadavg() -> float | None:
 
 
 def run(args) -> int:
-    if args.threads is not None:
-        if args.threads < 1:
-            raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
-        torch.set_num_threads(args.threads)
+    if args.threads < 1:
+        raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
+    torch.set_num_threads(args.threads)
     try:
         sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     except ValueError as exc:

@@ -38,8 +38,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lbp-iterations", type=int, default=30, help="LBP iteration cap (default 30)")
     parser.add_argument("--lbp-tol", type=float, default=1e-6,
                         help="LBP tolerance on the miss/new marginals (default 1e-6; 0: fixed iterations)")
-    parser.add_argument("--threads", type=int, default=None,
-                        help="torch intra-op threads (default: torch's choice; 1 is faster on a loaded machine)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1: on a shared, loaded machine more threads spin and "
+                             "wait for each other)")
     parser.add_argument("--repeats", type=int, default=3)
     from torchtrack.cli._common import add_common_options
 
@@ -145,10 +146,9 @@ def _to_numpy_state(st: PMBState) -> dict:
 
 
 def run(args) -> int:
-    if args.threads is not None:
-        if args.threads < 1:
-            raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
-        torch.set_num_threads(args.threads)
+    if args.threads < 1:
+        raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
+    torch.set_num_threads(args.threads)
     if args.targets < 1 or args.measurements < 1 or args.scans < 1:
         raise TorchtrackError("--targets, --measurements and --scans must be >= 1")
     dtype = getattr(torch, args.dtype)

@@ -39,8 +39,8 @@ def plot_positions(path: Path, truth, run, variant: str) -> None:
 def plot_ospa(path: Path, per_step: dict, mean: dict) -> None:
     """Fig. 4: OSPA (c = 20 m, p = 2) over time, averaged over runs."""
     fig, ax = plt.subplots(figsize=(9, 4))
-    for v, o in per_step.items():
-        ax.plot(o.numpy(), lw=0.9, color=COLORS.get(v), label=f"{v} (mean {mean[v]:.2f})")
+    for v in sorted(per_step, key=lambda k: -mean[k]):          # the worst first, so the best is on top
+        ax.plot(per_step[v].numpy(), lw=0.9, color=COLORS.get(v), label=f"{v} (mean {mean[v]:.2f})")
     ax.set_xlabel("time step")
     ax.set_ylabel("OSPA [m]")
     ax.set_title("Feature OSPA over time (mean over runs)")
