@@ -62,11 +62,20 @@ def test_single_model_imm_equals_kalman_filter():
     z = _measurements(25).unsqueeze(1).repeat(1, 3, 1)
     z[5, 1] = float("nan")  # a missing measurement in one track
     init = GaussianState(torch.zeros(3, 4, dtype=torch.float64), 100 * torch.eye(4, dtype=torch.float64))
-    ref = kf.run(z, init, DT)
     out = imm.run(z, imm.initial_state(init.mean, init.cov), DT)
-    assert torch.equal(out.mean, ref.mean)
-    assert torch.equal(out.cov, ref.cov)
-    assert torch.equal(out.log_likelihood, ref.log_likelihood)
+    # exactly the Kalman filter's own predict/update steps
+    state, total = init, 0.0
+    for k in range(z.shape[0]):
+        state, info = kf.update(kf.predict(state, DT), z[k])
+        total = total + info.log_likelihood
+        assert torch.equal(out.mean[k], state.mean) and torch.equal(out.cov[k], state.cov)
+    assert torch.equal(out.log_likelihood, total)
+    assert torch.equal(out.mode_prob, torch.ones_like(out.mode_prob))
+    # and its sequence runner (which may take a differently ordered fast path) to round-off
+    ref = kf.run(z, init, DT)
+    torch.testing.assert_close(out.mean, ref.mean, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(out.cov, ref.cov, rtol=1e-12, atol=1e-9)
+    torch.testing.assert_close(out.log_likelihood, ref.log_likelihood, rtol=1e-12, atol=1e-9)
 
 
 def _paper_models():

@@ -63,16 +63,24 @@ def unpack(log_prob: Tensor, mean: Tensor, cov: Tensor) -> IMMState:
     return IMMState(log_prob, mean.movedim(0, -1), P)
 
 
-def mix_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, log_T: Tensor) -> tuple[Tensor, Tensor, Tensor]:
-    """Interaction (eq. 26–27) on packed planes; returns ``(log c, mean⁰, cov⁰)``."""
-    a = log_prob.unsqueeze(-1) + log_T                       # (*, i, j)
-    log_c = torch.logsumexp(a, dim=-2)
-    w = torch.exp(a - log_c.unsqueeze(-2))                   # μ_{i|j}
-    mean0 = (mean.unsqueeze(-1) * w).sum(-2)                 # (4, *, j)
-    d = mean.unsqueeze(-1) - mean0.unsqueeze(-2)             # (4, *, i, j)
-    spread = cov.unsqueeze(-1) + d[_ROW] * d[_COL]           # (10, *, i, j)
-    cov0 = (spread * w).sum(-2)
-    return log_c, mean0, cov0
+def mix_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, transition: Tensor) -> tuple[Tensor, Tensor, Tensor]:
+    """Interaction (eq. 26–27) on packed planes; ``transition (M, M)`` holds ``p_ij``; returns ``(log c, x⁰, P⁰)``.
+
+    Mode probabilities are exponentiated once (they are normalised, so the largest is ≥ 1/M and the
+    mixing weights cannot all underflow); ``c_j`` is floored at the smallest normal number so that an
+    unreachable mode gets weight 0 instead of NaN. The spread is taken about model 0's mean,
+    ``Σ_i μ_{i|j} (x_i − x⁰_j)(·)ᵀ = Σ_i μ_{i|j} e_i e_iᵀ − f_j f_jᵀ`` with ``e_i = x_i − x_0``,
+    ``f_j = x⁰_j − x_0``: the differences are of the size of the model spread, so nothing cancels.
+    """
+    mu = log_prob.exp()                                      # (*, i)
+    a = mu.unsqueeze(-1) * transition                        # (*, i, j): μ_i p_ij
+    c = a.sum(-2).clamp_min(torch.finfo(a.dtype).tiny)       # (*, j)
+    w = a / c.unsqueeze(-2)                                  # μ_{i|j}
+    e = mean - mean[..., :1]                                 # (4, *, i)
+    f = (e.unsqueeze(-1) * w).sum(-2)                        # (4, *, j)
+    second = cov + e[_ROW] * e[_COL]                         # (10, *, i)
+    cov0 = (second.unsqueeze(-1) * w).sum(-2) - f[_ROW] * f[_COL]
+    return c.log(), mean[..., :1] + f, cov0
 
 
 def predict_packed(mean: Tensor, cov: Tensor, dt: float, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
@@ -151,13 +159,13 @@ def combine_packed(log_prob: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor,
     return m, c
 
 
-def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, log_T: Tensor, q: Tensor, u: Tensor,
+def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, transition: Tensor, q: Tensor, u: Tensor,
                 R: Tensor, dt: float):
     """One full IMM cycle (interaction, prediction, update, combination) on packed planes.
 
     Returns ``(log_prob, mean, cov, total log-likelihood (*,), combined mean (4, *), combined cov (10, *))``.
     """
-    log_c, mean0, cov0 = mix_packed(log_prob, mean, cov, log_T)
+    log_c, mean0, cov0 = mix_packed(log_prob, mean, cov, transition)
     mean1, cov1 = predict_packed(mean0, cov0, dt, q, u)
     log_prob, mean2, cov2, total, _ = update_packed(log_c, mean1, cov1, z, R)
     cm, cc = combine_packed(log_prob, mean2, cov2)
@@ -215,11 +223,11 @@ class ConstantVelocityIMM(nn.Module):
         q = (self.motion.sigma() ** 2).to(like)
         u = self.motion.controls.to(like).transpose(0, 1)
         R = self.measurement.noise_cov().to(like)
-        return self.transition.log(like), q, u, torch.stack([R[0, 0], R[0, 1], R[1, 1]])
+        return self.transition().to(like), q, u, torch.stack([R[0, 0], R[0, 1], R[1, 1]])
 
     def predict(self, state: IMMState, dt: float = 1.0) -> IMMState:
-        log_T, q, u, _ = self._params(state.mean)
-        log_c, m, c = mix_packed(*pack(state), log_T)
+        P, q, u, _ = self._params(state.mean)
+        log_c, m, c = mix_packed(*pack(state), P)
         m, c = predict_packed(m, c, float(dt), q, u)
         return unpack(log_c, m, c)
 
@@ -255,13 +263,13 @@ class ConstantVelocityIMM(nn.Module):
     def run_packed(self, measurements: Tensor, init: IMMState, dt: float = 1.0, compile: bool = False):
         """Fast loop over ``measurements (T, *, 2)`` (all present): returns the final packed state, the
         combined means ``(T, *, 4)`` and the total log-likelihood ``(*,)``."""
-        log_T, q, u, R = self._params(init.mean)
+        P, q, u, R = self._params(init.mean)
         step = compiled_step() if compile else step_packed
         log_prob, m, c = pack(init)
         means = []
         total = 0.0
         for k in range(measurements.shape[0]):
-            log_prob, m, c, ll, cm, _ = step(log_prob, m, c, measurements[k], log_T, q, u, R, float(dt))
+            log_prob, m, c, ll, cm, _ = step(log_prob, m, c, measurements[k], P, q, u, R, float(dt))
             means.append(cm)
             total = total + ll
         return (log_prob, m, c), torch.stack(means).movedim(1, -1), total
