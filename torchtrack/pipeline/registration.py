@@ -37,12 +37,17 @@ class RegistrationConfig:
 
     ``method``: ``lk`` (keyframe corners + Lucas–Kanade flow + RANSAC), ``orb`` (ORB features +
     RANSAC), or ``none`` (frames already stabilised); ``ecc``: refine each estimate by ECC
-    (about 10× more accurate, about 2× slower). ``features``: corners (lk) or ORB features per frame.
+    (slower; more accurate on static scenes, less with parallax, see docs/pipeline.md). ``features``:
+    corners (lk) or ORB features per frame; ``window``, ``levels``: Lucas–Kanade window side (px) and
+    pyramid levels above the base (the flow starts from the previous frame's estimate, so the residual
+    motion to recover is small).
     """
 
     method: str = "lk"
     ecc: bool = False
     features: int = 500
+    window: int = 11
+    levels: int = 2
     refresh_every: int = 15
     min_inliers: int = 40
     ransac_threshold: float = 0.7
@@ -99,13 +104,14 @@ class Registration:
     def _correspondences(self, image: np.ndarray):
         """Matched points ``(src in frame, dst in keyframe)`` and the frame's ORB features (or None)."""
         key_points, key_desc = self._key_features
-        if self.config.method == "lk":
+        cfg = self.config
+        if cfg.method == "lk":
             if len(key_points) < 8:
                 return np.zeros((0, 2)), np.zeros((0, 2)), None
             # Follow keyframe corners into the frame, starting from the previous frame's estimate.
             guess = cv2.perspectiveTransform(key_points, np.linalg.inv(self._last_rel)).astype(np.float32)
             moved, status, _ = cv2.calcOpticalFlowPyrLK(
-                self._key_image, image, key_points, guess, winSize=(21, 21), maxLevel=3,
+                self._key_image, image, key_points, guess, winSize=(cfg.window, cfg.window), maxLevel=cfg.levels,
                 flags=cv2.OPTFLOW_USE_INITIAL_FLOW,
                 criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
             ok = status.ravel().astype(bool)
