@@ -109,3 +109,19 @@ def test_synthetic_source_matches_generator():
     assert len(src) == 3 and [f.index for f in frames] == [1, 2, 3]
     assert all(np.array_equal(a.image, b.image) for a, b in zip(frames, direct))
     assert np.array_equal(src.truth.xy, direct[-1].xy)
+
+
+def test_prefetch_keeps_order_and_raises_where_the_source_fails(tmp_path):
+    from torchtrack.io.frames import prefetch
+
+    for k in range(1, 6):
+        cv2.imwrite(str(tmp_path / f"f{k}.png"), _img(k, (24, 32) if k != 4 else (10, 10)))
+    seen = []
+    with pytest.raises(TorchtrackError, match=r"f4\.png: frame size"):
+        for f in prefetch(FolderSource(tmp_path)):
+            seen.append(int(f.image[0, 0]))
+    assert seen == [1, 2, 3]
+    # Stopping early leaves no thread behind blocked on a full queue.
+    it = prefetch(ArraySource(np.zeros((50, 8, 8), np.uint8)), size=1)
+    assert next(it).index == 1
+    it.close()

@@ -20,9 +20,11 @@ ignored. Images are ordered by natural sort (``frame_2.png`` before ``frame_10.p
 
 from __future__ import annotations
 
+import queue
 import re
+import threading
 import warnings
-from collections.abc import Iterator, Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -247,3 +249,41 @@ class SyntheticSource(FrameSource):
         for vf in generate_sequence(self.config, self.generator):
             self.truth = vf
             yield Frame(vf.index + 1, vf.image, f"{self.path}[{vf.index + 1}]")
+
+
+def prefetch(frames: Iterable[Frame], size: int = 2) -> Iterator[Frame]:
+    """Iterate ``frames`` with up to ``size`` frames decoded ahead in a background thread (OpenCV
+    releases the GIL while decoding, so reading overlaps the caller's work). Errors of the source are
+    raised in the caller's thread, at the frame where they happened."""
+    q: queue.Queue = queue.Queue(maxsize=size)
+    stop = threading.Event()
+    done = object()
+
+    def work() -> None:
+        try:
+            for f in frames:
+                while not stop.is_set():
+                    try:
+                        q.put(f, timeout=0.1)
+                        break
+                    except queue.Full:
+                        continue
+                if stop.is_set():
+                    return
+            q.put(done)
+        except BaseException as exc:  # handed to the consumer
+            q.put(exc)
+
+    thread = threading.Thread(target=work, name="frame-prefetch", daemon=True)
+    thread.start()
+    try:
+        while True:
+            item = q.get()
+            if item is done:
+                return
+            if isinstance(item, BaseException):
+                raise item
+            yield item
+    finally:
+        stop.set()
+        thread.join(timeout=5)

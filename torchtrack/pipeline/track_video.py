@@ -43,7 +43,7 @@ from tqdm import tqdm
 from detector import load_detector
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import make_tracker
-from torchtrack.io.frames import FrameSource
+from torchtrack.io.frames import FrameSource, prefetch
 from torchtrack.io.mot import MOTData, MOTWriter, from_points, read_mot
 from torchtrack.io.video_writer import AnnotatedVideoWriter, apply_homography, save_png
 from torchtrack.metrics import clear_mot
@@ -248,7 +248,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                leave=False)
     try:
         with MOTWriter(files["tracks"]) as tracks_out, MOTWriter(files["detections"]) as det_out:
-            it = iter(source)
+            it = prefetch(source)
             while True:
                 with timer("io"):
                     frame = next(it, None)
