@@ -164,3 +164,20 @@ def test_truth_beyond_the_frames_is_refused_before_writing(tmp_path, sequence, m
         tv.track_video(ArraySource([f.image for f in sequence]), tmp_path, PipelineConfig(), detector=OnePoint(),
                        gt=gt, gt_path="my_gt.txt", progress=False)
     assert not (tmp_path / "tracks.txt").exists() and not (tmp_path / "metrics.json").exists()
+
+
+class RepeatingTracker(RecordingTracker):
+    """Breaks the contract: reports identity 5 twice in every frame."""
+
+    def step(self, frame_index, positions, velocities):
+        return torch.tensor([5, 6, 5]), torch.tensor([[1.0, 2.0], [3.0, 4.0], [9.0, 9.0]], dtype=torch.float64)
+
+
+def test_repeated_identity_is_dropped_counted_and_warned(tmp_path, sequence, monkeypatch):
+    monkeypatch.setattr(tv, "make_tracker", lambda name, options: RepeatingTracker())
+    with pytest.warns(UserWarning, match="5 estimate"):
+        result = tv.track_video(ArraySource([f.image for f in sequence]), tmp_path, PipelineConfig(video=False),
+                                detector=OnePoint(), progress=False)
+    tracks = read_mot(result.files["tracks"])  # a valid file: one line per (frame, id)
+    assert tracks.size == 10 and set(tracks.id.tolist()) == {5, 6}
+    assert result.metrics["duplicate_identities_dropped"] == 5

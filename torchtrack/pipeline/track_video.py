@@ -10,7 +10,8 @@ For each frame ``k`` (only the previous frame is kept, so memory does not grow w
    tracks) mapped into the current frame;
 3. **track** — positions and detector velocities go to reference coordinates (velocities through the
    Jacobian of ``H_k`` at each point) and into the tracker's ``step``; tracks live in reference
-   coordinates;
+   coordinates (an estimate repeating an identity already reported in the frame is dropped, counted and
+   warned about: identities must be unique per frame);
 4. **write** — the frame's tracks, mapped back into frame ``k`` by ``H_k⁻¹``, are appended to
    ``tracks.txt`` and flushed (an interrupted run leaves a file complete up to the last frame), and the
    detections to ``detections.txt`` (frame coordinates, with velocities);
@@ -28,6 +29,7 @@ from __future__ import annotations
 import json
 import os
 import time
+import warnings
 from collections import defaultdict
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -138,16 +140,20 @@ class Detection:
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel)
 
 
-def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray]:
-    """One ``tracker.step`` on a frame's detections; returns ``ids (N,)`` and reference ``positions (N, 2)``."""
+def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, int]:
+    """One ``tracker.step`` on a frame's detections; returns ``ids (N,)``, reference ``positions (N, 2)``
+    and how many estimates were dropped because their identity was already reported in this frame
+    (the trackers' contract is unique identities per frame; a repeat is kept out of ``tracks.txt``, which
+    must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
     ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype),
                                   torch.as_tensor(det.velocities, dtype=dtype))
     ids = _numpy(ids, ()).astype(np.int64)
-    unique, counts = np.unique(ids, return_counts=True)
-    if np.any(counts > 1):
-        raise TorchtrackError(f"tracker {type(tracker).__name__} reported identity {int(unique[counts > 1][0])} "
-                              f"twice in frame {det.index}; identities must be unique within a frame")
-    return ids, _numpy(positions, (2,))
+    positions = _numpy(positions, (2,))
+    _, first = np.unique(ids, return_index=True)
+    if len(first) < len(ids):
+        keep = np.sort(first)
+        return ids[keep], positions[keep], len(ids) - len(keep)
+    return ids, positions, 0
 
 
 def rerun_tracker(name: str, options: dict | None, detections: list[FrameDetections], out: Path,
@@ -160,7 +166,7 @@ def rerun_tracker(name: str, options: dict | None, detections: list[FrameDetecti
     with MOTWriter(out) as writer:
         for det in detections:
             t0 = time.perf_counter()
-            ids, pos = run_tracker_step(tracker, det, dtype)
+            ids, pos, _ = run_tracker_step(tracker, det, dtype)
             seconds += time.perf_counter() - t0
             img = apply_homography(pos, np.linalg.inv(det.homography))
             writer.write_frame(det.index, ids, img[:, 0], img[:, 1])
@@ -242,6 +248,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                                  scale=cfg.scale) if cfg.video else None
     kept: list[FrameDetections] = []
     reg_errors: list[float] = []
+    duplicates = 0
     frames = 0
     t_start = time.perf_counter()
     bar = tqdm(total=n_frames or None, desc=f"track {cfg.tracker}", unit="frame", disable=not progress,
@@ -260,7 +267,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                     true_h = camera[0] @ np.linalg.inv(camera[frame.index - 1])
                     reg_errors.append(float(np.median(transfer_error(det.homography, true_h, frame.image.shape))))
                 with timer("tracking"):
-                    ids, pos_ref = run_tracker_step(tracker, det, dtype)
+                    ids, pos_ref, dropped = run_tracker_step(tracker, det, dtype)
+                duplicates += dropped
                 if cfg.prior == "tracks":
                     detection.prior_ref = pos_ref
                 h_inv = np.linalg.inv(det.homography)
@@ -302,6 +310,10 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         metrics["clear_mot"] = score(gt, read_mot(files["tracks"]), cfg.threshold, ignore)
         det_scores = score(gt, _detections_as_tracks(files["detections"]), cfg.threshold, ignore)
         metrics["detector"] = {k: det_scores[k] for k in ("TP", "FP", "FN", "precision", "recall", "MOTP")}
+    if duplicates:
+        warnings.warn(f"tracker {cfg.tracker} reported {duplicates} estimate(s) under an identity already "
+                      "reported in the same frame; they were left out of tracks.txt", stacklevel=2)
+        metrics["duplicate_identities_dropped"] = duplicates
     seconds = dict(timer.seconds)
     metrics["timings_s"] = {**seconds, "total": wall}
     metrics["fps"] = {"end_to_end": frames / wall,
