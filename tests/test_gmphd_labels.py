@@ -81,7 +81,7 @@ def test_label_fix_separates_two_tracks_that_split_from_one_component():
     assert len(ids_before) == 1                               # one track while they drive together
     (old,) = ids_before
     tail = rep[-8:]
-    for ids, pos in tail:
+    for ids, _ in tail:
         assert len(ids) == 2 and len(set(ids)) == 2           # two tracks with distinct labels
     upper = {ids[int(torch.argmax(pos[:, 1]))] for ids, pos in tail}
     lower = {ids[int(torch.argmin(pos[:, 1]))] for ids, pos in tail}

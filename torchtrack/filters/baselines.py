@@ -28,12 +28,13 @@ def enhanced_gmphd(config: dict | None = None) -> GMPHDTracker:
 
 
 def labelled_gmphd(config: dict | None = None) -> GMPHDTracker:
-    """The labelled GM-PHD baseline: ``label_fix``, the velocity map and the detector's velocity are off
-    whatever the config says (births start at rest with ``birth.sigma_vel_unknown``)."""
+    """The labelled GM-PHD baseline: the label fix and its extensions (hand-over, coasting, merge priority),
+    the velocity map and the detector's velocity are off whatever the config says (births start at rest
+    with ``birth.sigma_vel_unknown``)."""
     cfg = dict(config or {})
     birth = dict(cfg.get("birth") or {})
     birth.update(use_velocity_map=False, use_detector_velocity=False)
-    cfg.update(birth=birth, label_fix=False)
+    cfg.update(birth=birth, label_fix=False, handover_frames=0, coast_threshold=None)
     return GMPHDTracker.from_config(cfg)
 
 

@@ -14,7 +14,7 @@ Prediction (eq. 3; Vo & Ma 2006 eq. 21–24)::
 
 Update of every component against every measurement in one batched operation (eq. 25–29)::
 
-    ẑ_j = H m_j,  S_j = H P_j Hᵀ + R,  K_j = P_j Hᵀ S_j⁻¹,  P_j⁺ = (I − K_j H) P_j (·)ᵀ + K_j R K_jᵀ
+    ẑ_j = H m_j,  S_j = H P_j Hᵀ + R,  K_j = P_j Hᵀ S_j⁻¹,  P_j⁺ = P_j − K_j S_j K_jᵀ
     missed:    w = (1 − p_D) w_j,                         m = m_j,                P = P_j
     detected:  w = p_D w_j g_jk / (κ(z_k) + Σ_i p_D w_i g_ik),  m = m_j + K_j (z_k − ẑ_j),  P = P_j⁺
     g_jk = N(z_k; ẑ_j, S_j), kept only inside the gate  (z_k − ẑ_j)ᵀ S_j⁻¹ (z_k − ẑ_j) ≤ γ
@@ -182,7 +182,7 @@ class GMPHD(nn.Module):
         """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
         F, Q = mats.F, mats.Q
         mean = state.mean @ F.transpose(-1, -2)
-        cov = symmetrize(F @ state.cov @ F.transpose(-1, -2) + Q)
+        cov = F @ state.cov @ F.transpose(-1, -2) + Q      # symmetric up to rounding; update symmetrises
         log_w = state.log_weight + torch.log(mats.p_survival)
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
@@ -214,8 +214,7 @@ class GMPHD(nn.Module):
         eye_m = torch.eye(m_dim, dtype=S.dtype, device=S.device)
         Linv = torch.linalg.solve_triangular(L, eye_m.expand_as(L), upper=False)   # (J, m, m)
         K = PHt @ (Linv.transpose(-1, -2) @ Linv)                  # (J, n, m)  K = P Hᵀ S⁻¹
-        I_KH = torch.eye(H.shape[1], dtype=S.dtype, device=S.device) - K @ H
-        P_upd = symmetrize(I_KH @ state.cov @ I_KH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2))
+        P_upd = symmetrize(state.cov - K @ PHt.transpose(-1, -2))    # P − K S Kᵀ, symmetrised
         z_hat = state.mean @ H.transpose(-1, -2)                    # (J, m)
         half_logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (J,)
         base = log_pd + live_w - half_logdet - 0.5 * m_dim * LOG_2PI            # (J,)
@@ -232,13 +231,16 @@ class GMPHD(nn.Module):
                 if state.size else log_kappa[start:start + self.chunk]
             jj, kk = gated.nonzero(as_tuple=True)
             pair_j.append(jj)
-            pair_k.append(kk + start)
+            pair_k.append(kk + start if start else kk)
             pair_logw.append(log_num[jj, kk] - den[kk])
             log_den.append(den)
-        log_den_t = torch.cat(log_den) if log_den else log_kappa
-        jj = torch.cat(pair_j) if pair_j else torch.empty(0, dtype=torch.long, device=z.device)
-        kk = torch.cat(pair_k) if pair_k else torch.empty(0, dtype=torch.long, device=z.device)
-        det_logw = torch.cat(pair_logw) if pair_logw else live_w[:0]
+        if len(log_den) == 1:
+            log_den_t, jj, kk, det_logw = log_den[0], pair_j[0], pair_k[0], pair_logw[0]
+        else:
+            log_den_t = torch.cat(log_den) if log_den else log_kappa
+            jj = torch.cat(pair_j) if pair_j else torch.empty(0, dtype=torch.long, device=z.device)
+            kk = torch.cat(pair_k) if pair_k else torch.empty(0, dtype=torch.long, device=z.device)
+            det_logw = torch.cat(pair_logw) if pair_logw else live_w[:0]
         nu_sel = z[kk] - z_hat[jj]                                   # (G, m)
         det_mean = state.mean[jj] + (K[jj] @ nu_sel.unsqueeze(-1)).squeeze(-1)
 
@@ -303,8 +305,8 @@ def chi2_quantile(p: float, dof: int) -> float:
     return float(chi2.ppf(p, dof))
 
 
-def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> Tensor:
-    """``(J, J)`` bool ``[i, j]``: ``j < i`` and ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U``.
+def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
+    """Pairs ``(i, j)`` (two ``(K,)`` index tensors) with ``j < i`` and ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U``.
 
     Pairs are first screened on the position block (the first ``min(n, 2)`` coordinates): the full
     Mahalanobis distance is at least ``‖Δp‖² / λ_max(P_i,pos)``, so only pairs passing that bound are
@@ -321,13 +323,12 @@ def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> Tensor:
     d2 = (pos.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)                 # [i, j]
     cand = torch.tril(d2 <= threshold * lam.unsqueeze(1) * (1 + 1e-4), diagonal=-1)
     ii, jj = cand.nonzero(as_tuple=True)
-    near = torch.zeros(J, J, dtype=torch.bool, device=mean.device)
     if ii.numel():
         L, _ = torch.linalg.cholesky_ex(cov[ii])
         y = torch.linalg.solve_triangular(L, (mean[jj] - mean[ii]).unsqueeze(-1), upper=False)
         ok = y.pow(2).sum((-1, -2)) <= threshold
-        near[ii[ok], jj[ok]] = True
-    return near
+        ii, jj = ii[ok], jj[ok]
+    return ii, jj
 
 
 def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Tensor | None = None) -> MixtureState:
@@ -345,28 +346,33 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     of which the heavier only becomes a leader in a later round. Membership is a stop-gradient
     selection; the moment matching is differentiable.
 
+    ``state`` must be compacted (every slot live, as :meth:`GMPHD.prune` leaves it).
+
     With ``keep_label (P,)`` (the labels reported at the previous frame), a group containing one of those
     labels keeps it (the highest-weight such member's) instead of the leader's label, so an established
     identity is not taken over by a younger duplicate merging into it.
     """
     J = state.size
     if J <= 1 or threshold <= 0:
-        return state.select(state.mask)
-    state = state.select(state.mask)
-    J = state.size
+        return state
     order = torch.argsort(state.log_weight.detach(), descending=True)
     state = state.select(order)
     mean, cov, log_w = state.mean, state.cov, state.log_weight
     with torch.no_grad():
         idx = torch.arange(J, device=mean.device)
-        near_higher = _within_reach(mean.detach(), cov.detach(), threshold)   # [i, j]: j heavier, i in reach
+        ii, jj = _within_reach(mean.detach(), cov.detach(), threshold)   # i within reach of heavier j
         alive = torch.ones(J, dtype=torch.bool, device=mean.device)
         owner = idx.clone()
+        big = torch.full((J,), J, dtype=torch.long, device=mean.device)
         for _ in range(rounds):
-            leader = alive & ~(near_higher & alive.unsqueeze(0)).any(1)
-            cand = near_higher & leader.unsqueeze(0)
-            joins = alive & ~leader & cand.any(1)
-            first = cand.to(torch.int8).argmax(1)
+            if ii.numel() == 0:
+                break
+            live = alive[ii] & alive[jj]
+            blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii[live], True)
+            leader = alive & ~blocked
+            cand = alive[ii] & leader[jj]
+            first = big.scatter_reduce(0, ii[cand], jj[cand], "amin")     # heaviest leader within reach
+            joins = alive & ~leader & (first < J)
             owner = torch.where(joins, first, owner)
             alive = alive & ~leader & ~joins
             if not bool(alive.any()):

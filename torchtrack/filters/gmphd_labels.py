@@ -42,11 +42,15 @@ def distance_to_previous(label: Tensor, pos: Tensor, prev_label: Tensor, prev_po
 
 
 def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_pos: Tensor,
-              next_label: int, pos_dim: int = 2) -> tuple[MixtureState, int]:
+              next_label: int, pos_dim: int = 2, min_separation: float = 0.0) -> tuple[MixtureState, int]:
     """The label fix of section 2.3: among extracted components sharing a label, the one closest to that
     label's previous estimate ``(x̂_{k−1}, ℓ)`` keeps it (ties and labels without a previous estimate:
     the highest weight); every other one gets a fresh label ``ℓ_α`` from the latent space
     ``next_label, next_label + 1, …``.
+
+    A duplicate within ``min_separation`` of the label's keeper is not relabelled (it is the same target
+    seen through a nearby clutter point, not a second target): it keeps the label and is not reported
+    (see :func:`best_per_label`).
 
     Args:
         state: the posterior mixture; ``estimate (J,)`` bool mask of extracted components.
@@ -65,7 +69,12 @@ def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_po
         by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
         by_dist = by_weight[torch.sort(dist[by_weight], stable=True).indices]
         o, first = _first_of_label(lab, by_dist)
-        losers = idx[o[~first]]
+        if min_separation > 0:
+            keeper = torch.cummax(torch.where(first, torch.arange(o.numel()), torch.zeros_like(o)), 0).values
+            apart = (pos[o] - pos[o[keeper]]).norm(dim=-1) > min_separation
+            losers = idx[o[~first & apart]]
+        else:
+            losers = idx[o[~first]]
         n = int(losers.numel())
     if n == 0:
         return state, next_label
@@ -119,7 +128,8 @@ def label_handover(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Ten
     ``label (E,)``, ``pos (E, 2)``: this frame's estimates; ``prev_label, prev_pos, prev_vel``: last
     frame's. The pool of lost labels is ``lost`` plus last frame's labels not reported now. An estimate
     whose label is neither last frame's nor in ``lost`` is *new*; a new estimate within ``max_distance`` of
-    a lost label's expected position ``p + v (age + 1) dt`` takes that label (greedy, closest first).
+    the path a lost label was expected to travel since it was last seen, the segment from ``p`` to
+    ``p + v (age + 1) dt`` (a target may have slowed down), takes that label (greedy, closest first).
     Returns ``(E,)`` the label each estimate should carry.
     """
     if label.numel() == 0:
@@ -132,9 +142,13 @@ def label_handover(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Ten
 
     pool_label = torch.cat([lost.label, prev_label[gone]])
     steps = torch.cat([lost.age + 1, torch.ones_like(prev_label[gone])]).to(pos.dtype) * dt
-    expected = torch.cat([lost.pos, prev_pos[gone]]) + torch.cat([lost.vel, prev_vel[gone]]) * steps.unsqueeze(1)
+    start = torch.cat([lost.pos, prev_pos[gone]]).to(pos.dtype)
+    travel = torch.cat([lost.vel, prev_vel[gone]]).to(pos.dtype) * steps.unsqueeze(1)
     ni = new.nonzero(as_tuple=True)[0]
-    dist = torch.cdist(pos[ni].detach(), expected.to(pos.dtype))
+    # distance from each new estimate to the segment [p, p + v·Δt]: robust to a target slowing down
+    rel = pos[ni].detach().unsqueeze(1) - start.unsqueeze(0)                         # (N, L, 2)
+    t = ((rel * travel).sum(-1) / travel.pow(2).sum(-1).clamp_min(1e-9)).clamp(0.0, 1.0)
+    dist = (rel - t.unsqueeze(-1) * travel).norm(dim=-1)
     rows, cols = greedy(dist, dist <= max_distance)
     out = label.clone()
     out[ni[rows]] = pool_label[cols]

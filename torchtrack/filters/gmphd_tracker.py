@@ -34,6 +34,11 @@ from torchtrack.filters.gmphd_labels import (
 )
 from torchtrack.models import ConstantVelocity, LinearPosition
 
+FILTER_DEFAULTS = dict(q=2.0, sigma=1.0, p_detection=0.9, clutter_density=1e-4, prune_threshold=1e-3,
+                       merge_threshold=9.0)
+"""Filter options of :meth:`GMPHDTracker.from_config` where the config gives none (tuned on simulated
+WPAFB detections; ``configs/gmphd.yaml`` spells them out)."""
+
 
 class TrackerMemory(NamedTuple):
     """Everything carried from frame to frame besides the mixture (no gradient)."""
@@ -68,8 +73,9 @@ class GMPHDTracker(nn.Module):
     """
 
     def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = True,
-                 settled_velocity_var: float = 4.0, handover_frames: int = 3, handover_distance: float = 6.0,
-                 coast_threshold: float | None = None, dtype: torch.dtype = torch.float32):
+                 settled_velocity_var: float = 4.0, handover_frames: int = 8, handover_distance: float = 20.0,
+                 coast_threshold: float | None = None, fix_separation: float = 0.0,
+                 dtype: torch.dtype = torch.float32):
         super().__init__()
         self.phd = phd if phd is not None else GMPHD()
         self.birth = birth if birth is not None else AdaptiveBirth()
@@ -78,6 +84,7 @@ class GMPHDTracker(nn.Module):
         self.handover_frames = handover_frames
         self.handover_distance = handover_distance
         self.coast_threshold = coast_threshold
+        self.fix_separation = fix_separation
         self.to(dtype)
         self.dtype = dtype
         self.reset()
@@ -90,13 +97,13 @@ class GMPHDTracker(nn.Module):
         cfg = dict(config or {})
         cfg.update(overrides)
         known = {"filter", "birth", "label_fix", "settled_velocity_var", "handover_frames", "handover_distance",
-                 "coast_threshold", "dtype"}
+                 "coast_threshold", "fix_separation", "dtype"}
         unknown = set(cfg) - known
         if unknown:
             raise TorchtrackError(f"unknown GM-PHD tracker option(s) {sorted(unknown)}; known: {sorted(known)}")
-        fcfg = dict(cfg.get("filter") or {})
-        motion = ConstantVelocity(2, q=float(fcfg.pop("q", 1.0)))
-        measurement = LinearPosition(2, sigma=float(fcfg.pop("sigma", 1.0)))
+        fcfg = {**FILTER_DEFAULTS, **dict(cfg.get("filter") or {})}
+        motion = ConstantVelocity(2, q=float(fcfg.pop("q")))
+        measurement = LinearPosition(2, sigma=float(fcfg.pop("sigma")))
         try:
             phd = GMPHD(motion, measurement, **fcfg)
             birth = AdaptiveBirth(**dict(cfg.get("birth") or {}))
@@ -107,9 +114,10 @@ class GMPHDTracker(nn.Module):
             raise TorchtrackError(f"dtype must be float32 or float64; got {cfg.get('dtype')!r}")
         return cls(phd, birth, label_fix=bool(cfg.get("label_fix", True)),
                    settled_velocity_var=float(cfg.get("settled_velocity_var", 4.0)),
-                   handover_frames=int(cfg.get("handover_frames", 3)),
-                   handover_distance=float(cfg.get("handover_distance", 6.0)),
-                   coast_threshold=cfg.get("coast_threshold"), dtype=dtype)
+                   handover_frames=int(cfg.get("handover_frames", 8)),
+                   handover_distance=float(cfg.get("handover_distance", 20.0)),
+                   coast_threshold=cfg.get("coast_threshold"),
+                   fix_separation=float(cfg.get("fix_separation", 0.0)), dtype=dtype)
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
@@ -136,8 +144,9 @@ class GMPHDTracker(nn.Module):
         next_label = memory.next_label
         if self.label_fix:
             expected = memory.prev_pos + memory.prev_vel * dt
-            post, next_label = label_fix(post, est, memory.prev_label, expected, next_label)
-            sel = est.nonzero(as_tuple=True)[0]
+            post, next_label = label_fix(post, est, memory.prev_label, expected, next_label,
+                                         min_separation=self.fix_separation)
+            sel = best_per_label(post, est)
             if self.coast_threshold is not None:
                 coast = (~est & (post.log_weight > math.log(self.coast_threshold))
                          & torch.isin(post.label, memory.prev_label) & ~torch.isin(post.label, post.label[sel]))
