@@ -26,7 +26,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frames", type=int, default=None, metavar="N",
                         help="frames to generate (default: the embedded default, 60)")
     parser.add_argument("--truth", choices=("moving", "all"), default="moving",
-                        help="score against moving vehicles only (the paper's protocol, default) or all")
+                        help="moving: the moving vehicles are the targets, parked ones don't-care (the "
+                             "paper's protocol, default); all: every vehicle is a target")
     parser.add_argument("--config", type=Path, default=None, metavar="YAML",
                         help="pipeline settings (configs/pipeline.yaml); default: the embedded ones")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
