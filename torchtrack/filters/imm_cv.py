@@ -48,19 +48,27 @@ _COL = [j for _, j in _IDX]
 
 
 def pack(state: IMMState) -> tuple[Tensor, Tensor, Tensor]:
-    """``IMMState`` → ``(log_prob (*, M), mean (4, *, M), cov (10, *, M))`` (component planes first)."""
-    mean = state.mean.movedim(-1, 0).contiguous()
-    cov = state.cov[..., _ROW, _COL].movedim(-1, 0).contiguous()
-    return state.log_prob, mean, cov
+    """``IMMState`` → batch-last planes ``log_prob (M, B)``, ``mean (4, M, B)``, ``cov (10, M, B)``.
+
+    ``B`` is the flattened batch; the innermost (contiguous) axis is the batch, so compiled loops
+    vectorise over tracks.
+    """
+    M = state.log_prob.shape[-1]
+    log_prob = state.log_prob.reshape(-1, M).transpose(0, 1).contiguous()
+    mean = state.mean.reshape(-1, M, 4).permute(2, 1, 0).contiguous()
+    cov = state.cov[..., _ROW, _COL].reshape(-1, M, 10).permute(2, 1, 0).contiguous()
+    return log_prob, mean, cov
 
 
-def unpack(log_prob: Tensor, mean: Tensor, cov: Tensor) -> IMMState:
-    """Inverse of :func:`pack`: full ``(*, M, 4)`` means and symmetric ``(*, M, 4, 4)`` covariances."""
-    P = cov.new_zeros(*cov.shape[1:], 4, 4)
-    c = cov.movedim(0, -1)
+def unpack(log_prob: Tensor, mean: Tensor, cov: Tensor, batch: torch.Size) -> IMMState:
+    """Inverse of :func:`pack` for batch shape ``batch``: ``(*, M)``, ``(*, M, 4)``, symmetric ``(*, M, 4, 4)``."""
+    M = log_prob.shape[0]
+    c = cov.permute(2, 1, 0)                                 # (B, M, 10)
+    P = cov.new_zeros(c.shape[0], M, 4, 4)
     P[..., _ROW, _COL] = c
     P[..., _COL, _ROW] = c
-    return IMMState(log_prob, mean.movedim(0, -1), P)
+    return IMMState(log_prob.transpose(0, 1).reshape(*batch, M), mean.permute(2, 1, 0).reshape(*batch, M, 4),
+                    P.reshape(*batch, M, 4, 4))
 
 
 def mix_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, transition: Tensor) -> tuple[Tensor, Tensor, Tensor]:
@@ -72,15 +80,15 @@ def mix_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, transition: Tensor) 
     ``Σ_i μ_{i|j} (x_i − x⁰_j)(·)ᵀ = Σ_i μ_{i|j} e_i e_iᵀ − f_j f_jᵀ`` with ``e_i = x_i − x_0``,
     ``f_j = x⁰_j − x_0``: the differences are of the size of the model spread, so nothing cancels.
     """
-    mu = log_prob.exp()                                      # (*, i)
-    a = mu.unsqueeze(-1) * transition                        # (*, i, j): μ_i p_ij
-    c = a.sum(-2).clamp_min(torch.finfo(a.dtype).tiny)       # (*, j)
-    w = a / c.unsqueeze(-2)                                  # μ_{i|j}
-    e = mean - mean[..., :1]                                 # (4, *, i)
-    f = (e.unsqueeze(-1) * w).sum(-2)                        # (4, *, j)
-    second = cov + e[_ROW] * e[_COL]                         # (10, *, i)
-    cov0 = (second.unsqueeze(-1) * w).sum(-2) - f[_ROW] * f[_COL]
-    return c.log(), mean[..., :1] + f, cov0
+    mu = log_prob.exp()                                      # (i, B)
+    a = mu.unsqueeze(1) * transition.unsqueeze(-1)           # (i, j, B): μ_i p_ij
+    c = a.sum(0).clamp_min(torch.finfo(a.dtype).tiny)        # (j, B)
+    w = a / c                                                # μ_{i|j}
+    e = mean - mean[:, :1]                                   # (4, i, B)
+    f = (e.unsqueeze(2) * w).sum(1)                          # (4, j, B)
+    second = cov + e[_ROW] * e[_COL]                         # (10, i, B)
+    cov0 = (second.unsqueeze(2) * w).sum(1) - f[_ROW] * f[_COL]
+    return c.log(), mean[:, :1] + f, cov0
 
 
 def predict_packed(mean: Tensor, cov: Tensor, dt: float, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
@@ -88,7 +96,8 @@ def predict_packed(mean: Tensor, cov: Tensor, dt: float, q: Tensor, u: Tensor) -
     px, py, vx, vy = mean.unbind(0)
     Axx, Axy, Ayy, Bxx, Bxy, Byx, Byy, Cxx, Cxy, Cyy = cov.unbind(0)
     h = 0.5 * dt * dt
-    ux, uy = u[0], u[1]
+    ux, uy = u[0].unsqueeze(-1), u[1].unsqueeze(-1)
+    q = q.unsqueeze(-1)
     q11, q12, q22 = q * (h * h), q * (h * dt), q * (dt * dt)
     mean = torch.stack([px + dt * vx + h * ux, py + dt * vy + h * uy, vx + dt * ux, vy + dt * uy])
     dt2 = dt * dt
@@ -109,16 +118,16 @@ def predict_packed(mean: Tensor, cov: Tensor, dt: float, q: Tensor, u: Tensor) -
 
 def update_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, R: Tensor,
                   present: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Model-matched updates and mode update; ``z (*, 2)``, ``R (3,)`` = ``[Rxx, Rxy, Ryy]``.
+    """Model-matched updates and mode update; ``z (2, B)``, ``R (3,)`` = ``[Rxx, Rxy, Ryy]``, ``present (B,)``.
 
-    Returns ``(log_prob, mean, cov, total log-likelihood (*,), model log-likelihoods (*, M))``.
+    Returns ``(log_prob, mean, cov, total log-likelihood (B,), model log-likelihoods (M, B))``.
     """
     px, py, vx, vy = mean.unbind(0)
     Axx, Axy, Ayy, Bxx, Bxy, Byx, Byy, Cxx, Cxy, Cyy = cov.unbind(0)
     Sxx, Sxy, Syy = Axx + R[0], Axy + R[1], Ayy + R[2]
     det = Sxx * Syy - Sxy * Sxy
     ix, ixy, iy = Syy / det, -Sxy / det, Sxx / det           # S⁻¹
-    nx, ny = z[..., 0:1] - px, z[..., 1:2] - py
+    nx, ny = z[0] - px, z[1] - py
     wx, wy = ix * nx + ixy * ny, ixy * nx + iy * ny          # S⁻¹ ν
     nis = nx * wx + ny * wy
     ll = -0.5 * (nis + torch.log(det) + 2 * LOG_2PI)
@@ -141,29 +150,28 @@ def update_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, R: Ten
         Cyy - (g10 * Bxy + g11 * Byy),
     ])
     if present is not None:
-        keep = present.unsqueeze(-1)
-        ll = torch.where(keep, ll, torch.zeros_like(ll))
-        new_mean = torch.where(keep, new_mean, mean)
-        new_cov = torch.where(keep, new_cov, cov)
+        ll = torch.where(present, ll, torch.zeros_like(ll))
+        new_mean = torch.where(present, new_mean, mean)
+        new_cov = torch.where(present, new_cov, cov)
     joint = log_prob + ll
-    total = torch.logsumexp(joint, -1)
-    return joint - total.unsqueeze(-1), new_mean, new_cov, total, ll
+    total = torch.logsumexp(joint, 0)
+    return joint - total, new_mean, new_cov, total, ll
 
 
 def combine_packed(log_prob: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
-    """Combined estimate on packed planes: ``(4, *)`` mean and ``(10, *)`` covariance entries."""
+    """Combined estimate on packed planes: ``(4, B)`` mean and ``(10, B)`` covariance entries."""
     w = log_prob.exp()
-    m = (mean * w).sum(-1)
-    d = mean - m.unsqueeze(-1)
-    c = ((cov + d[_ROW] * d[_COL]) * w).sum(-1)
+    m = (mean * w).sum(1)
+    d = mean - m.unsqueeze(1)
+    c = ((cov + d[_ROW] * d[_COL]) * w).sum(1)
     return m, c
 
 
 def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, transition: Tensor, q: Tensor, u: Tensor,
                 R: Tensor, dt: float):
-    """One full IMM cycle (interaction, prediction, update, combination) on packed planes.
+    """One full IMM cycle (interaction, prediction, update, combination) on packed planes; ``z (2, B)``.
 
-    Returns ``(log_prob, mean, cov, total log-likelihood (*,), combined mean (4, *), combined cov (10, *))``.
+    Returns ``(log_prob, mean, cov, total log-likelihood (B,), combined mean (4, B), combined cov (10, B))``.
     """
     log_c, mean0, cov0 = mix_packed(log_prob, mean, cov, transition)
     mean1, cov1 = predict_packed(mean0, cov0, dt, q, u)
@@ -229,28 +237,34 @@ class ConstantVelocityIMM(nn.Module):
         P, q, u, _ = self._params(state.mean)
         log_c, m, c = mix_packed(*pack(state), P)
         m, c = predict_packed(m, c, float(dt), q, u)
-        return unpack(log_c, m, c)
+        return unpack(log_c, m, c, state.log_prob.shape[:-1])
 
     def update(self, state: IMMState, z: Tensor, mask: Tensor | None = None,
                check: bool = True) -> tuple[IMMState, IMMUpdateInfo]:
         if z.shape[-1] != 2:
             raise TorchtrackError(f"ConstantVelocityIMM: z must have shape (*, 2); got {tuple(z.shape)}")
+        batch = state.log_prob.shape[:-1]
         present = ~torch.isnan(z).any(-1)
         if mask is not None:
             present = present & mask.to(torch.bool)
-        z = torch.where(present.unsqueeze(-1), z, torch.zeros_like(z))
+        present = present.expand(batch)
+        z = torch.where(present.unsqueeze(-1), z, torch.zeros_like(z)).expand(*batch, 2)
         _, _, _, R = self._params(state.mean)
         log_prob, m, c = pack(state)
-        Sdet = (c[0] + R[0]) * (c[2] + R[2]) - (c[1] + R[1]) ** 2
-        if check and bool((Sdet <= 0).any()):
+        zp = z.reshape(-1, 2).transpose(0, 1)
+        pres = present.reshape(-1)
+        S = torch.stack([c[0] + R[0], c[1] + R[1], c[2] + R[2]])
+        det = S[0] * S[2] - S[1] ** 2
+        if check and bool((det <= 0).any()):
             raise TorchtrackError("ConstantVelocityIMM: innovation covariance S is not positive definite")
-        log_prob, m2, c2, total, ll = update_packed(log_prob, m, c, z, R, present)
-        new = unpack(log_prob, m2, c2)
-        nx, ny = z[..., None, 0] - m[0], z[..., None, 1] - m[1]
-        Sxx, Sxy, Syy = c[0] + R[0], c[1] + R[1], c[2] + R[2]
-        nis = (Syy * nx * nx - 2 * Sxy * nx * ny + Sxx * ny * ny) / Sdet
-        nis = torch.where(present.unsqueeze(-1), nis, torch.zeros_like(nis))
-        return new, IMMUpdateInfo(total, ll, nis, present)
+        log_prob, m2, c2, total, ll = update_packed(log_prob, m, c, zp, R, pres)
+        nx, ny = zp[0] - m[0], zp[1] - m[1]
+        nis = (S[2] * nx * nx - 2 * S[1] * nx * ny + S[0] * ny * ny) / det
+        nis = torch.where(pres, nis, torch.zeros_like(nis))
+        M = self.num_models
+        info = IMMUpdateInfo(total.reshape(batch), ll.transpose(0, 1).reshape(*batch, M),
+                             nis.transpose(0, 1).reshape(*batch, M), present)
+        return unpack(log_prob, m2, c2, batch), info
 
     def predicted_measurement(self, state: IMMState) -> tuple[Tensor, Tensor, Tensor]:
         """``log c (*, M)``, ``ẑ_j (*, M, 2)``, ``S_j (*, M, 2, 2)`` of a predicted state (eq. 30)."""
@@ -261,18 +275,25 @@ class ConstantVelocityIMM(nn.Module):
         return combine(state)
 
     def run_packed(self, measurements: Tensor, init: IMMState, dt: float = 1.0, compile: bool = False):
-        """Fast loop over ``measurements (T, *, 2)`` (all present): returns the final packed state, the
-        combined means ``(T, *, 4)`` and the total log-likelihood ``(*,)``."""
+        """Fast loop over ``measurements (T, *, 2)`` (all present) in the packed batch-last layout.
+
+        Returns the final packed state ``(log_prob (M, B), mean (4, M, B), cov (10, M, B))``, the
+        combined means ``(T, *, 4)`` and the total log-likelihood ``(*,)``.
+        """
         P, q, u, R = self._params(init.mean)
         step = compiled_step() if compile else step_packed
+        batch = init.log_prob.shape[:-1]
         log_prob, m, c = pack(init)
+        z = measurements.expand(measurements.shape[0], *batch, 2).reshape(measurements.shape[0], -1, 2)
+        z = z.permute(0, 2, 1).contiguous()                  # (T, 2, B)
         means = []
         total = 0.0
-        for k in range(measurements.shape[0]):
-            log_prob, m, c, ll, cm, _ = step(log_prob, m, c, measurements[k], P, q, u, R, float(dt))
+        for k in range(z.shape[0]):
+            log_prob, m, c, ll, cm, _ = step(log_prob, m, c, z[k], P, q, u, R, float(dt))
             means.append(cm)
             total = total + ll
-        return (log_prob, m, c), torch.stack(means).movedim(1, -1), total
+        means = torch.stack(means).permute(0, 2, 1).reshape(z.shape[0], *batch, 4)
+        return (log_prob, m, c), means, total.reshape(batch)
 
     def run(self, measurements: Tensor, init: IMMState, dt=1.0, mask: Tensor | None = None,
             predict_first: bool = True):
