@@ -142,7 +142,5 @@ class JointSensorPMB(nn.Module):
         LL = cholesky(symmetrize(info_mat) + ridge, "joint PMB: vehicle information matrix")
         y_comb = chol_solve(LL, info_vec.unsqueeze(-1)).squeeze(-1)
         R_comb = symmetrize(chol_solve(LL, eye.expand_as(LL)))
-        H1 = torch.zeros(d, ref.shape[-1], dtype=ref.dtype, device=ref.device)
-        H1[:, :d] = eye
-        upd = kalman_update(sensor.mean, sensor.cov, y_comb, H1, R_comb)
+        upd = kalman_update(sensor.mean, sensor.cov, y_comb, position_matrix(d, ref.shape[-1], ref), R_comb)
         return SensorState(upd.mean, upd.cov), new_state, info
