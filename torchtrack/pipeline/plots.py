@@ -45,9 +45,11 @@ def plot_scores(rows: dict[str, dict], path: str | Path) -> Path:
     names = list(rows)
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
     x = np.arange(len(names))
-    axes[0].bar(x, [100 * rows[n]["MOTA"] for n in names], color="tab:blue")
+    bars = axes[0].bar(x, [100 * rows[n]["MOTA"] for n in names], color="tab:blue")
+    axes[0].bar_label(bars, fmt="%.1f", fontsize=8)
     axes[0].set_ylabel("MOTA (%)")
-    axes[1].bar(x, [rows[n]["IDS"] for n in names], color="tab:red")
+    bars = axes[1].bar(x, [rows[n]["IDS"] for n in names], color="tab:red")
+    axes[1].bar_label(bars, fontsize=8)
     axes[1].set_ylabel("identity switches")
     for ax in axes:
         ax.set_xticks(x, names, rotation=20, fontsize=8)
