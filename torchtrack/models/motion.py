@@ -36,6 +36,13 @@ def _kron_eye(block: Tensor, d: int) -> Tensor:
     return out.reshape(*block.shape[:-2], k * d, k * d)
 
 
+def cv_transition(dt: Tensor, ndim: int) -> Tensor:
+    """``[[1, dt], [0, 1]] ⊗ I_d``, shape ``(*dt.shape, 2d, 2d)``."""
+    one = torch.ones_like(dt)
+    block = torch.stack([torch.stack([one, dt], -1), torch.stack([0 * dt, one], -1)], -2)
+    return _kron_eye(block, ndim)
+
+
 class MotionModel(nn.Module):
     """Base class. Subclasses define ``state_dim`` and :meth:`process_noise`, and either
     :meth:`transition_matrix` (linear models) or :meth:`transition` (nonlinear)."""
@@ -144,10 +151,7 @@ class ConstantVelocity(MotionModel):
         return self.q.raw
 
     def transition_matrix(self, dt) -> Tensor:
-        dt = as_dt(dt, self._ref())
-        one = torch.ones_like(dt)
-        block = torch.stack([torch.stack([one, dt], -1), torch.stack([0 * dt, one], -1)], -2)
-        return _kron_eye(block, self.ndim)
+        return cv_transition(as_dt(dt, self._ref()), self.ndim)
 
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
@@ -304,10 +308,7 @@ class ModeControlInput(MotionModel):
         return self.sigma.raw
 
     def transition_matrix(self, dt) -> Tensor:
-        dt = as_dt(dt, self._ref())
-        one = torch.ones_like(dt)
-        block = torch.stack([torch.stack([one, dt], -1), torch.stack([0 * dt, one], -1)], -2)
-        return _kron_eye(block, self.ndim)
+        return cv_transition(as_dt(dt, self._ref()), self.ndim)
 
     def gain(self, dt) -> Tensor:
         """``G (*dt.shape, 2d, d)``."""
