@@ -22,6 +22,7 @@ def plot_formation(data: FormationData, estimates: dict[str, torch.Tensor], out_
     out_dir.mkdir(parents=True, exist_ok=True)
     truth = data.truth[run].numpy()
     z, m, org = data.z[run].numpy(), data.z_mask[run].numpy(), data.z_origin[run].numpy()
+    rep = data.z_class[run].numpy()
     classes = data.target_class.tolist()
     paths = []
 
@@ -34,8 +35,10 @@ def plot_formation(data: FormationData, estimates: dict[str, torch.Tensor], out_
 
     fig, ax = plt.subplots(figsize=(8, 4.5))
     frame(ax, f"True formation tracks, run {run} (classes " + ", ".join(str(c + 1) for c in classes) + ")")
-    ax.scatter(z[m & (org >= 0)][:, 0], z[m & (org >= 0)][:, 1], s=4, c="0.5", label="target measurements")
-    ax.scatter(z[m & (org == -1)][:, 0], z[m & (org == -1)][:, 1], s=4, c="tab:pink", marker="x", label="clutter")
+    for c, colour in zip(range(int(rep.max()) + 1), ("tab:blue", "tab:red", "tab:green", "tab:orange")):
+        sel = m & (org >= 0) & (rep == c)
+        ax.scatter(z[sel][:, 0], z[sel][:, 1], s=5, c=colour, label=f"measurements reported class {c + 1}")
+    ax.scatter(z[m & (org == -1)][:, 0], z[m & (org == -1)][:, 1], s=12, c="k", marker="x", label="clutter")
     ax.legend(loc="upper left", fontsize=8)
     paths.append(out_dir / "formation_truth.png")
     fig.tight_layout()
