@@ -81,12 +81,15 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
 
     held = data.held_out or data.train
     start_derived = tunable.derived(module)
-    before = {"loss": evaluate_loss(tunable, module, held, loss, batch_eval) if data.train else float("nan")}
+    before = {}
     if do_eval and data.train:
         before.update(tunable.evaluate(module, held))
     result = fit(tunable, module, trainable, data, loss, cfg.get("optimizer"), cfg.get("early_stopping"),
                  generator, progress)
+    before["loss"] = result.held_out[0][1] if data.held_out else float("nan")
     after = {"loss": evaluate_loss(tunable, module, held, loss, batch_eval)}
+    if not data.held_out:   # no held-out set: the training loss before and after
+        before["loss"] = result.train_loss[0] if result.train_loss else float("nan")
     if do_eval:
         after.update(tunable.evaluate(module, held))
 
@@ -114,6 +117,10 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
         "seconds": result.seconds,
         "output": {"params": str(params_path), "plot": str(plot_path)},
     }
+    if cfg.get("grid"):
+        from torchtrack.tuning.grid import grid_search
+
+        report["grid"] = grid_search(tunable, tunable.build(), cfg["grid"], data, progress)
     save_params(module, params_path, tunable.name, tunable.options, extra=None)
     exported = tunable.export(module)
     if exported is not None:

@@ -76,6 +76,16 @@ def run(args) -> int:
     print(f"\n{report['steps']} steps ({report['stopped']}; kept step {report['best_step']}), "
           f"{report['filter_evaluations']} item evaluations ({report['training_passes']:.1f} training passes), "
           f"{report['seconds']:.1f} s")
+    if "grid" in report:
+        g = report["grid"]
+        metrics = [k for k in ("MOTA", "OSPA", "IDS") if k in after]
+        rows = [["start", "-", *[before.get(k, float("nan")) for k in metrics], "-"],
+                ["gradient tuning", report["filter_evaluations"], *[after[k] for k in metrics],
+                 f"{report['seconds']:.1f}"],
+                [f"grid ({g['combinations']} points)", g["filter_evaluations"],
+                 *[g["held_out"].get(k, float("nan")) for k in metrics], f"{g['seconds']:.1f}"]]
+        print()
+        print(format_table(["held-out", "item evaluations", *metrics, "seconds"], rows, floatfmt=".4g"))
     for key, path in report["output"].items():
         print(f"{key}: {path}")
     write_json(args.json, report)

@@ -38,9 +38,10 @@ from torchtrack.filters.gmphd_tracker import GMPHDTracker
 from torchtrack.tuning.losses import sinkhorn_gospa
 from torchtrack.tuning.registry import Tunable, TuneData, check_keys, register
 
-DATA_KEYS = ("wpafb", "truth", "detections", "detections_file", "train_frames", "held_out_frames", "window",
-             "burn_in", "threshold", "ospa_c", "gospa_c")
+DATA_KEYS = ("wpafb", "truth", "simulate_truth", "detections", "detections_file", "train_frames",
+             "held_out_frames", "window", "burn_in", "threshold", "ospa_c", "gospa_c")
 DET_KEYS = ("pd", "sigma", "clutter", "velocity_sigma", "image_size")
+TRUTH_KEYS = ("targets", "frames", "q", "speed", "image_size")
 WPAFB_ENV = "TORCHTRACK_WPAFB"
 
 
@@ -63,6 +64,36 @@ def wpafb_csv(path: str | os.PathLike) -> Path:
     if not p.is_file():
         raise TorchtrackError(f"WPAFB truth not found at {p} (set {WPAFB_ENV} to the wpafb-aoi02 folder)")
     return p
+
+
+def simulate_truth(cfg: Mapping[str, Any], generator: torch.Generator):
+    """Targets following the tracker's own nearly-constant-velocity model (CWNA, spectral density ``q``)
+    for the whole sequence: positions uniform over ``image_size``, velocities ``N(0, speed² I)``, frames
+    ``1..frames``; returns MOTChallenge-style truth (ids from 1)."""
+    from torchtrack.io.mot import from_points
+    from torchtrack.models import ConstantVelocity
+
+    check_keys(cfg, TRUTH_KEYS, "data.simulate_truth")
+    N, K = int(cfg.get("targets", 20)), int(cfg.get("frames", 200))
+    if N < 1 or K < 1:
+        raise TorchtrackError(f"data.simulate_truth needs targets >= 1 and frames >= 1; got {N}, {K}")
+    W, H = (float(v) for v in cfg.get("image_size", [500.0, 500.0]))
+    f64 = torch.float64
+    with torch.no_grad():
+        cv = ConstantVelocity(2, float(cfg.get("q", 0.1))).double()
+        F = cv.transition_matrix(1.0)
+        evals, evecs = torch.linalg.eigh(cv.process_noise(1.0))
+        A = evecs * evals.clamp_min(0).sqrt()
+        x = torch.cat([torch.rand(N, 2, generator=generator, dtype=f64) * torch.tensor([W, H], dtype=f64),
+                       torch.randn(N, 2, generator=generator, dtype=f64) * float(cfg.get("speed", 2.0))], 1)
+        pos = []
+        for _ in range(K):
+            pos.append(x[:, :2].clone())
+            x = x @ F.T + torch.randn(N, 4, generator=generator, dtype=f64) @ A.T
+        p = torch.stack(pos).numpy()                                               # (K, N, 2)
+    frames = np.repeat(np.arange(1, K + 1), N)
+    ids = np.tile(np.arange(1, N + 1), K)
+    return from_points(frames, ids, p[..., 0].reshape(-1), p[..., 1].reshape(-1))
 
 
 @contextlib.contextmanager
@@ -112,15 +143,17 @@ class GMPHDTunable(Tunable):
         self.threshold = float(config.get("threshold", 10.0))
         self.ospa_c = float(config.get("ospa_c", 10.0))
         self.gospa_c = float(config.get("gospa_c", 10.0))
-        if ("wpafb" in config) == ("truth" in config):
-            raise TorchtrackError("data (gmphd) needs exactly one of 'wpafb' (the truth CSV or its folder) or "
-                                  "'truth' (a MOTChallenge file)")
+        if sum(k in config for k in ("wpafb", "truth", "simulate_truth")) != 1:
+            raise TorchtrackError("data (gmphd) needs exactly one of 'wpafb' (the truth CSV or its folder), "
+                                  "'truth' (a MOTChallenge file) or 'simulate_truth'")
         if "wpafb" in config:
             from torchtrack.io.wpafb import read_wpafb_csv
 
             truth = read_wpafb_csv(wpafb_csv(config["wpafb"]))
-        else:
+        elif "truth" in config:
             truth = read_mot(Path(config["truth"]))
+        else:
+            truth = simulate_truth(config["simulate_truth"] or {}, generator)
         if ("detections" in config) == ("detections_file" in config):
             raise TorchtrackError("data (gmphd) needs exactly one of 'detections' (simulation settings) or "
                                   "'detections_file'")
@@ -173,6 +206,9 @@ class GMPHDTunable(Tunable):
         if not isinstance(det, Mapping):
             return {}
         out = {"phd.p_detection": float(det.get("pd", 0.9)), "phd.measurement.sigma": float(det.get("sigma", 1.0))}
+        sim = data_config.get("simulate_truth")
+        if isinstance(sim, Mapping):
+            out["phd.motion.q"] = float(sim.get("q", 0.1))
         area = (self.options.get("filter") or {}).get("area")
         if area and "clutter" in det:
             out["phd.clutter_density"] = float(det["clutter"]) / float(area)

@@ -17,14 +17,14 @@ def plot_loss_curve(result: FitResult, path: str | Path, title: str = "") -> Pat
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(6, 4))
-    steps = range(1, len(result.train_loss) + 1)
+    steps = range(len(result.train_loss))     # the loss of step k is taken before its update
     ax.plot(steps, result.train_loss, label="training (mini-batch)", lw=1)
     if result.held_out:
         s, v = zip(*result.held_out)
         ax.plot(s, v, "o-", label="held-out", ms=3)
-    if result.best_step:
-        ax.axvline(result.best_step, color="k", ls=":", lw=1, label=f"kept (step {result.best_step})")
-    ax.set_xlabel("step")
+    if result.best_step is not None:
+        ax.axvline(result.best_step, color="k", ls=":", lw=1, label=f"kept (after {result.best_step} updates)")
+    ax.set_xlabel("parameter updates")
     ax.set_ylabel("loss")
     ax.set_title(title or "torchtrack tune")
     ax.legend()

@@ -87,8 +87,8 @@ class Reparametrised:
 class FitResult:
     """What :func:`fit` did: the per-step training loss, held-out evaluations, the chosen step."""
 
-    train_loss: list[float] = field(default_factory=list)          # one per step
-    held_out: list[tuple[int, float]] = field(default_factory=list)  # (step, loss)
+    train_loss: list[float] = field(default_factory=list)          # per step, at the parameters entering it
+    held_out: list[tuple[int, float]] = field(default_factory=list)  # (updates done, loss); 0 = the start
     best_step: int | None = None
     stopped: str = "finished"          # finished | early-stopped | non-finite
     message: str = ""
@@ -198,6 +198,15 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
             return value
         return closure
 
+    if data.held_out:   # the start point, so that the curve begins where training does
+        try:
+            held0 = evaluate_loss(tunable, module, data.held_out, loss, max(batch_size, 1))
+        except TorchtrackError:
+            held0 = math.inf
+        result.evaluations += len(data.held_out)
+        result.held_out.append((0, held0))
+        best = (held0, 0, scaled.snapshot())
+
     from tqdm import tqdm
 
     bar = tqdm(range(1, steps + 1), desc=f"tune {tunable.name}", disable=not progress, leave=False)
@@ -244,7 +253,7 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
             bar.set_postfix(postfix)
     finally:
         bar.close()
-        if result.stopped != "non-finite" and best[1] is not None and restore_best:
+        if result.stopped != "non-finite" and best[1] is not None and restore_best and result.train_loss:
             scaled.restore(best[2])
             result.best_step = best[1]
         scaled.close()
