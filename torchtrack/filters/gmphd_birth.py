@@ -115,7 +115,7 @@ class AdaptiveBirth(nn.Module):
     """
 
     def __init__(self, birth_weight: float = 0.05, sigma_pos: float = 2.0, sigma_vel_unknown: float = 8.0,
-                 sigma_vel_detector: float = 1.5, sigma_vel_map: float = 2.0, distance_threshold: float = 8.0,
+                 sigma_vel_detector: float = 1.5, sigma_vel_map: float = 2.0, distance_threshold: float = 5.0,
                  suppress_weight: float = 0.05, use_detector_velocity: bool = True,
                  use_velocity_map: bool = True, velocity_map: dict | None = None):
         super().__init__()

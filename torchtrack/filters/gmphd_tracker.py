@@ -74,7 +74,7 @@ class GMPHDTracker(nn.Module):
 
     def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = True,
                  settled_velocity_var: float = 4.0, handover_frames: int = 8, handover_distance: float = 20.0,
-                 coast_threshold: float | None = None, fix_separation: float = 0.0,
+                 coast_threshold: float | None = 0.06, fix_separation: float = 8.0,
                  dtype: torch.dtype = torch.float32):
         super().__init__()
         self.phd = phd if phd is not None else GMPHD()
@@ -116,8 +116,8 @@ class GMPHDTracker(nn.Module):
                    settled_velocity_var=float(cfg.get("settled_velocity_var", 4.0)),
                    handover_frames=int(cfg.get("handover_frames", 8)),
                    handover_distance=float(cfg.get("handover_distance", 20.0)),
-                   coast_threshold=cfg.get("coast_threshold"),
-                   fix_separation=float(cfg.get("fix_separation", 0.0)), dtype=dtype)
+                   coast_threshold=cfg.get("coast_threshold", 0.06),
+                   fix_separation=float(cfg.get("fix_separation", 8.0)), dtype=dtype)
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
