@@ -11,6 +11,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import (
     PAPER_SPEED_ENVELOPES,
     MultipleModelParticleFilter,
+    alias_tables,
     paper_bank,
     paper_class_models,
     paper_transition_matrix,
@@ -60,6 +61,15 @@ def test_paper_transition_matrix():
     assert torch.allclose(P[1:, 0], torch.full((4,), 0.15, dtype=F64))
     off = P[1:, 1:][~torch.eye(4, dtype=torch.bool)]
     assert torch.allclose(off, torch.full_like(off, 0.05))
+
+
+def test_alias_tables_reproduce_the_rows():
+    P = torch.tensor([[0.7, 0.075, 0.075, 0.075, 0.075], [0.1, 0.2, 0.3, 0.4, 0.0], [0, 0, 1.0, 0, 0]], dtype=F64)
+    prob, alias = alias_tables(P)
+    M = P.shape[1]
+    rebuilt = prob / M
+    rebuilt = rebuilt.scatter_add(1, alias, (1 - prob) / M)
+    assert torch.allclose(rebuilt, P, atol=1e-12)
 
 
 def test_class_models():

@@ -8,7 +8,7 @@ runs.
 
 Per scan ``k`` and class ``c`` (the paper's algorithm, step 2):
 
-* mode   ``m_k^j ~ p^c_{m_{k-1}^j, ·}`` (Markov chain, inverse CDF of one uniform per particle);
+* mode   ``m_k^j ~ p^c_{m_{k-1}^j, ·}`` (Markov chain, Walker alias method, one uniform per particle);
 * state  ``x_k^j = F x_{k-1}^j + G (u^c(m_k^j) + w)``, ``w ~ N(0, σ^c(m_k^j)² I)`` — eq. (7), the
   :class:`~torchtrack.models.motion.ModeControlInput` model, written elementwise on coordinates;
 * weight ``w_k^j = f(z_k | x_k^j) g_c(v̂_{k−1}^c)`` — eq. (9); ``f`` is the range–bearing
@@ -109,7 +109,7 @@ class MMPFRun(NamedTuple):
 
 class Noise(NamedTuple):
     """The random numbers of one step, drawn in bulk (two generator calls): ``eps (2, *B, C, N)``
-    standard normal; uniforms ``u_mode (*B, C, N, 1)`` and ``u_resample (*B, C, 1)`` (views of one draw)."""
+    standard normal; uniforms ``u_mode (*B, C, N)`` and ``u_resample (*B, C, 1)`` (views of one draw)."""
 
     eps: Tensor
     u_mode: Tensor
@@ -120,12 +120,34 @@ class Tables(NamedTuple):
     """Per-run constants of a step, computed once by :meth:`MultipleModelParticleFilter.tables`."""
 
     motion: Tensor          # (3, C·M) rows u_x, u_y, σ for every (class, mode)
-    cum_transition: Tensor  # (C·M, M) cumulative rows of p^c
+    alias_prob: Tensor      # (C·M·M,) Walker alias tables of the rows of p^c, see alias_tables()
+    alias: Tensor           # (C·M·M,) int64
+    offset_m: Tensor        # (C, 1) c·M·M
     offset: Tensor          # (C, 1) c·M
     sensor: Tensor          # (2, 1, …, 1) radar position, broadcastable to (2, *B, C, N)
     scale: Tensor           # (2,) −1/(2σ_D²), −1/(2σ_β²)
     log_norm: Tensor        # () −log(2π σ_D σ_β)
     envelopes: Tensor | None  # (4, C) rows v_lo, v_hi, intercept, slope: g(v) = intercept + slope·clamp(v)
+
+
+def alias_tables(P: Tensor) -> tuple[Tensor, Tensor]:
+    """Walker's alias tables (Vose's construction) of each row of ``P (K, M)``: ``prob (K, M)`` and
+    ``alias (K, M)`` such that drawing ``j`` uniformly from ``0…M−1`` and keeping it with probability
+    ``prob[j]``, else taking ``alias[j]``, samples from the row. Built once per run (loops over the
+    ``K·M`` table entries, not over particles)."""
+    K, M = P.shape
+    prob = torch.ones(K, M, dtype=torch.float64)
+    alias = torch.arange(M).repeat(K, 1)
+    for k in range(K):
+        scaled = (P[k].double() * M).tolist()
+        small = [j for j in range(M) if scaled[j] < 1.0]
+        large = [j for j in range(M) if scaled[j] >= 1.0]
+        while small and large:
+            s, g = small.pop(), large.pop()
+            prob[k, s], alias[k, s] = scaled[s], g
+            scaled[g] -= 1.0 - scaled[s]
+            (small if scaled[g] < 1.0 else large).append(g)
+    return prob, alias
 
 
 class MultipleModelParticleFilter(nn.Module):
@@ -187,9 +209,8 @@ class MultipleModelParticleFilter(nn.Module):
         C, M = self.num_classes, self.num_modes
         controls = torch.cat([m.controls for m in self.motions]).to(dtype).T
         sigma = torch.cat([m.sigma() for m in self.motions]).to(dtype)
-        cum = torch.cumsum(self.transition, -1).to(dtype).reshape(C * M, M)
-        cum[:, -1] = 1.0
-        offset = (torch.arange(C, device=cum.device) * M).unsqueeze(-1)
+        prob, alias = alias_tables(self.transition.reshape(C * M, M))
+        offset = (torch.arange(C, device=prob.device) * M).unsqueeze(-1)
         env = None
         if self.speed_envelopes is not None:
             lo, hi, g_lo, g_hi = self.speed_envelopes.to(dtype).unbind(-1)
@@ -202,7 +223,8 @@ class MultipleModelParticleFilter(nn.Module):
             scale, log_norm = -0.5 / sig**2, -math.log(2 * math.pi) - torch.log(sig).sum()
         else:
             sensor = scale = log_norm = torch.zeros((), dtype=dtype)
-        return Tables(torch.cat([controls, sigma[None]]), cum, offset, sensor, scale, log_norm, env)
+        return Tables(torch.cat([controls, sigma[None]]), prob.to(dtype).flatten(), alias.flatten(), offset * M,
+                      offset, sensor, scale, log_norm, env)
 
     def init(self, mean: Tensor, cov: Tensor, generator: torch.Generator | None = None) -> MMPFState:
         """Step 1: ``x_0^j ~ N(mean, cov)``, ``m_0^j ~ P_0^c``; ``mean (*B, 4)``, ``cov (*B, 4, 4)``."""
@@ -226,7 +248,7 @@ class MultipleModelParticleFilter(nn.Module):
         eps = torch.randn((2, *batch_shape, C, N), generator=generator, dtype=dtype, device=device)
         rows = math.prod(batch_shape) * C
         u = torch.rand(rows * (N + 1), generator=generator, dtype=dtype, device=device)
-        return Noise(eps, u[: rows * N].view(*batch_shape, C, N, 1), u[rows * N:].view(*batch_shape, C, 1))
+        return Noise(eps, u[: rows * N].view(*batch_shape, C, N), u[rows * N:].view(*batch_shape, C, 1))
 
     # ---------------------------------------------------------------- one scan
     def log_likelihood(self, particles: Tensor, z: Tensor, tables: Tables) -> Tensor:
@@ -253,21 +275,26 @@ class MultipleModelParticleFilter(nn.Module):
         shapes and flags only, so that ``torch.compile`` traces it once)."""
         N, M = self.num_particles, self.num_modes
         x = state.particles
-        # prediction: mode jump by inverse CDF of one uniform, then eq. (7) elementwise:
-        # x_k = x + dt·[v + dt/2·a; a] with a = u(m) + σ(m) ε
-        row = (state.mode + tables.offset).flatten()
-        cum = tables.cum_transition.index_select(0, row).view(*state.mode.shape, M)
-        mode = torch.searchsorted(cum, noise.u_mode, right=True).squeeze(-1)
+        # prediction: mode jump by Walker's alias method (one uniform: j = ⌊M u⌋, keep j with
+        # probability prob[m, j] judged by the fraction M u − j, else alias[m, j]), then eq. (7)
+        # elementwise: x_k = x + dt·[v + dt/2·a; a] with a = u(m) + σ(m) ε
+        t = noise.u_mode * M
+        j = t.long()
+        flat = torch.add(j, state.mode, alpha=M).add_(tables.offset_m)
+        mode = torch.where(t - j < tables.alias_prob.take(flat), j, tables.alias.take(flat))
         idx = mode + tables.offset
         par = tables.motion.index_select(1, idx.flatten()).view(3, *idx.shape)
         acc = torch.addcmul(par[:2], par[2], noise.eps)
         x = torch.add(x, torch.cat([torch.add(x[2:], acc, alpha=0.5 * dt), acc]), alpha=dt)
         # weights w_k^j and class likelihoods L(c) = Σ_j w_k^j, eq. (9)
-        log_w = state.log_weight + self.log_likelihood(x, z, tables)
+        # (after every step the weights are equal in value, −log N; only their gradient differs)
+        grad = torch.is_grad_enabled()
+        ll = self.log_likelihood(x, z, tables)
+        log_w = state.log_weight + ll if grad else ll
         top = log_w.detach().amax(-1, keepdim=True).clamp_min(torch.finfo(log_w.dtype).min)
         w = torch.exp(log_w - top)
         total = w.sum(-1, keepdim=True)
-        log_L = (torch.log(total) + top).squeeze(-1) + tables.log_norm
+        log_L = (torch.log(total) + top).squeeze(-1) + (tables.log_norm if grad else tables.log_norm - math.log(N))
         if use_speed:
             lo, hi, intercept, slope = tables.envelopes      # speed_likelihood(), unrolled
             log_L = log_L + torch.log(torch.addcmul(intercept, slope, torch.clamp(state.speed, lo, hi)))
@@ -279,7 +306,7 @@ class MultipleModelParticleFilter(nn.Module):
         anc = resampling.systematic_from_uniform(w.detach() + (total == 0), noise.u_resample)
         x = x.gather(-1, anc.expand(4, *anc.shape))
         mode = mode.gather(-1, anc)
-        if torch.is_grad_enabled():
+        if grad:
             new_w = resampling.resampled_log_weight(log_w, anc)
             new_w = new_w - torch.logsumexp(new_w, -1, keepdim=True).detach()
         else:
@@ -287,7 +314,7 @@ class MultipleModelParticleFilter(nn.Module):
         # estimates: x̂^c, P^c(m), v̂^c, combined x̂ (eq. 6)
         class_mean = x.mean(-1).movedim(0, -1)
         counts = torch.zeros((*mode.shape[:-1], M), dtype=x.dtype, device=x.device)
-        mode_prob = counts.scatter_add_(-1, mode, torch.ones_like(x[0])).div_(N)
+        mode_prob = counts.scatter_add_(-1, mode, torch.ones((), dtype=x.dtype).expand_as(mode)).div_(N)
         speed = torch.hypot(class_mean[..., 2], class_mean[..., 3])
         class_prob = log_class.exp()
         mean = (class_prob.unsqueeze(-1) * class_mean).sum(-2)

@@ -93,7 +93,7 @@ def systematic_from_uniform(weight: Tensor, u: Tensor) -> Tensor:
     cdf = torch.cumsum(weight, -1)
     ends = torch.ceil(cdf * (n / cdf[..., -1:]) - u).clamp_(0, n).long()
     hist = torch.zeros((*ends.shape[:-1], n + 1), dtype=torch.long, device=ends.device)
-    hist.scatter_add_(-1, ends, torch.ones_like(ends))
+    hist.scatter_add_(-1, ends, torch.ones((), dtype=ends.dtype, device=ends.device).expand_as(ends))
     return torch.cumsum(hist[..., :n], -1).clamp_max_(n - 1)
 
 
