@@ -151,3 +151,24 @@ def test_imm_bad_input():
     imm = InteractingMultipleModel([kf, kf], torch.eye(2))
     with pytest.raises(TorchtrackError, match="mode probabilities must sum to 1"):
         imm.initial_state(torch.zeros(4), torch.eye(4), torch.tensor([0.5, 0.6]))
+
+
+def test_compiled_step_falls_back_to_eager(monkeypatch):
+    import torchtrack.filters.imm_cv as imm_cv
+
+    def broken(fn, **kw):
+        def call(*args):
+            raise RuntimeError("no compiler here")
+        return call
+
+    monkeypatch.setattr(imm_cv, "_COMPILED", {})
+    monkeypatch.setattr(torch, "compile", broken)
+    motion, meas, Tm = _paper_models()
+    fast = ConstantVelocityIMM(motion, meas, Tm)
+    z = _measurements(6).unsqueeze(1).repeat(1, 2, 1)
+    init = fast.initial_state(torch.tensor([0.0, 0.0, 10.0, 5.0], dtype=torch.float64).expand(2, 4),
+                              100 * torch.eye(4, dtype=torch.float64))
+    with pytest.warns(UserWarning, match="running eager"):
+        _, means, total = fast.run_packed(z, init, DT, compile=True)
+    _, ref_means, ref_total = fast.run_packed(z, init, DT, compile=False)
+    assert torch.equal(means, ref_means) and torch.equal(total, ref_total)

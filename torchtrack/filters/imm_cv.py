@@ -184,14 +184,28 @@ _COMPILED: dict[str, object] = {}
 
 
 def compiled_step():
-    """``torch.compile`` of :func:`step_packed` (cached); falls back to eager with a warning."""
-    if "step" not in _COMPILED:
+    """:func:`step_packed` through ``torch.compile`` (cached per process).
+
+    Compilation happens at the first call; if it fails there (no compiler, unsupported platform), a
+    warning is issued and this and every later call run the eager :func:`step_packed`.
+    """
+    if "step" in _COMPILED:
+        return _COMPILED["step"]
+    compiled = torch.compile(step_packed, dynamic=False)
+
+    def step(*args):
+        if _COMPILED.get("failed"):
+            return step_packed(*args)
         try:
-            _COMPILED["step"] = torch.compile(step_packed, dynamic=False)
+            return compiled(*args)
         except Exception as exc:  # noqa: BLE001 - any backend failure means eager
-            warnings.warn(f"torch.compile unavailable ({exc}); using eager IMM step", stacklevel=2)
-            _COMPILED["step"] = step_packed
-    return _COMPILED["step"]
+            warnings.warn(f"torch.compile of the IMM step failed ({type(exc).__name__}: {exc}); running eager",
+                          stacklevel=2)
+            _COMPILED["failed"] = True
+            return step_packed(*args)
+
+    _COMPILED["step"] = step
+    return step
 
 
 class ConstantVelocityIMM(nn.Module):
