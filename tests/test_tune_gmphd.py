@@ -10,7 +10,7 @@ import torch
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import from_points, write_motdata
 from torchtrack.tune import fit, get_tunable, get_values, select_trainable
-from torchtrack.tuning.parameters import get_raw, set_raw, tunable_parameters
+from torchtrack.tuning.parameters import get_raw, set_raw, set_values, tunable_parameters
 
 AREA = 300.0 * 300.0
 
@@ -97,3 +97,39 @@ def test_gmphd_needs_an_area_for_the_phd_likelihood(tmp_path):
     _, _, data = problem(tmp_path, frames=30)
     with pytest.raises(TorchtrackError, match="area"):
         tun.loss(tun.build(), data.train[:1], "phd")
+
+
+def test_grid_search_scores_every_point_and_keeps_the_best(tmp_path):
+    from torchtrack.tuning.grid import grid_search
+
+    tun, tracker, data = problem(tmp_path, frames=40, window=20)
+    out = grid_search(tun, tracker, {"metric": "MOTA", "values": {"phd.p_detection": [0.2, 0.8],
+                                                                    "phd.clutter_density": [8.0 / AREA]}},
+                      data, progress=False)
+    assert out["combinations"] == 2 and out["filter_evaluations"] == 2 * len(data.train)
+    scores = {}
+    for pd in (0.2, 0.8):
+        set_values(tracker, {"phd.p_detection": pd})
+        scores[pd] = tun.evaluate(tracker, data.train)["MOTA"]
+    assert out["best"]["phd.p_detection"] == max(scores, key=scores.get)
+    assert out["train"]["MOTA"] == pytest.approx(max(scores.values()))
+    with pytest.raises(TorchtrackError, match="valid names"):
+        grid_search(tun, tracker, {"values": {"phd.nope": [1.0]}}, data, progress=False)
+
+
+def test_exported_tracker_options_are_accepted_by_track(tmp_path):
+    import yaml
+
+    from torchtrack.cli.track import load_tracker_config
+    from torchtrack.filters.multitarget import make_tracker
+
+    tun, tracker, _ = problem(tmp_path, frames=30)
+    set_values(tracker, {"phd.p_detection": 0.77, "birth.birth_weight": 0.03})
+    name, doc = tun.export(tracker)
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(doc))
+    cfg = load_tracker_config(path)
+    rebuilt = make_tracker("labelled-gmphd", cfg["labelled-gmphd"])
+    values = get_values(rebuilt)
+    assert values["phd.p_detection"].item() == pytest.approx(0.77, rel=1e-6)
+    assert values["birth.birth_weight"].item() == pytest.approx(0.03, rel=1e-6)

@@ -25,7 +25,7 @@ from torchtrack.params import Positive
 from torchtrack.tuning.parameters import get_values, select_trainable
 from torchtrack.tuning.registry import Tunable, TuneData, check_keys
 
-OPTIMIZER_KEYS = ("name", "lr", "steps", "batch_size", "max_iter", "eval_every")
+OPTIMIZER_KEYS = ("name", "lr", "lr_final", "steps", "batch_size", "max_iter", "eval_every")
 EARLY_KEYS = ("patience", "min_delta", "restore_best")
 
 
@@ -129,7 +129,9 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
     The optimiser moves ``u`` with ``raw = raw₀ + s u`` (:class:`Reparametrised`, :func:`step_scale`),
     so ``lr`` is about a relative change per step for positive parameters of any magnitude.
 
-    ``optimizer``: ``name`` (``adam`` | ``lbfgs``), ``lr``, ``steps``, ``batch_size`` (items per
+    ``optimizer``: ``name`` (``adam`` | ``lbfgs``), ``lr``, ``lr_final`` (Adam: cosine decay from ``lr``
+    to ``lr_final`` over ``steps``, so that mini-batch noise dies down; default constant), ``steps``,
+    ``batch_size`` (items per
     step; default all for L-BFGS, 8 for Adam), ``max_iter`` (L-BFGS iterations per step),
     ``eval_every`` (steps between held-out evaluations; default one epoch).
     ``early_stopping``: ``patience`` (evaluations without improvement), ``min_delta``,
@@ -165,8 +167,13 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
     result = FitResult(start=get_values(module, trainable))
     scaled = Reparametrised(params)
     leaves = list(scaled.u.values())
+    schedule = None
     if name == "adam":
-        opt = torch.optim.Adam(leaves, lr=float(optimizer.get("lr", 0.05)))
+        lr = float(optimizer.get("lr", 0.05))
+        opt = torch.optim.Adam(leaves, lr=lr)
+        if "lr_final" in optimizer:
+            schedule = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps - 1, 1),
+                                                                  eta_min=float(optimizer["lr_final"]))
     else:
         opt = torch.optim.LBFGS(leaves, lr=float(optimizer.get("lr", 1.0)),
                                 max_iter=int(optimizer.get("max_iter", 10)), line_search_fn="strong_wolfe")
@@ -218,6 +225,8 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
                 if name == "adam":
                     value = closure()
                     opt.step()
+                    if schedule is not None:
+                        schedule.step()
                 else:
                     value = opt.step(closure)
             except NonFiniteLoss as exc:
