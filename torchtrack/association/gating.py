@@ -149,8 +149,8 @@ def sample_mixture(log_weight: Tensor, mean: Tensor, cov: Tensor, num: int,
     idx = comp.unsqueeze(-1)
     mu_s = torch.gather(mu, -2, idx.expand(*batch, num, m))
     L_s = torch.gather(L, -3, idx.unsqueeze(-1).expand(*batch, num, m, m))
-    eps = torch.randn(*batch, num, m, 1, generator=generator, dtype=mean.dtype, device=mean.device)
-    z = mu_s + (L_s @ eps).squeeze(-1)
+    eps = torch.randn(*batch, num, m, generator=generator, dtype=mean.dtype, device=mean.device)
+    z = mu_s + (L_s * eps.unsqueeze(-2)).sum(-1)             # L ε row by row (no tiny batched matmuls)
     return (z, comp) if return_component else z
 
 
