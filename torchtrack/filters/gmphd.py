@@ -361,6 +361,8 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     with torch.no_grad():
         idx = torch.arange(J, device=mean.device)
         ii, jj = _within_reach(mean.detach(), cov.detach(), threshold)   # i within reach of heavier j
+        if ii.numel() == 0:
+            return state
         alive = torch.ones(J, dtype=torch.bool, device=mean.device)
         owner = idx.clone()
         big = torch.full((J,), J, dtype=torch.long, device=mean.device)

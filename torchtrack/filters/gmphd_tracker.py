@@ -34,7 +34,7 @@ from torchtrack.filters.gmphd_labels import (
 )
 from torchtrack.models import ConstantVelocity, LinearPosition
 
-FILTER_DEFAULTS = dict(q=2.0, sigma=1.0, p_detection=0.9, clutter_density=1e-4, prune_threshold=1e-3,
+FILTER_DEFAULTS = dict(q=2.0, sigma=1.0, p_detection=0.9, clutter_density=1e-4, prune_threshold=5e-3,
                        merge_threshold=9.0)
 """Filter options of :meth:`GMPHDTracker.from_config` where the config gives none (tuned on simulated
 WPAFB detections; ``configs/gmphd.yaml`` spells them out)."""
