@@ -120,7 +120,7 @@ def run(args) -> int:
     mean = traj.states[0].to(dtype).expand(args.runs, 4)
     std = torch.tensor(PRIOR_STD, dtype=dtype)
     cov = torch.diag(std**2)
-    with torch.no_grad():
+    with torch.inference_mode():
         t_ours = best_time(lambda: bank.run(z, mean, cov, traj.dt, gen), args.repeats)
         ours, c_ours = _cpu_time(lambda: bank.run(z, mean, cov, traj.dt, gen))
     rng = np.random.default_rng(args.seed)
