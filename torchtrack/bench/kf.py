@@ -4,7 +4,8 @@ Workload: 2-D nearly-constant-velocity targets (state ``[x, y, vx, vy]``), posit
 float32, ``--tracks`` tracks × ``--steps`` steps. Timed in the same run:
 
 * **ours** — the axis-decoupled fast path (:mod:`torchtrack.filters.kalman_fast`, compiled);
-* **general path** — :meth:`KalmanFilter.run` with full 4×4 matrices (reported as an extra);
+* **general path** — :meth:`KalmanFilter.run` with full 4×4 matrices, any linear model (reported as
+  extras: ``general_path_per_s`` compiled unless ``--no-compile``, ``general_path_eager_per_s``);
 * **reference** — a plain batched NumPy implementation of the same equations (4×4 matrices,
   ``np.linalg.solve`` for the gain);
 * **per-track loop** — FilterPy's ``KalmanFilter`` one track at a time (as FilterPy users run it)
@@ -36,7 +37,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--steps", type=int, default=100, help="time steps (default 100)")
     parser.add_argument("--general-steps", type=int, default=10, help="steps timed for the general path")
     parser.add_argument("--loop-tracks", type=int, default=200, help="tracks for the per-track loop")
-    parser.add_argument("--no-compile", action="store_true", help="time the eager fast path")
+    parser.add_argument("--no-compile", action="store_true", help="time the eager fast and general paths")
     add_common_options(parser)
 
 
@@ -86,7 +87,12 @@ def run(args) -> int:
         warmup_s = time.perf_counter() - t0
         ours_s = best_time(lambda: run_cv_fast(kf, z, init, DT, compile=compile, history=False), repeats=3, warmup=0)
         Tg = min(args.general_steps, T)
-        general_s = best_time(lambda: kf.run(z[:Tg], init, DT), repeats=1, warmup=0)
+        t0 = time.perf_counter()
+        kf.run(z[:Tg], init, DT, compile=compile)
+        general_warmup_s = time.perf_counter() - t0
+        general_s = best_time(lambda: kf.run(z[:Tg], init, DT, compile=compile), repeats=3, warmup=0)
+        general_eager_s = (best_time(lambda: kf.run(z[:Tg], init, DT), repeats=1, warmup=0) if compile
+                           else general_s)
 
     F = kf.motion.transition_matrix(DT).double().numpy()
     Qm = kf.motion.process_noise(DT).detach().double().numpy()
@@ -101,7 +107,9 @@ def run(args) -> int:
 
     extra = {"tracks": N, "steps": T, "dtype": "float32", "compile": compile,
              "warmup_s": warmup_s,
-             "general_path_per_s": N * Tg / general_s}
+             "general_path_per_s": N * Tg / general_s,
+             "general_path_eager_per_s": N * Tg / general_eager_s,
+             "general_warmup_s": general_warmup_s}
     try:
         import filterpy  # noqa: F401
 
@@ -115,7 +123,9 @@ def run(args) -> int:
 
     report(f"KF, 2-D CV + position, {N} tracks x {T} steps, float32", N * T / ours_s,
            "batched NumPy (same equations, 4x4)", N * Tr / ref_s, "track-steps", args.json, extra)
-    print(f"general path (KalmanFilter.run, 4x4 matrices): {extra['general_path_per_s']:,.0f} track-steps/s")
+    print(f"general path (KalmanFilter.run, 4x4 matrices{', compiled' if compile else ''}): "
+          f"{extra['general_path_per_s']:,.0f} track-steps/s (eager: {extra['general_path_eager_per_s']:,.0f}; "
+          f"first call {general_warmup_s:.1f} s)")
     if extra.get("filterpy_loop_per_s"):
         print(f"FilterPy per-track loop: {extra['filterpy_loop_per_s']:,.0f} track-steps/s "
               f"(ours {extra['ratio_vs_filterpy_loop']:,.0f}x)")

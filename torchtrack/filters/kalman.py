@@ -15,12 +15,14 @@ passes through unchanged and the step contributes 0 to the log-likelihood and 0 
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters import kalman_lanes as lanes
 from torchtrack.gaussian import (
     LOG_2PI,
     chol_solve,
@@ -197,6 +199,96 @@ class KalmanFilter(_GaussianFilter):
 
     def _posterior_cov(self, state, K, S):
         return joseph_cov(state.cov, K, self.measurement.matrix(), self.measurement.noise_cov())
+
+    def _shared_matrices(self, dt) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
+        """``(F, Q, H, R)`` when all are shared 2-D matrices of a small model (the lanes path), else None."""
+        if (self.state_dim > lanes.MAX_STATE or self.measurement.meas_dim > lanes.MAX_MEAS
+                or type(self.measurement).residual is not MeasurementModel.residual):
+            return None
+        mats = (self.motion.transition_matrix(dt), self.motion.process_noise(dt), self.measurement.matrix(),
+                self.measurement.noise_cov())
+        return mats if all(M.dim() == 2 for M in mats) else None
+
+    def run(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
+            predict_first: bool = True, compile: bool = False) -> FilterResult:
+        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` = missing); see
+        :meth:`_GaussianFilter.run`.
+
+        With shared model matrices (``dt`` a number) and a small model, the sequence is filtered in
+        the batch-last layout of :mod:`~torchtrack.filters.kalman_lanes` (the same equations); the
+        returned ``mean``/``cov`` are then views of batch-last storage (not contiguous). A failed
+        factorisation of ``S`` raises :class:`TorchtrackError` naming the step (checked once, after
+        the last step, so the loop never waits on the host). ``compile=True`` runs each step through
+        ``torch.compile`` (one fused loop over the tracks; compiled once per process and dtype,
+        falls back to eager where unavailable).
+        """
+        mats = self._shared_matrices(dt) if measurements.dim() >= 2 else None
+        if mats is None:
+            return super().run(measurements, init, dt, mask, predict_first)
+        n, m = self.state_dim, self.measurement.meas_dim
+        _check_state(init, n, self.name)
+        if measurements.shape[-1] != m:
+            raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, {m}); got "
+                                  f"{tuple(measurements.shape)}")
+        T = measurements.shape[0]
+        shapes = [measurements.shape[1:-1], init.mean.shape[:-1], init.cov.shape[:-2]]
+        if mask is not None:
+            shapes.append(mask.shape[1:])
+        try:
+            batch = torch.broadcast_shapes(*shapes)
+        except RuntimeError as err:
+            raise TorchtrackError(f"{self.name}: batch shapes of measurements, init and mask do not "
+                                  f"broadcast: {[tuple(s) for s in shapes]}") from err
+        B = math.prod(batch)
+        x = init.mean.expand(*batch, n).reshape(B, n).transpose(0, 1).contiguous()
+        P = init.cov.expand(*batch, n, n).reshape(B, n, n).permute(1, 2, 0).contiguous()
+        z = measurements.expand(T, *batch, m).reshape(T, B, m)
+        present = ~torch.isnan(z).any(-1)
+        if mask is not None:
+            present = present & mask.expand(T, *batch).reshape(T, B).to(torch.bool)
+        all_present = bool(present.all())
+        z = torch.where(present.unsqueeze(-1), z, torch.zeros_like(z)).transpose(1, 2).contiguous()  # (T, m, B)
+        needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x, P, z, *mats))
+        if compile and not needs_grad:
+            mean, cov, nis, total, ok = self._run_compiled(x, P, z, None if all_present else present, mats,
+                                                           predict_first)
+        else:
+            means, covs, nis_list, oks = [], [], [], []
+            total = torch.zeros(B, dtype=z.dtype, device=z.device)
+            for k in range(T):
+                fn = lanes.step if predict_first or k > 0 else lanes.update_only
+                x, P, nis_k, ll_k, ok_k = fn(x, P, z[k], None if all_present else present[k], *mats)
+                means.append(x)
+                covs.append(P)
+                nis_list.append(nis_k)
+                oks.append(ok_k)
+                total = total + ll_k
+            mean, cov, nis, ok = torch.stack(means), torch.stack(covs), torch.stack(nis_list), torch.stack(oks)
+        failed = ~ok                                                 # (T, B); the one host sync
+        if bool(failed.any()):
+            k = int(failed.any(-1).nonzero()[0])
+            raise TorchtrackError(f"{self.name}: innovation covariance S is not positive definite at step {k} "
+                                  f"({int(failed[k].sum())} of {B} matrices failed Cholesky factorisation)")
+        return FilterResult(mean.permute(0, 2, 1).reshape(T, *batch, n),
+                            cov.permute(0, 3, 1, 2).reshape(T, *batch, n, n), nis.reshape(T, *batch),
+                            total.reshape(batch))
+
+    @staticmethod
+    def _run_compiled(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, mats, predict_first: bool):
+        """The time loop through the compiled :func:`~torchtrack.filters.kalman_lanes.fused_step`, which
+        writes each posterior straight into the batch-last history (no autograd)."""
+        (n, B), T = x.shape, z.shape[0]
+        mean = x.new_empty(T, n, B)
+        cov = P.new_empty(T, n, n, B)
+        nis = x.new_empty(T, B)
+        ok = torch.empty(T, B, dtype=torch.bool, device=x.device)
+        total = x.new_zeros(B)
+        step = lanes.compiled_step()
+        for k in range(T):
+            prev = (x, P) if k == 0 else (mean[k - 1], cov[k - 1])
+            step(*prev, z[k], None if present is None else present[k], *mats, mean[k], cov[k], nis[k], total,
+                 ok[k], predict_first or k > 0)
+        return mean, cov, nis, total, ok
 
 
 class ExtendedKalmanFilter(_GaussianFilter):

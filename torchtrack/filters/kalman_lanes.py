@@ -1,0 +1,269 @@
+"""Linear Kalman filter steps in a structure-of-arrays ("lanes") layout, for many tracks at once.
+
+Storage is **batch last**: ``B`` tracks are a mean ``x (n, B)`` and a covariance ``P (n, n, B)``, and
+the model matrices ``F (n, n)``, ``Q (n, n)``, ``H (m, n)``, ``R (m, m)`` are shared by all tracks.
+Every small-matrix product is then either one GEMM of a shared matrix against all lanes, or an
+elementwise (rank-one) update over contiguous lanes — never a batched GEMM of tiny per-track
+matrices, whose per-matrix overhead dominates the batch-first formulation. The ``m × m`` innovation
+covariance is factorised and solved with unrolled Cholesky arithmetic per lane (no inverse).
+
+Equations (Bar-Shalom, Li & Kirubarajan 2001, §5.2; the maneuver paper, eq. 3–7), ``C = P⁻ Hᵀ``::
+
+    predict   x⁻ = F x,   P⁻ = F P Fᵀ + Q                                      (3), (4)
+    update    S = H C + R = L Lᵀ,   Kᵀ = L⁻ᵀ L⁻¹ Cᵀ,   ν = z − H x⁻              (5), (6)
+              x⁺ = x⁻ + K ν
+              A P⁻ = P⁻ − K Cᵀ                     (A = I − K H, and H P⁻ = Cᵀ)
+              P⁺ = A P⁻ Aᵀ + K R Kᵀ = A P⁻ − (A P⁻ Hᵀ − K R) Kᵀ    (Joseph form of (7), A never formed)
+              NIS = |L⁻¹ ν|²,   log ℓ = −½ (NIS + 2 Σᵢ log Lᵢᵢ + m log 2π)
+
+:func:`step` (predict + update) is plain tensor code: differentiable, and compiled by
+``torch.compile`` into one fused loop over the lanes when :func:`compiled_step` is used.
+"""
+
+from __future__ import annotations
+
+import math
+import warnings
+from typing import NamedTuple
+
+import torch
+from torch import Tensor
+
+LOG_2PI = math.log(2.0 * math.pi)
+
+# largest state / measurement sizes for which the unrolled per-lane arithmetic is used
+MAX_STATE = 8
+MAX_MEAS = 4
+
+
+class LaneUpdate(NamedTuple):
+    """Output of :func:`update`; ``B`` lanes."""
+
+    mean: Tensor            # (n, B)
+    cov: Tensor             # (n, n, B)
+    innovation: Tensor      # (m, B)
+    innovation_cov: Tensor  # (m, m, B)
+    nis: Tensor             # (B,) 0 where missing
+    log_likelihood: Tensor  # (B,) 0 where missing
+    ok: Tensor              # (B,) bool: Cholesky of S succeeded
+
+
+def symmetrize(P: Tensor) -> Tensor:
+    """``(P + Pᵀ) / 2`` over the two leading (matrix) dimensions."""
+    return 0.5 * (P + P.transpose(0, 1))
+
+
+def _left(A: Tensor, X: Tensor) -> Tensor:
+    """``[i, …] = Σ_k A[i, k] X[k, …]`` for a shared ``A``: one GEMM over all lanes."""
+    return (A @ X.reshape(X.shape[0], -1)).reshape(A.shape[0], *X.shape[1:])
+
+
+def _right(X: Tensor, A: Tensor) -> Tensor:
+    """``[i, j, …] = Σ_l X[i, l, …] A[j, l]`` (``X Aᵀ`` per lane) for ``X (p, l, B)``, shared ``A``."""
+    return torch.matmul(A, X)
+
+
+def predict(x: Tensor, P: Tensor, F: Tensor, Q: Tensor) -> tuple[Tensor, Tensor]:
+    """``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q`` for ``x (n, B)``, ``P (n, n, B)``, ``F, Q (n, n)``."""
+    return _left(F, x), symmetrize(_right(_left(F, P), F) + Q.unsqueeze(-1))
+
+
+def _cholesky_entries(S) -> tuple[list[list[Tensor]], Tensor]:
+    """Lower Cholesky factor of ``S`` (``S[i][j]`` are ``(B,)`` lanes; an ``(m, m, B)`` tensor or nested
+    lists) as rows of per-lane entries ``L[i][j] (B,)``, ``j ≤ i``, and ``ok (B,)``; a failed pivot is
+    replaced by 1 so no NaN is produced (the caller raises)."""
+    m = len(S)
+    L: list[list[Tensor]] = [[] for _ in range(m)]
+    ok = torch.ones_like(S[0][0], dtype=torch.bool)
+    for j in range(m):
+        s = S[j][j]
+        for k in range(j):
+            s = s - L[j][k] * L[j][k]
+        ok = ok & (s > 0)
+        d = torch.sqrt(torch.where(s > 0, s, torch.ones_like(s)))
+        for i in range(j, m):
+            if i == j:
+                L[j].append(d)
+                continue
+            t = S[i][j]
+            for k in range(j):
+                t = t - L[i][k] * L[j][k]
+            L[i].append(t / d)
+    return L, ok
+
+
+def _solve_lower(L: list[list[Tensor]], rows: list[Tensor]) -> list[Tensor]:
+    """Forward substitution ``L Y = B`` with ``B`` given as its ``m`` rows (each ``(*, B)``)."""
+    out: list[Tensor] = []
+    for i, b in enumerate(rows):
+        for j in range(i):
+            b = b - L[i][j] * out[j]
+        out.append(b / L[i][i])
+    return out
+
+
+def _solve_upper_t(L: list[list[Tensor]], rows: list[Tensor]) -> list[Tensor]:
+    """Back substitution ``Lᵀ X = Y`` with ``Y`` given as its rows."""
+    m = len(rows)
+    out: list[Tensor] = [rows[0]] * m
+    for i in reversed(range(m)):
+        b = rows[i]
+        for j in range(i + 1, m):
+            b = b - L[j][i] * out[j]
+        out[i] = b / L[i][i]
+    return out
+
+
+def update(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, H: Tensor, R: Tensor) -> LaneUpdate:
+    """Joseph-form measurement update of ``x (n, B)``, ``P (n, n, B)`` with ``z (m, B)``.
+
+    ``present (B,)`` bool marks lanes with a measurement (``None``: all); elsewhere the state passes
+    through and NIS / log-likelihood are 0. ``z`` must be finite (zero-filled where missing).
+    """
+    m = H.shape[0]
+    C = _right(P, H)                                                # (n, m, B): (P Hᵀ)[i, r]
+    S = symmetrize(_left(H, C) + R.unsqueeze(-1))
+    L, ok = _cholesky_entries(S)
+    nu = z - _left(H, x)                                            # (m, B)
+    Ct = C.transpose(0, 1)                                          # (m, n, B): rows of Cᵀ = H P
+    Kt = _solve_upper_t(L, _solve_lower(L, list(Ct.unbind(0))))     # rows of Kᵀ, each (n, B)
+    nu_rows = list(nu.unbind(0))
+    mean = x
+    for r in range(m):
+        mean = mean + Kt[r] * nu_rows[r]
+    AP = P
+    for r in range(m):
+        AP = AP - Kt[r].unsqueeze(1) * Ct[r].unsqueeze(0)           # A P = P − K Cᵀ
+    D = _right(AP, H)                                               # (n, m, B): (A P Hᵀ)[i, r]
+    KRt = _left(R.transpose(0, 1), torch.stack(Kt))                 # (m, n, B): rows of (K R)ᵀ
+    cov = AP
+    for r in range(m):
+        cov = cov - (D[:, r] - KRt[r]).unsqueeze(1) * Kt[r].unsqueeze(0)
+    cov = symmetrize(cov)
+    white = _solve_lower(L, nu_rows)
+    nis = white[0] * white[0]
+    log_det = torch.log(L[0][0])
+    for r in range(1, m):
+        nis = nis + white[r] * white[r]
+        log_det = log_det + torch.log(L[r][r])
+    loglik = -0.5 * (nis + m * LOG_2PI) - log_det
+    if present is not None:
+        mean = torch.where(present, mean, x)
+        cov = torch.where(present, cov, P)
+        nis = torch.where(present, nis, torch.zeros_like(nis))
+        loglik = torch.where(present, loglik, torch.zeros_like(loglik))
+    return LaneUpdate(mean, cov, nu, S, nis, loglik, ok)
+
+
+def step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
+         R: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Predict then update; returns ``(x⁺, P⁺, nis, log ℓ, ok)``."""
+    x, P = predict(x, P, F, Q)
+    u = update(x, P, z, present, H, R)
+    return u.mean, u.cov, u.nis, u.log_likelihood, u.ok
+
+
+def update_only(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
+                R: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Update without a prediction (``F``, ``Q`` unused); same outputs as :func:`step`."""
+    u = update(x, P, z, present, H, R)
+    return u.mean, u.cov, u.nis, u.log_likelihood, u.ok
+
+
+def _dot(terms: list[Tensor]) -> Tensor:
+    out = terms[0]
+    for t in terms[1:]:
+        out = out + t
+    return out
+
+
+def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
+               R: Tensor, x_out: Tensor, P_out: Tensor, nis_out: Tensor, loglik_acc: Tensor, ok_out: Tensor,
+               predict_first: bool = True) -> None:
+    """:func:`step` (or :func:`update_only` without ``predict_first``) written entry by entry: every
+    quantity is one ``(B,)`` lane vector, so ``torch.compile`` emits a single loop over the lanes with
+    all ``n × n`` arithmetic in registers. Writes ``x⁺ → x_out (n, B)``, ``P⁺ → P_out (n, n, B)``,
+    ``nis → nis_out (B,)``, ``ok → ok_out (B,)`` and adds log ℓ to ``loglik_acc (B,)`` (no autograd).
+
+    Same equations as :func:`predict` / :func:`update`; covariances are formed on and above the
+    diagonal and mirrored (exactly symmetric) instead of averaged with their transpose.
+    """
+    n, m = x.shape[0], H.shape[0]
+    X = [x[i] for i in range(n)]
+    Pm = [[P[i, j] for j in range(n)] for i in range(n)]
+    if predict_first:
+        X = [_dot([F[i, k] * X[k] for k in range(n)]) for i in range(n)]
+        FP = [[_dot([F[i, k] * Pm[k][j] for k in range(n)]) for j in range(n)] for i in range(n)]
+        up = {(i, j): _dot([FP[i][k] * F[j, k] for k in range(n)]) + Q[i, j] for i in range(n) for j in range(i, n)}
+        Pm = [[up[min(i, j), max(i, j)] for j in range(n)] for i in range(n)]
+    C = [[_dot([Pm[i][j] * H[r, j] for j in range(n)]) for r in range(m)] for i in range(n)]   # P Hᵀ
+    S = [[_dot([H[r, i] * C[i][s] for i in range(n)]) + R[r, s] for s in range(m)] for r in range(m)]
+    S = [[S[max(r, s)][min(r, s)] for s in range(m)] for r in range(m)]
+    L, ok = _cholesky_entries(S)
+    nu = [z[r] - _dot([H[r, j] * X[j] for j in range(n)]) for r in range(m)]
+    K = [_solve_upper_t(L, _solve_lower(L, C[i])) for i in range(n)]                           # rows of K
+    mean = [X[i] + _dot([K[i][r] * nu[r] for r in range(m)]) for i in range(n)]
+    AP = [[Pm[i][j] - _dot([K[i][r] * C[j][r] for r in range(m)]) for j in range(n)] for i in range(n)]
+    E = [[_dot([AP[i][j] * H[r, j] for j in range(n)]) - _dot([K[i][s] * R[s, r] for s in range(m)])
+          for r in range(m)] for i in range(n)]                                                 # A P Hᵀ − K R
+    up = {(i, j): AP[i][j] - _dot([E[i][r] * K[j][r] for r in range(m)]) for i in range(n) for j in range(i, n)}
+    cov = [[up[min(i, j), max(i, j)] for j in range(n)] for i in range(n)]
+    white = _solve_lower(L, nu)
+    nis = _dot([w * w for w in white])
+    loglik = -0.5 * (nis + m * LOG_2PI) - _dot([torch.log(L[r][r]) for r in range(m)])
+    if present is not None:
+        mean = [torch.where(present, a, b) for a, b in zip(mean, X)]
+        cov = [[torch.where(present, a, b) for a, b in zip(ra, rb)] for ra, rb in zip(cov, Pm)]
+        nis = torch.where(present, nis, torch.zeros_like(nis))
+        loglik = torch.where(present, loglik, torch.zeros_like(loglik))
+    x_out.copy_(torch.stack(mean))
+    P_out.copy_(torch.stack([e for row in cov for e in row]).view(n, n, -1))
+    nis_out.copy_(nis)
+    loglik_acc.add_(loglik)
+    ok_out.copy_(ok)
+
+
+def _block_into(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
+                R: Tensor, x_out: Tensor, P_out: Tensor, nis_out: Tensor, loglik_acc: Tensor, ok_out: Tensor,
+                predict_first: bool = True) -> None:
+    """:func:`fused_step`'s contract computed eagerly with the GEMM formulation (the fallback)."""
+    mean, cov, nis, loglik, ok = (step if predict_first else update_only)(x, P, z, present, F, Q, H, R)
+    x_out.copy_(mean)
+    P_out.copy_(cov)
+    nis_out.copy_(nis)
+    loglik_acc.add_(loglik)
+    ok_out.copy_(ok)
+
+
+class _Compiled:
+    """``torch.compile(fused_step)``, falling back to :func:`_block_into` for good if compilation is
+    unavailable or fails (eager gives the same result, only slower)."""
+
+    def __init__(self):
+        self.compiled = None
+        try:
+            # one fused loop: allow a large fusion group, and write stacked outputs in place
+            self.compiled = torch.compile(fused_step, fullgraph=True,
+                                          options={"max_fusion_size": 4096, "max_pointwise_cat_inputs": 1})
+        except Exception as err:  # noqa: BLE001 - any backend failure means: run eagerly
+            warnings.warn(f"torch.compile unavailable for the Kalman filter ({err}); running eagerly", stacklevel=2)
+
+    def __call__(self, *args) -> None:
+        if self.compiled is not None:
+            try:
+                return self.compiled(*args)
+            except Exception as err:  # noqa: BLE001 - e.g. no C++ compiler
+                warnings.warn(f"torch.compile failed for the Kalman filter ({err}); running eagerly", stacklevel=2)
+                self.compiled = None
+        return _block_into(*args)
+
+
+_compiled: list[_Compiled] = []
+
+
+def compiled_step() -> _Compiled:
+    """The process-wide compiled :func:`fused_step` (created on first use; shapes specialise per model,
+    the lane count becomes dynamic after it first changes)."""
+    if not _compiled:
+        _compiled.append(_Compiled())
+    return _compiled[0]
