@@ -169,3 +169,21 @@ def test_bad_input_is_a_clear_error():
         filt.update(state, torch.zeros(2, 1, 2, dtype=F64), extra_noise=-10 * torch.eye(2, dtype=F64))
     with pytest.raises(TorchtrackError, match="p_detection"):
         make_filter(p_detection=1.5)
+
+
+def test_cached_model_constants_follow_parameter_changes():
+    filt = make_filter(learnable=True)
+    z = torch.tensor([[[1.0, 2.0]]], dtype=F64)
+    with torch.no_grad():
+        state = filt.init_state((1,), undetected_weight=1.0)
+        first, _ = filt.step(state, z)
+        filt.p_detection.raw += 2.0                 # an optimiser step changes the parameter in place
+        filt.measurement.sigma.raw -= 0.5
+        second, _ = filt.step(state, z)
+    fresh = make_filter(learnable=True)
+    fresh.load_state_dict(filt.state_dict())
+    with torch.no_grad():
+        expected, _ = fresh.step(state, z)
+    assert float((first.existence - second.existence).abs().max()) > 1e-3
+    torch.testing.assert_close(second.existence, expected.existence)
+    torch.testing.assert_close(second.cov, expected.cov)

@@ -43,6 +43,7 @@ are given once, when a measurement creates its Bernoulli, and follow that Bernou
 from __future__ import annotations
 
 import logging
+import math
 from typing import NamedTuple
 
 import torch
@@ -234,6 +235,7 @@ class PMBFilter(nn.Module):
         self.prune_poisson = prune_poisson
         self.estimate_threshold = estimate_threshold
         self._cap_logged = False
+        self._cache: dict = {}
 
     # ------------------------------------------------------------------ state
     def init_state(self, batch_shape: tuple[int, ...] = (), undetected_weight: float = 0.0,
@@ -259,13 +261,40 @@ class PMBFilter(nn.Module):
             next_label=torch.zeros(batch_shape, dtype=torch.long, device=device),
         )
 
+    # ------------------------------------------------------------------ constants
+    def _constants(self, which: str, dt, ref: Tensor) -> tuple[Tensor, ...]:
+        """Model matrices and probabilities in ``ref``'s dtype/device.
+
+        Without gradients (no parameter requires grad, or grad mode off) and for a float ``dt`` they are
+        computed once and reused until a parameter or buffer changes (storage or version counter): the
+        dozens of small operations that build ``F``, ``Q``, ``H``, ``R`` are then not repeated per scan.
+        """
+        tensors = [*self.parameters(), *self.buffers()]
+        cacheable = isinstance(dt, (int, float, type(None))) and not (
+            torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
+        key = None
+        if cacheable:
+            key = (which, dt, ref.dtype, ref.device, tuple((t.data_ptr(), t._version) for t in tensors))
+            hit = self._cache.get(which)
+            if hit is not None and hit[0] == key:
+                return hit[1]
+        if which == "predict":
+            ps = self.p_survival().to(ref)
+            out = (self.motion.transition_matrix(dt).to(ref), self.motion.process_noise(dt).to(ref), ps,
+                   _log(self.birth_weight().to(ref)), self.birth_mean.to(ref), self.birth_cov.to(ref))
+        else:
+            pd = self.p_detection().to(ref)
+            out = (self.measurement.matrix().to(ref), self.measurement.noise_cov().to(ref), pd, _log(pd),
+                   _log(1.0 - pd), _log(self.clutter_intensity().to(ref)))
+        if key is not None:
+            self._cache[which] = (key, out)
+        return out
+
     # ------------------------------------------------------------------ predict
     def predict(self, state: PMBState, dt=1.0) -> PMBState:
         """Prediction (eqs. 38–40): survival, motion, and the birth component added to the Poisson part."""
         ref = state.mean
-        F = self.motion.transition_matrix(dt).to(ref)
-        Q = self.motion.process_noise(dt).to(ref)
-        ps = self.p_survival().to(ref)
+        F, Q, ps, log_bw, bm, bc = self._constants("predict", dt, ref)
         mean = state.mean @ F.transpose(-1, -2)
         cov = symmetrize(_shared_left(F, state.cov @ F.transpose(-1, -2)) + Q)
         existence = ps * state.existence
@@ -279,10 +308,9 @@ class PMBFilter(nn.Module):
         pmean = pmean.gather(-2, keep.unsqueeze(-1).expand(*keep.shape, n))
         pcov = pcov.gather(-3, keep[..., None, None].expand(*keep.shape, n, n))
         batch = plw.shape[:-1]
-        blw = _log(self.birth_weight().to(ref)).expand(*batch, 1)
-        plw = torch.cat([plw, blw], -1)
-        pmean = torch.cat([pmean, self.birth_mean.to(ref).expand(*batch, 1, n)], -2)
-        pcov = torch.cat([pcov, self.birth_cov.to(ref).expand(*batch, 1, n, n)], -3)
+        plw = torch.cat([plw, log_bw.expand(*batch, 1)], -1)
+        pmean = torch.cat([pmean, bm.expand(*batch, 1, n)], -2)
+        pcov = torch.cat([pcov, bc.expand(*batch, 1, n, n)], -3)
         return state._replace(poisson_log_weight=plw, poisson_mean=pmean, poisson_cov=pcov,
                               existence=existence, mean=mean, cov=cov)
 
@@ -312,12 +340,10 @@ class PMBFilter(nn.Module):
         if not bool(torch.isfinite(torch.where(zmask.unsqueeze(-1), z, torch.zeros_like(z))).all()):
             raise TorchtrackError("PMB update: measurements contain NaN or infinite values")
         z = torch.where(zmask.unsqueeze(-1), z, torch.zeros_like(z))              # padding never leaks
-        H = self.measurement.matrix().to(ref)
-        R = self.measurement.noise_cov().to(ref).expand(*batch, d, d)
+        H, R, pd, log_pd, log_1mpd, log_kappa = self._constants("update", None, ref)
+        R = R.expand(*batch, d, d)
         if extra_noise is not None:
             R = R + extra_noise.to(ref)
-        pd = self.p_detection().to(ref)
-        log_pd = _log(pd)
         tiny = torch.finfo(ref.dtype).tiny
 
         # single-target hypotheses of the existing Bernoullis (eqs. 43–44)
@@ -334,7 +360,6 @@ class PMBFilter(nn.Module):
                                 "PMB: Poisson innovation covariance")
         l_kj = state.poisson_log_weight.unsqueeze(-1) + log_pd + poi.log_lik     # (*, K, M)
         log_e = torch.logsumexp(l_kj, dim=-2)                                   # (*, M)
-        log_kappa = _log(self.clutter_intensity().to(ref))
         log_lam = torch.logaddexp(log_e, log_kappa.expand_as(log_e)).clamp_min(float(torch.log(torch.tensor(tiny))))
         log_new = torch.where(zmask, log_lam, torch.zeros_like(log_lam))
         r_new_hyp = torch.exp(torch.clamp(log_e - log_lam, max=0.0))
@@ -377,8 +402,8 @@ class PMBFilter(nn.Module):
         label = torch.cat([torch.where(valid, state.label, torch.full_like(state.label, -1)), new_label], -1)
         existence, mean, cov, label = self._compact(existence, mean, cov, label)
 
-        plw = state.poisson_log_weight + _log(1.0 - pd)
-        plw = torch.where(plw < torch.log(torch.tensor(self.prune_poisson)).to(plw), torch.full_like(plw, NEG_INF), plw)
+        plw = state.poisson_log_weight + log_1mpd
+        plw = plw.masked_fill(plw < math.log(self.prune_poisson), NEG_INF)
         new_state = PMBState(plw, state.poisson_mean, state.poisson_cov, existence, mean, cov, label, next_label)
         return new_state, PMBUpdateInfo(marg, log_lam, r_new, gated)
 
