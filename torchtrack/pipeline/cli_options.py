@@ -2,7 +2,8 @@
 
 ``torchtrack/cli/track.py`` calls :func:`add_frame_options` on its parser and, before its own
 ``--detections`` path, :func:`run_frame_inputs`, which returns ``None`` when no frame option was given.
-Options it reads from that parser when present: ``--tracker``, ``--gt``, ``--out``, ``--json``; the
+Options it reads from that parser when present: ``--tracker``, ``--gt``, ``--out``, ``--json``,
+``--threads``, ``--compare``, ``--trackers``; the
 tracker's options come from ``torchtrack track --config`` through ``tracker_options``.
 """
 
@@ -66,6 +67,8 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
     changes = {"tracker": getattr(args, "tracker", None) or config.tracker}
     if tracker_options:
         changes["tracker_options"] = tracker_options
+    if getattr(args, "threads", None):
+        changes["threads"] = args.threads
     if args.weights:
         changes["detector_weights"] = str(args.weights)
     if args.no_video:

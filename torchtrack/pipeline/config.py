@@ -24,6 +24,9 @@ class PipelineConfig:
     video, video_fps, trail, box, scale, draw_truth: the annotated video (``box=None`` draws dots).
     snapshots: frame numbers saved as PNG beside the video.
     dtype: the tracker's floating-point type.
+    threads: torch intra-op threads while the pipeline runs (default 1: the other core serves the
+    concurrent frame decoding, registration and video encoding; on a loaded 2-core machine two torch
+    threads made the detector 10–20 times slower, spinning against each other).
     """
 
     tracker: str = "gmphd"
@@ -40,6 +43,7 @@ class PipelineConfig:
     draw_truth: bool = True
     snapshots: tuple[int, ...] = (1,)
     dtype: str = "float64"
+    threads: int = 1
 
     def __post_init__(self) -> None:
         if self.prior not in ("detections", "tracks"):

@@ -35,6 +35,7 @@ from torchtrack.pipeline.plots import plot_scores, plot_tracks
 from torchtrack.pipeline.track_video import (
     rerun_tracker,
     score,
+    torch_threads,
     track_video,
     write_json_atomic,
 )
@@ -95,7 +96,8 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     scores = {cfg.tracker: {**metrics["clear_mot"], "FPS": metrics["fps"].get("tracking_only", float("inf"))}}
     dtype = getattr(torch, cfg.dtype)
     for name in [n for n in (trackers or tracker_names()) if n != cfg.tracker]:
-        path, seconds = rerun_tracker(name, None, result.detections, out / "trackers" / f"{name}.txt", dtype)
+        with torch_threads(cfg.threads):
+            path, seconds = rerun_tracker(name, None, result.detections, out / "trackers" / f"{name}.txt", dtype)
         scores[name] = {**score(gt, read_mot(path), cfg.threshold, ignore), "FPS": len(result.detections) / seconds}
     homographies = {d.index: d.homography for d in result.detections}
     first = next(iter(FolderSource(seq / "frames"))).image

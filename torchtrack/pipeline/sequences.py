@@ -33,7 +33,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.pipeline.config import PipelineConfig
-from torchtrack.pipeline.track_video import rerun_tracker, score, track_video, write_json_atomic
+from torchtrack.pipeline.track_video import rerun_tracker, score, torch_threads, track_video, write_json_atomic
 from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import read_camera
 
@@ -108,8 +108,9 @@ def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, pro
     seconds = time.perf_counter() - t0
     tracks = {config.tracker: (read_mot(result.files["tracks"]), result.metrics["timings_s"].get("tracking", 0.0))}
     for name in others:
-        path, tracker_s = rerun_tracker(name, None, result.detections,
-                                        out / seq.name / "trackers" / f"{name}.txt", getattr(torch, config.dtype))
+        with torch_threads(config.threads):
+            path, tracker_s = rerun_tracker(name, None, result.detections,
+                                            out / seq.name / "trackers" / f"{name}.txt", getattr(torch, config.dtype))
         tracks[name] = (read_mot(path), tracker_s)
     return {"name": seq.name, "metrics": result.metrics, "seconds": seconds, "gt": gt, "ignore": ignore,
             "tracks": tracks}

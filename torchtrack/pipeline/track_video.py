@@ -32,7 +32,7 @@ import time
 import warnings
 from collections import defaultdict
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import NamedTuple
@@ -66,6 +66,17 @@ class StageTimer:
             yield
         finally:
             self.seconds[stage] += time.perf_counter() - t0
+
+
+@contextmanager
+def torch_threads(n: int) -> Iterator[None]:
+    """Use ``n`` torch intra-op threads inside the block, then restore the previous number."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(max(1, int(n)))
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
 
 
 def homography_jacobian(h: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -251,6 +262,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
     duplicates = 0
     frames = 0
     t_start = time.perf_counter()
+    scope = ExitStack()
+    scope.enter_context(torch_threads(cfg.threads))
     bar = tqdm(total=n_frames or None, desc=f"track {cfg.tracker}", unit="frame", disable=not progress,
                leave=False)
     try:
@@ -300,6 +313,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         raise
     finally:
         bar.close()
+        scope.close()
     wall = time.perf_counter() - t_start
     if frames == 0:
         raise TorchtrackError(f"{source.path}: no frames")
