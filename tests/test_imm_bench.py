@@ -11,7 +11,7 @@ def test_bench_imm_reports_and_agrees_with_filterpy(tmp_path):
     pytest.importorskip("filterpy")
     out = tmp_path / "b.json"
     rc = main(["bench", "imm", "--tracks", "64", "--steps", "4", "--reference-tracks", "4", "--no-compile",
-               "--threads", "1", "--json", str(out)])
+               "--json", str(out)])
     assert rc == 0
     res = json.loads(out.read_text())
     for key in ("workload", "ours_per_s", "reference", "reference_per_s", "ratio"):
