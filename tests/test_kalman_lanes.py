@@ -110,3 +110,19 @@ def test_missing_measurements_never_propagate_nan():
     kf.zero_grad()
     kf.run(z, init).log_likelihood.sum().backward()
     assert all(torch.isfinite(p.grad).all() for p in kf.parameters())
+
+
+def test_lanes_update_matches_the_batch_first_update_with_broadcasting():
+    gen = torch.Generator().manual_seed(8)
+    kf = _random_model(gen)
+    n, m = kf.state_dim, kf.measurement.meas_dim
+    A = torch.randn(n, n, generator=gen, dtype=F64)
+    state = GaussianState(torch.randn(n, generator=gen, dtype=F64), A @ A.T + torch.eye(n, dtype=F64))  # batch ()
+    z = torch.randn(4, 5, m, generator=gen, dtype=F64)                                                  # (4, 5)
+    z[0, 1, 2] = float("nan")
+    mask = torch.rand(4, 5, generator=gen) > 0.3
+    post, info = kf.update(state, z, mask)
+    ref_post, ref_info = _GaussianFilter.update(kf, state, z, mask)
+    for got, want in zip((*post, *info), (*ref_post, *ref_info)):
+        torch.testing.assert_close(got, want.expand_as(got), rtol=1e-10, atol=1e-10)
+    assert post.cov.shape == (4, 5, n, n)

@@ -200,10 +200,41 @@ class KalmanFilter(_GaussianFilter):
     def _posterior_cov(self, state, K, S):
         return joseph_cov(state.cov, K, self.measurement.matrix(), self.measurement.noise_cov())
 
+    def _small(self) -> bool:
+        """Whether the model is small enough for the unrolled per-lane arithmetic of the lanes path."""
+        return (self.state_dim <= lanes.MAX_STATE and self.measurement.meas_dim <= lanes.MAX_MEAS
+                and type(self.measurement).residual is MeasurementModel.residual)
+
+    def update(self, state: GaussianState, z: Tensor, mask: Tensor | None = None,
+               check: bool = True) -> tuple[GaussianState, UpdateInfo]:
+        """Joseph-form update (see :meth:`_GaussianFilter.update`). With a shared ``H``, ``R`` and a
+        small model it runs in the batch-last layout of :mod:`~torchtrack.filters.kalman_lanes`
+        (rank-one updates instead of tiny batched GEMMs; outputs are views of that storage)."""
+        H, R = self.measurement.matrix(), self.measurement.noise_cov()
+        if not (self._small() and H.dim() == 2 and R.dim() == 2):
+            return super().update(state, z, mask, check)
+        n, m = self.state_dim, self.measurement.meas_dim
+        if z.shape[-1] != m:
+            raise TorchtrackError(f"{self.name}: measurement z must have shape (*, {m}); got {tuple(z.shape)}")
+        _check_state(state, n, self.name)
+        present, z = _presence(z, mask)
+        batch = torch.broadcast_shapes(state.mean.shape[:-1], state.cov.shape[:-2], z.shape[:-1], present.shape)
+        B = math.prod(batch)
+        u = lanes.update(state.mean.expand(*batch, n).reshape(B, n).transpose(0, 1),
+                         state.cov.expand(*batch, n, n).reshape(B, n, n).permute(1, 2, 0),
+                         z.expand(*batch, m).reshape(B, m).transpose(0, 1), present.expand(batch).reshape(B), H, R)
+        if check and not bool(u.ok.all()):
+            raise TorchtrackError(f"{self.name}: innovation covariance S is not positive definite "
+                                  f"({int((~u.ok).sum())} of {B} matrices failed Cholesky factorisation)")
+        post = GaussianState(u.mean.transpose(0, 1).reshape(*batch, n), u.cov.permute(2, 0, 1).reshape(*batch, n, n))
+        info = UpdateInfo(u.innovation.transpose(0, 1).reshape(*batch, m),
+                          u.innovation_cov.permute(2, 0, 1).reshape(*batch, m, m), u.nis.reshape(batch),
+                          u.log_likelihood.reshape(batch), present.expand(batch))
+        return post, info
+
     def _shared_matrices(self, dt) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
         """``(F, Q, H, R)`` when all are shared 2-D matrices of a small model (the lanes path), else None."""
-        if (self.state_dim > lanes.MAX_STATE or self.measurement.meas_dim > lanes.MAX_MEAS
-                or type(self.measurement).residual is not MeasurementModel.residual):
+        if not self._small():
             return None
         mats = (self.motion.transition_matrix(dt), self.motion.process_noise(dt), self.measurement.matrix(),
                 self.measurement.noise_cov())

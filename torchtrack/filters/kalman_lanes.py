@@ -133,12 +133,12 @@ def update(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, H: Tensor, R
         mean = mean + Kt[r] * nu_rows[r]
     AP = P
     for r in range(m):
-        AP = AP - Kt[r].unsqueeze(1) * Ct[r].unsqueeze(0)           # A P = P − K Cᵀ
+        AP = torch.addcmul(AP, Kt[r].unsqueeze(1), Ct[r].unsqueeze(0), value=-1)   # A P = P − K Cᵀ
     D = _right(AP, H)                                               # (n, m, B): (A P Hᵀ)[i, r]
     KRt = _left(R.transpose(0, 1), torch.stack(Kt))                 # (m, n, B): rows of (K R)ᵀ
     cov = AP
     for r in range(m):
-        cov = cov - (D[:, r] - KRt[r]).unsqueeze(1) * Kt[r].unsqueeze(0)
+        cov = torch.addcmul(cov, (D[:, r] - KRt[r]).unsqueeze(1), Kt[r].unsqueeze(0), value=-1)
     cov = symmetrize(cov)
     white = _solve_lower(L, nu_rows)
     nis = white[0] * white[0]
