@@ -106,6 +106,10 @@ class Matrices(NamedTuple):
     p_survival: Tensor
     p_detection: Tensor
     clutter_density: Tensor
+    log_p_survival: Tensor
+    log_p_detection: Tensor
+    log_p_missed: Tensor     # log(1 − p_D)
+    log_clutter: Tensor      # log κ
 
 
 class UpdateInfo(NamedTuple):
@@ -174,16 +178,17 @@ class GMPHD(nn.Module):
 
     def matrices(self, dt: float = 1.0) -> Matrices:
         """``F, Q, H, R, p_S, p_D, κ`` for a step of ``dt`` (compute once per step; differentiable)."""
+        ps, pd, kappa = self.p_survival(), self.p_detection(), self.clutter_density()
         return Matrices(self.motion.transition_matrix(dt), self.motion.process_noise(dt),
-                        self.measurement.matrix(), self.measurement.noise_cov(), self.p_survival(),
-                        self.p_detection(), self.clutter_density())
+                        self.measurement.matrix(), self.measurement.noise_cov(), ps, pd, kappa,
+                        torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa))
 
     def predict(self, state: MixtureState, mats: Matrices) -> MixtureState:
         """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
         F, Q = mats.F, mats.Q
         mean = state.mean @ F.transpose(-1, -2)
         cov = F @ state.cov @ F.transpose(-1, -2) + Q      # symmetric up to rounding; update symmetrises
-        log_w = state.log_weight + torch.log(mats.p_survival)
+        log_w = state.log_weight + mats.log_p_survival
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
     def update(self, state: MixtureState, z: Tensor, mats: Matrices,
@@ -199,10 +204,8 @@ class GMPHD(nn.Module):
         if z.dim() != 2 or z.shape[1] != m_dim:
             raise TorchtrackError(f"measurements must have shape (M, {m_dim}); got {tuple(z.shape)}")
         z = z.to(state.mean.dtype)
-        pd = mats.p_detection
-        log_pd = torch.log(pd)
-        kappa = mats.clutter_density if clutter is None else clutter
-        log_kappa = torch.log(kappa).expand(z.shape[0]) if z.shape[0] else torch.log(kappa).reshape(1)[:0]
+        pd, log_pd = mats.p_detection, mats.log_p_detection
+        log_kappa = (mats.log_clutter if clutter is None else torch.log(clutter)).expand(z.shape[0])
         live_w = torch.where(state.mask, state.log_weight, torch.full_like(state.log_weight, NEG_INF))
 
         PHt = state.cov @ H.transpose(-1, -2)                       # (J, n, m)
@@ -244,7 +247,7 @@ class GMPHD(nn.Module):
         nu_sel = z[kk] - z_hat[jj]                                   # (G, m)
         det_mean = state.mean[jj] + (K[jj] @ nu_sel.unsqueeze(-1)).squeeze(-1)
 
-        miss_logw = live_w + torch.log1p(-pd)
+        miss_logw = live_w + mats.log_p_missed
         post = MixtureState(
             torch.cat([miss_logw, det_logw]),
             torch.cat([state.mean, det_mean]),
@@ -309,16 +312,12 @@ def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, 
     """Pairs ``(i, j)`` (two ``(K,)`` index tensors) with ``j < i`` and ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U``.
 
     Pairs are first screened on the position block (the first ``min(n, 2)`` coordinates): the full
-    Mahalanobis distance is at least ``‖Δp‖² / λ_max(P_i,pos)``, so only pairs passing that bound are
-    solved exactly (through Cholesky factors), keeping the exact test sparse.
+    Mahalanobis distance is at least ``‖Δp‖² / λ_max(P_i,pos) ≥ ‖Δp‖² / tr(P_i,pos)``, so only pairs
+    passing that bound are solved exactly (through Cholesky factors), keeping the exact test sparse.
     """
     J, n = mean.shape
     k = min(n, 2)
-    if k == 2:
-        a, b, c = cov[:, 0, 0], cov[:, 0, 1], cov[:, 1, 1]
-        lam = 0.5 * (a + c) + torch.sqrt((0.5 * (a - c)) ** 2 + b**2)
-    else:
-        lam = cov[:, 0, 0]
+    lam = torch.diagonal(cov[:, :k, :k], dim1=-2, dim2=-1).sum(-1)
     pos = mean[:, :k]
     d2 = (pos.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)                 # [i, j]
     cand = torch.tril(d2 <= threshold * lam.unsqueeze(1) * (1 + 1e-4), diagonal=-1)

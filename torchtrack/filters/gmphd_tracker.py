@@ -170,7 +170,7 @@ class GMPHDTracker(nn.Module):
                 vmap.update(pos[settled], vel[settled])
         zb = z[is_birth]
         vb = velocity[is_birth] if velocity is not None else None
-        b_mean, b_std, b_logw = self.birth(zb, vb, vmap, birth_consts)
+        b_mean, b_std, b_logw = self.birth.forward(zb, vb, vmap, birth_consts)
         B = int(zb.shape[0])
         b_label = torch.arange(next_label, next_label + B, dtype=torch.long, device=z.device)
         births = phd.gaussian_birth(b_mean, b_std, b_logw, b_label)
