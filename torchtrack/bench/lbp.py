@@ -97,7 +97,15 @@ def _loadavg() -> float | None:
 def run(args) -> int:
     if args.threads < 1:
         raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
+    previous = torch.get_num_threads()
     torch.set_num_threads(args.threads)
+    try:
+        return _run(args)
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _run(args) -> int:
     try:
         sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
     except ValueError as exc:

@@ -148,7 +148,15 @@ def _to_numpy_state(st: PMBState) -> dict:
 def run(args) -> int:
     if args.threads < 1:
         raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
+    previous = torch.get_num_threads()
     torch.set_num_threads(args.threads)
+    try:
+        return _run(args)
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _run(args) -> int:
     if args.targets < 1 or args.measurements < 1 or args.scans < 1:
         raise TorchtrackError("--targets, --measurements and --scans must be >= 1")
     dtype = getattr(torch, args.dtype)
