@@ -8,7 +8,13 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.particle import ParticleFilter, effective_sample_size, normalize
+from torchtrack.filters.particle import (
+    ParticleFilter,
+    ParticleState,
+    effective_sample_size,
+    normalize,
+    weighted_moments,
+)
 from torchtrack.gaussian import kalman_update
 from torchtrack.models import ConstantVelocity, LinearPosition
 
@@ -103,15 +109,32 @@ def test_gradient_matches_kalman_filter():
         assert abs(median / exact_g - 1) < 0.2, (median, exact_g)
 
 
-def test_soft_resampling_and_jitter_run_and_differentiate():
+def test_soft_resampling_runs_and_differentiates():
     motion, meas = _models()
     z = _simulate(5)
-    pf = ParticleFilter(motion, meas, 500, soft_alpha=0.5, jitter=0.1, ess_threshold=None)
+    pf = ParticleFilter(motion, meas, 500, soft_alpha=0.5, ess_threshold=None)
     out = pf.run(z.unsqueeze(1), PRIOR_MEAN.expand(1, 2), PRIOR_COV, DT, torch.Generator().manual_seed(0))
     _, _, exact = _kalman(motion, meas, z, PRIOR_MEAN, PRIOR_COV)
     assert abs(out.log_likelihood.item() - exact.item()) < 1.0
     (g,) = torch.autograd.grad(out.log_likelihood.sum(), [meas.sigma.raw])
     assert torch.isfinite(g)
+
+
+def test_jitter_rejuvenates_duplicates_with_the_kernel_spread():
+    """After resampling, jitter h moves every copy by h·chol(Σ̂)·ε: no duplicates are left and the
+    spread added is h² Σ̂ (Musso et al. 2001)."""
+    motion, meas = _models()
+    g = torch.Generator().manual_seed(0)
+    x = torch.randn(1, 4000, 2, generator=g, dtype=torch.float64) * torch.tensor([2.0, 0.5], dtype=torch.float64)
+    log_w = torch.log_softmax(-0.5 * x[..., 0] ** 2, -1)          # uneven weights: many duplicates
+    state = ParticleState(x, log_w, torch.zeros(1, dtype=torch.float64))
+    plain = ParticleFilter(motion, meas, 4000).resample(state, torch.Generator().manual_seed(1))
+    jit = ParticleFilter(motion, meas, 4000, jitter=0.3).resample(state, torch.Generator().manual_seed(1))
+    assert plain.particles[0, :, 0].unique().numel() < 3000
+    assert jit.particles[0, :, 0].unique().numel() == 4000
+    _, cov = weighted_moments(x, log_w)
+    added = (jit.particles - plain.particles)[0]
+    assert torch.allclose(added.T @ added / 4000, 0.09 * cov[0], rtol=0.1, atol=1e-3)
 
 
 @pytest.mark.parametrize("n", [0, -3, 2.5])
