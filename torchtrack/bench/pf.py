@@ -16,6 +16,7 @@ The mean final probability of the true class is printed for both as a sanity che
 from __future__ import annotations
 
 import math
+import os
 import time
 
 import numpy as np
@@ -108,6 +109,14 @@ def _cpu_time(fn):
 
 
 def run(args) -> int:
+    previous = torch.get_num_threads()
+    try:
+        return _run(args)
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _run(args) -> int:
     for name in ("runs", "particles", "scans", "threads", "repeats"):
         if getattr(args, name) < 1:
             raise TorchtrackError(f"--{name} must be >= 1; got {getattr(args, name)}")
@@ -130,7 +139,7 @@ def run(args) -> int:
     steps = args.runs * bank.num_classes * args.particles * args.scans
     extra = {
         "runs": args.runs, "particles_per_class": args.particles, "scans": args.scans, "dtype": args.dtype,
-        "threads": args.threads, "ours_ms_per_scan": 1e3 * t_ours / args.scans,
+        "threads": args.threads, "load_average_1min": os.getloadavg()[0], "ours_ms_per_scan": 1e3 * t_ours / args.scans,
         "reference_ms_per_scan": 1e3 * t_ref / args.scans,
         "ours_cpu_ms_per_scan": 1e3 * c_ours / args.scans, "reference_cpu_ms_per_scan": 1e3 * c_ref / args.scans,
         "ours_final_class2_probability": float(ours.class_prob[-1, :, 1].mean()),

@@ -12,6 +12,7 @@ and the time per update — one run, both classes — and per scan for all runs 
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
 from pathlib import Path
@@ -122,6 +123,14 @@ def time_one_run(bank: MultipleModelParticleFilter, cfg: dict, traj: Trajectory,
 
 
 def run(args) -> int:
+    previous = torch.get_num_threads()
+    try:
+        return _run(args)
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _run(args) -> int:
     if args.runs < 1:
         raise TorchtrackError(f"--runs must be >= 1; got {args.runs}")
     if args.threads < 1:
@@ -170,7 +179,7 @@ def run(args) -> int:
           f"the scans, best of {len(per_update_passes)} passes): {per_update:.3f} ms wall, {per_update_cpu:.3f} ms CPU"
           f"  [all passes: {', '.join(f'{t:.2f}' for t in per_update_passes)} ms]")
     print(f"time per scan, all {args.runs} runs at once (median): {per_scan:.1f} ms wall, {per_scan_cpu:.1f} ms CPU"
-          f"   [threads: {args.threads}; CPU time excludes waiting for a loaded machine]")
+          f"   [threads: {args.threads}; load average {os.getloadavg()[0]:.1f}; CPU time excludes waiting for a core]")
     payload = {
         "class_probability_correct": main["class_probability_correct"],
         "rmse_position": main["rmse_position"],
@@ -188,6 +197,7 @@ def run(args) -> int:
         "mode1_probability": main["mode1_probability"],
         "particles_per_class": cfg["filter"]["particles"],
         "threads": args.threads,
+        "load_average_1min": os.getloadavg()[0],
         "seed": args.seed,
     }
     write_json(args.json, payload)
