@@ -204,7 +204,7 @@ class MultipleModelParticleFilter(nn.Module):
 
     # ---------------------------------------------------------------- set-up
     def tables(self, dtype: torch.dtype, batch_ndim: int = 1) -> Tables:
-        """Control inputs, noise levels, cumulative transition rows (flattened over (class, mode)),
+        """Control inputs, noise levels, alias tables of the transition rows (flattened over (class, mode)),
         the radar constants and the speed envelopes, in ``dtype``, for runs with ``batch_ndim`` dims."""
         C, M = self.num_classes, self.num_modes
         controls = torch.cat([m.controls for m in self.motions]).to(dtype).T
