@@ -4,12 +4,15 @@ label fix (2.3), adaptive birth with velocity map and detector-velocity initiali
 One frame ``k`` (:meth:`GMPHDTracker.advance`)::
 
     predict (eq. 3)  →  birth measurements Z_k^b (eq. 4, against the predicted components)
-    →  update with Z_k  →  prune, merge, cap  →  extract (w > ½)  →  label fix (2.3)
-    →  velocity map ← settled estimates  →  births from Z_k^b (eq. 5–6) join the mixture for k+1
+    →  update with Z_k  →  prune, merge (established labels win), cap  →  extract (w > ½)
+    →  label fix (2.3)  →  coasting  →  label hand-over  →  velocity map ← settled estimates
+    →  births from Z_k^b (eq. 5–6) join the mixture for k+1
 
-With ``label_fix=False``, ``use_velocity_map=False`` and ``use_detector_velocity=False`` this is the
-plain labelled GM-PHD of Panta, Clark & Vo (2009) with measurement-driven birth (the paper's baseline),
-which reports one estimate per label (the highest weight).
+Coasting, the hand-over and the merge priority are this project's extensions of the label fix (see
+``docs/gmphd.md``); each can be switched off. With ``label_fix=False``, ``handover_frames=0``,
+``coast_threshold=None``, ``use_velocity_map=False`` and ``use_detector_velocity=False`` this is the plain
+labelled GM-PHD of Panta, Clark & Vo (2009) with measurement-driven birth (the paper's baseline), which
+reports one estimate per label (the highest weight).
 """
 
 from __future__ import annotations
@@ -69,12 +72,19 @@ class GMPHDTracker(nn.Module):
         label_fix: apply the label fix of section 2.3 (otherwise one estimate per label is reported).
         settled_velocity_var: estimates whose velocity variance ``P_vx + P_vy`` is below this feed the
             velocity map.
+        handover_frames, handover_distance: a label lost for at most ``handover_frames`` frames is given to
+            a new estimate within ``handover_distance`` px of its expected path (0 frames: off).
+        coast_threshold: a label reported at the previous frame stays reported while its best component
+            weighs more than this (None: off), i.e. through a missed detection.
+        fix_separation: label-fix duplicates closer than this (px) to the label's keeper keep the label
+            and are not reported.
+        merge_priority: with the label fix, a merged group keeps a label reported at the previous frame.
         dtype: floating dtype of the streaming state (float32 is fast, float64 accurate).
     """
 
     def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = True,
                  settled_velocity_var: float = 4.0, handover_frames: int = 8, handover_distance: float = 20.0,
-                 coast_threshold: float | None = 0.06, fix_separation: float = 8.0,
+                 coast_threshold: float | None = 0.06, fix_separation: float = 8.0, merge_priority: bool = True,
                  dtype: torch.dtype = torch.float32):
         super().__init__()
         self.phd = phd if phd is not None else GMPHD()
@@ -85,6 +95,7 @@ class GMPHDTracker(nn.Module):
         self.handover_distance = handover_distance
         self.coast_threshold = coast_threshold
         self.fix_separation = fix_separation
+        self.merge_priority = merge_priority
         self.to(dtype)
         self.dtype = dtype
         self.reset()
@@ -97,7 +108,7 @@ class GMPHDTracker(nn.Module):
         cfg = dict(config or {})
         cfg.update(overrides)
         known = {"filter", "birth", "label_fix", "settled_velocity_var", "handover_frames", "handover_distance",
-                 "coast_threshold", "fix_separation", "dtype"}
+                 "coast_threshold", "fix_separation", "merge_priority", "dtype"}
         unknown = set(cfg) - known
         if unknown:
             raise TorchtrackError(f"unknown GM-PHD tracker option(s) {sorted(unknown)}; known: {sorted(known)}")
@@ -117,7 +128,8 @@ class GMPHDTracker(nn.Module):
                    handover_frames=int(cfg.get("handover_frames", 8)),
                    handover_distance=float(cfg.get("handover_distance", 20.0)),
                    coast_threshold=cfg.get("coast_threshold", 0.06),
-                   fix_separation=float(cfg.get("fix_separation", 8.0)), dtype=dtype)
+                   fix_separation=float(cfg.get("fix_separation", 8.0)),
+                   merge_priority=bool(cfg.get("merge_priority", True)), dtype=dtype)
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
@@ -139,7 +151,7 @@ class GMPHDTracker(nn.Module):
         pred = phd.predict(state, mats)
         is_birth = self.birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.chunk)
         post, info = phd.update(pred, z, mats)
-        post = phd.reduce(post, memory.prev_label if self.label_fix else None)
+        post = phd.reduce(post, memory.prev_label if self.label_fix and self.merge_priority else None)
         est = phd.extract(post)
         next_label = memory.next_label
         if self.label_fix:
