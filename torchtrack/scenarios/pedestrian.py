@@ -44,6 +44,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--p-survival", type=float, default=None,
                         help="feature survival probability (config default 0.99; the paper states 0.7)")
     parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch intra-op threads (default 1: the tensors are small, more threads only spin)")
     add_common_options(parser)
 
 
@@ -187,6 +189,17 @@ def ospa_per_step(truth: Truth, run: Run, c: float, p: float) -> torch.Tensor:
 
 
 def run(args) -> int:
+    if args.threads < 1:
+        raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
+    previous = torch.get_num_threads()
+    torch.set_num_threads(args.threads)
+    try:
+        return _run(args)
+    finally:
+        torch.set_num_threads(previous)
+
+
+def _run(args) -> int:
     cfg = load_config(args.config)
     if args.runs < 1:
         raise TorchtrackError(f"--runs must be >= 1; got {args.runs}")
