@@ -71,16 +71,19 @@ def load_config(path: Path) -> dict:
         cfg["scenario"] = FormationConfig(**{**cfg["scenario"], "classes": tuple(cfg["scenario"]["classes"])})
     except TypeError as exc:
         raise TorchtrackError(f"{path}: bad 'scenario' section: {exc}") from exc
+    if cfg["filter"].get("input_axis") not in ("x", "y"):
+        raise TorchtrackError(f"{path}: filter.input_axis must be 'x' or 'y'")
     if cfg["association"].get("cc_region") not in ("ellipse", "density"):
         raise TorchtrackError(f"{path}: association.cc_region must be 'ellipse' or 'density'")
     return cfg
 
 
 def build_bank(fcfg: dict, sigma_w: float, confusion) -> ClassConditionedIMM:
-    """One :class:`ConstantVelocityIMM` per class: lateral control inputs ``model_sets[c] · g``."""
+    """One :class:`ConstantVelocityIMM` per class: control inputs ``model_sets[c] · g`` along ``input_axis``."""
     imms = []
     for inputs in fcfg["model_sets"]:
-        controls = [[0.0, a * fcfg["g"]] for a in inputs]
+        axis = {"x": 0, "y": 1}[fcfg["input_axis"]]
+        controls = [[a * fcfg["g"] if d == axis else 0.0 for d in range(2)] for a in inputs]
         motion = ModeControlInput(controls, [fcfg["process_sigma"]] * len(inputs), learnable=False)
         meas = LinearPosition(2, sigma=sigma_w, learnable=False)
         imms.append(ConstantVelocityIMM(motion, meas, torch.tensor(fcfg["transition"])))
@@ -145,10 +148,10 @@ def track_formation(data: FormationData, cfg: dict, gate: str, gen: torch.Genera
     sw, sv = scfg.measurement_sigma, cfg["filter"]["init_velocity_sigma"]
     mean = torch.cat([data.first_z, torch.tensor([scfg.speed, 0.0], dtype=dtype).expand(R, N, 2)], -1)
     cov = torch.diag(torch.tensor([sw**2, sw**2, sv**2, sv**2], dtype=dtype))
-    # class probabilities from the first measurement's classifier report: P(c) ∝ C[c, ĉ_0] (uniform prior)
-    conf = bank.confusion.to(dtype)
-    state = bank.initial_state(mean, cov, conf.transpose(0, 1)[data.first_class] / conf.sum(0)[data.first_class,
-                                                                                                      None])
+    # class probabilities from the confirming detections' reports: P(c) ∝ Π_r C[c, ĉ_r] (uniform prior)
+    log_conf = torch.log(bank.confusion.to(dtype))
+    log_c0 = log_conf.transpose(0, 1)[data.first_class].sum(-2)          # (R, N, C)
+    state = bank.initial_state(mean, cov, torch.softmax(log_c0, -1))
     correct = torch.zeros(R, K, N, dtype=torch.bool)
     volume = torch.zeros(R, K, N, dtype=dtype)
     estimate = torch.zeros(R, K, N, 4, dtype=dtype)

@@ -8,8 +8,8 @@ Targets start on a vertical line, ``separation`` metres apart, and move left to 
 square metre, uniform over the surveillance rectangle, with classes drawn uniformly. Everything is
 batched over Monte Carlo runs; measurements of a scan live in a fixed-capacity tensor with a mask and
 are shuffled, so their order carries no information. Classes are 0-based (paper's class 1 is 0).
-Tracks are started from a first measurement of each target (``first_z``, ``first_class``: one more
-detection with its classifier report at scan 0).
+Tracks are started from a first measurement of each target (``first_z``, scan 0, always detected) and
+the classifier reports of the ``init_reports`` detections that confirmed it (``first_class``).
 """
 
 from __future__ import annotations
@@ -38,6 +38,7 @@ class FormationConfig:
     clutter_density: float = 1e-8      # points per m² (0.01 per km², the paper)
     margin: float = 500.0              # m, surveillance rectangle beyond the formation's extent
     confusion: list[list[float]] = field(default_factory=lambda: [[0.98, 0.02], [0.02, 0.98]])
+    init_reports: int = 2              # classifier reports available when a track starts (confirmation)
 
     def region(self) -> tuple[float, float, float, float]:
         """Surveillance rectangle ``(x_min, x_max, y_min, y_max)`` in metres."""
@@ -54,7 +55,7 @@ class FormationData(NamedTuple):
     z_mask: Tensor        # (R, K, Mz) bool
     target_class: Tensor  # (N,) int64
     first_z: Tensor       # (R, N, 2) the measurement each track starts from (scan 0, always detected)
-    first_class: Tensor   # (R, N) int64 its classifier report
+    first_class: Tensor   # (R, N, init_reports) int64 classifier reports of the target before the track starts
 
 
 def simulate_formation(cfg: FormationConfig, runs: int, generator: torch.Generator,
@@ -108,7 +109,8 @@ def simulate_formation(cfg: FormationConfig, runs: int, generator: torch.Generat
     rep, origin, mask = (torch.gather(t, 2, perm) for t in (rep, origin, mask))
     z = torch.where(mask.unsqueeze(-1), z, torch.zeros_like(z))
     first_z = p[:, 0] + cfg.measurement_sigma * torch.randn(R, N, 2, generator=g, dtype=dtype)
-    first_class = torch.multinomial(conf[cls].repeat(R, 1), 1, generator=g).reshape(R, N)
+    first_class = torch.multinomial(conf[cls].repeat(R, 1), cfg.init_reports, replacement=True,
+                                    generator=g).reshape(R, N, cfg.init_reports)
     return FormationData(truth, z, rep, origin, mask, cls, first_z, first_class)
 
 
