@@ -110,6 +110,7 @@ class Matrices(NamedTuple):
     log_p_detection: Tensor
     log_p_missed: Tensor     # log(1 − p_D)
     log_clutter: Tensor      # log κ
+    selects_position: bool = False   # H = [I_m 0]: H x is a slice of x (a faster exact path)
 
 
 class UpdateInfo(NamedTuple):
@@ -179,9 +180,13 @@ class GMPHD(nn.Module):
     def matrices(self, dt: float = 1.0) -> Matrices:
         """``F, Q, H, R, p_S, p_D, κ`` for a step of ``dt`` (compute once per step; differentiable)."""
         ps, pd, kappa = self.p_survival(), self.p_detection(), self.clutter_density()
+        H = self.measurement.matrix()
+        m, n = H.shape
+        eye = torch.eye(m, n, dtype=H.dtype, device=H.device)
+        selects = bool(torch.equal(H.detach(), eye))
         return Matrices(self.motion.transition_matrix(dt), self.motion.process_noise(dt),
-                        self.measurement.matrix(), self.measurement.noise_cov(), ps, pd, kappa,
-                        torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa))
+                        H, self.measurement.noise_cov(), ps, pd, kappa,
+                        torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa), selects)
 
     def predict(self, state: MixtureState, mats: Matrices) -> MixtureState:
         """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
@@ -208,8 +213,14 @@ class GMPHD(nn.Module):
         log_kappa = (mats.log_clutter if clutter is None else torch.log(clutter)).expand(z.shape[0])
         live_w = torch.where(state.mask, state.log_weight, torch.full_like(state.log_weight, NEG_INF))
 
-        PHt = state.cov @ H.transpose(-1, -2)                       # (J, n, m)
-        S = H @ PHt + R                          # (J, m, m); Cholesky reads its lower triangle only
+        if mats.selects_position:                                    # H = [I 0]: slices, no products
+            PHt = state.cov[:, :, :m_dim]
+            S = PHt[:, :m_dim] + R
+            z_hat = state.mean[:, :m_dim]
+        else:
+            PHt = state.cov @ H.transpose(-1, -2)                   # (J, n, m)
+            S = H @ PHt + R                      # (J, m, m); Cholesky reads its lower triangle only
+            z_hat = state.mean @ H.transpose(-1, -2)                # (J, m)
         L, info = torch.linalg.cholesky_ex(S)
         if state.size and bool((info != 0).any()):
             raise TorchtrackError("GMPHD update: innovation covariance S is not positive definite "
@@ -218,7 +229,6 @@ class GMPHD(nn.Module):
         Linv = torch.linalg.solve_triangular(L, eye_m.expand_as(L), upper=False)   # (J, m, m)
         K = PHt @ (Linv.transpose(-1, -2) @ Linv)                  # (J, n, m)  K = P Hᵀ S⁻¹
         P_upd = symmetrize(state.cov - K @ PHt.transpose(-1, -2))    # P − K S Kᵀ, symmetrised
-        z_hat = state.mean @ H.transpose(-1, -2)                    # (J, m)
         half_logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (J,)
         base = log_pd + live_w - half_logdet - 0.5 * m_dim * LOG_2PI            # (J,)
 
@@ -362,12 +372,15 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
         ii, jj = _within_reach(mean.detach(), cov.detach(), threshold)   # i within reach of heavier j
         if ii.numel() == 0:
             return state
-        alive = torch.ones(J, dtype=torch.bool, device=mean.device)
-        owner = idx.clone()
         big = torch.full((J,), J, dtype=torch.long, device=mean.device)
-        for _ in range(rounds):
-            if ii.numel() == 0:
-                break
+        # round 1 (every component alive): leaders have no heavier component within reach
+        blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii, True)
+        cand = ~blocked[jj]
+        first = big.scatter_reduce(0, ii[cand], jj[cand], "amin")
+        joins = first < J
+        owner = torch.where(joins, first, idx)
+        alive = blocked & ~joins
+        for _ in range(rounds - 1 if bool(alive.any()) else 0):
             live = alive[ii] & alive[jj]
             blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii[live], True)
             leader = alive & ~blocked
@@ -401,5 +414,5 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
             best = torch.full((G,), -1.0, dtype=w.dtype, device=w.device).scatter_reduce(0, gid, key, "amax")
             win = key == best[gid]
             label = label.clone().scatter_(0, gid[win], state.label[win])
-    return MixtureState(torch.log(wsum) + w_max, mu, symmetrize(P), label,
+    return MixtureState(torch.log(wsum) + w_max, mu, P, label,
                         torch.ones(G, dtype=torch.bool, device=w.device))
