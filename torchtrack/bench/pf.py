@@ -40,6 +40,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--scans", type=int, default=80, help="scans of the trajectory (default 80)")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--compile", action="store_true", help="torch.compile the filter step (inductor)")
     parser.add_argument("--repeats", type=int, default=3, help="best of this many timed runs each (default 3)")
     add_common_options(parser)
 
@@ -124,6 +125,8 @@ def _run(args) -> int:
     dtype = getattr(torch, args.dtype)
     traj = jtc_trajectory(args.scans)
     bank = paper_bank(args.particles)
+    if args.compile:
+        bank.kernel = torch.compile(bank.kernel, dynamic=False)
     gen = torch.Generator().manual_seed(args.seed)
     z = simulate_measurements(traj, bank.measurement, args.runs, gen).to(dtype)
     mean = traj.states[0].to(dtype).expand(args.runs, 4)
@@ -139,14 +142,16 @@ def _run(args) -> int:
     steps = args.runs * bank.num_classes * args.particles * args.scans
     extra = {
         "runs": args.runs, "particles_per_class": args.particles, "scans": args.scans, "dtype": args.dtype,
-        "threads": args.threads, "load_average_1min": os.getloadavg()[0], "ours_ms_per_scan": 1e3 * t_ours / args.scans,
+        "threads": args.threads, "compiled": args.compile, "load_average_1min": os.getloadavg()[0],
+        "ours_ms_per_scan": 1e3 * t_ours / args.scans,
         "reference_ms_per_scan": 1e3 * t_ref / args.scans,
         "ours_cpu_ms_per_scan": 1e3 * c_ours / args.scans, "reference_cpu_ms_per_scan": 1e3 * c_ref / args.scans,
         "ours_final_class2_probability": float(ours.class_prob[-1, :, 1].mean()),
         "reference_final_class2_probability": float(ref[-1, :, 1].mean()),
     }
+    compiled = ", compiled" if args.compile else ""
     report(f"JTC bank, {args.runs} runs x 2 classes x {args.particles} particles x {args.scans} scans, "
-           f"{args.dtype}, {args.threads} thread(s)", steps / t_ours, "numpy (vectorised, same algorithm)",
+           f"{args.dtype}, {args.threads} thread(s){compiled}", steps / t_ours, "numpy (vectorised, same algorithm)",
            steps / t_ref, "particle-steps", args.json, extra)
     print(f"ms per scan (wall): ours {extra['ours_ms_per_scan']:.1f}, numpy {extra['reference_ms_per_scan']:.1f}; "
           f"(process CPU, one pass): ours {extra['ours_cpu_ms_per_scan']:.1f}, "
