@@ -242,9 +242,12 @@ class _Compiled:
     def __init__(self):
         self.compiled = None
         try:
-            # one fused loop: allow a large fusion group, and write stacked outputs in place
+            # one fused loop: a large fusion group, stacked outputs stored by that loop, and few
+            # intermediates spilled to memory (inlining everything makes lowering blow up)
             self.compiled = torch.compile(fused_step, fullgraph=True,
-                                          options={"max_fusion_size": 4096, "max_pointwise_cat_inputs": 1})
+                                          options={"max_fusion_size": 4096, "max_pointwise_cat_inputs": 1,
+                                                   "realize_opcount_threshold": 60,
+                                                   "realize_reads_threshold": 8})
         except Exception as err:  # noqa: BLE001 - any backend failure means: run eagerly
             warnings.warn(f"torch.compile unavailable for the Kalman filter ({err}); running eagerly", stacklevel=2)
 
