@@ -278,7 +278,9 @@ class KalmanFilter(_GaussianFilter):
         if mask is not None:
             present = present & mask.expand(T, *batch).reshape(T, B).to(torch.bool)
         all_present = bool(present.all())
-        z = torch.where(present.unsqueeze(-1), z, 0.0).transpose(1, 2).contiguous()  # (T, m, B)
+        if not all_present:
+            z = torch.where(present.unsqueeze(-1), z, 0.0)
+        z = z.transpose(1, 2).contiguous()                                              # (T, m, B)
         needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x, P, z, *mats))
         if compile and not needs_grad:
             mean, cov, nis, total, ok = self._run_compiled(x, P, z, None if all_present else present, mats,
