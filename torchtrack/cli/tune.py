@@ -35,6 +35,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="output folder (default: the config's output.dir, else out/tune-FILTER)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch CPU threads (default 1: small per-step matrices are fastest on one thread)")
+    parser.add_argument("--loss", default=None, help="override the config's loss (e.g. gospa)")
+    parser.add_argument("--no-grid", action="store_true", help="skip the config's grid-search baseline")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_common_options(parser, seed=None)
     for action in parser._actions:
@@ -64,9 +66,15 @@ def run(args) -> int:
 
     from torchtrack.cli._common import format_table, write_json
     from torchtrack.tune import tune
+    from torchtrack.tuning.config import read_tune_config
 
     torch.set_num_threads(max(1, args.threads))
-    report = tune(args.config, out=args.out, seed=args.seed, progress=not args.no_progress)
+    config = read_tune_config(args.config)
+    if args.loss:
+        config["loss"] = args.loss
+    if args.no_grid:
+        config.pop("grid", None)
+    report = tune(config, out=args.out, seed=args.seed, progress=not args.no_progress)
     print(format_table(["parameter", "start", "fitted", "truth", "error"], _rows(report)))
     before, after = report["held_out_before"], report["held_out_after"]
     keys = [k for k in before if k in after]
