@@ -160,3 +160,22 @@ def test_non_finite_loss_stops_and_keeps_the_last_good_parameters():
     for name, value in tun.seen[2].items():   # parameters of the last finite evaluation (call 3)
         assert torch.equal(final[name], value)
     assert all(torch.isfinite(v).all() for v in get_values(kf).values())
+
+
+def test_recorded_tracks_from_a_mot_file_with_gaps(tmp_path):
+    from torchtrack.io.mot import from_points, write_motdata
+
+    frames = [1, 2, 3, 5, 6, 2, 3, 4, 5, 6, 7]
+    ids = [1, 1, 1, 1, 1, 2, 2, 2, 2, 2, 2]
+    xs = [10.0, 11.0, 12.5, 14.0, 15.0, 50.0, 49.0, 48.0, 47.5, 46.0, 45.0]
+    path = tmp_path / "tracks.txt"
+    write_motdata(path, from_points(frames, ids, xs, [5.0] * len(xs)))
+    tun = get_tunable("kalman", {"q": 1.0, "sigma": 1.0})
+    data = tun.load_data({"file": str(path)}, torch.Generator())
+    assert [t.z.shape[0] for t in data.train] == [6, 6]
+    assert bool(torch.isnan(data.train[0].z[3]).all())          # frame 4 of id 1 is missing
+    assert data.train[1].z[0].tolist() == pytest.approx([50.0, 5.0])
+    kf = tun.build()
+    assert torch.isfinite(tun.loss(kf, data.train, "nll"))
+    with pytest.raises(TorchtrackError, match="needs truth"):
+        tun.loss(kf, data.train, "gospa")
