@@ -34,7 +34,7 @@ def labelled_gmphd(config: dict | None = None) -> GMPHDTracker:
     cfg = dict(config or {})
     birth = dict(cfg.get("birth") or {})
     birth.update(use_velocity_map=False, use_detector_velocity=False)
-    cfg.update(birth=birth, label_fix=False, handover_frames=0, coast_threshold=None)
+    cfg.update(birth=birth, label_fix=False, handover_frames=0, coast_threshold=None, confirm_new=False)
     return GMPHDTracker.from_config(cfg)
 
 

@@ -51,6 +51,7 @@ class TrackerMemory(NamedTuple):
     prev_pos: Tensor      # (E, 2) their positions
     prev_vel: Tensor      # (E, 2) their velocities
     lost: LostLabels      # labels reported recently but not at the previous frame
+    tentative: Tensor | None = None   # (T,) new labels extracted at the previous frame but not yet reported
 
 
 class StepResult(NamedTuple):
@@ -79,12 +80,14 @@ class GMPHDTracker(nn.Module):
         fix_separation: label-fix duplicates closer than this (px) to the label's keeper keep the label
             and are not reported.
         merge_priority: with the label fix, a merged group keeps a label reported at the previous frame.
+        confirm_new: a new label is reported only from the second consecutive frame it is extracted.
         dtype: floating dtype of the streaming state (float32 is fast, float64 accurate).
     """
 
     def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = True,
                  settled_velocity_var: float = 4.0, handover_frames: int = 8, handover_distance: float = 20.0,
-                 coast_threshold: float | None = 0.06, fix_separation: float = 8.0, merge_priority: bool = True,
+                 coast_threshold: float | None = 0.03, fix_separation: float = 4.0, merge_priority: bool = True,
+                 confirm_new: bool = True,
                  dtype: torch.dtype = torch.float32):
         super().__init__()
         self.phd = phd if phd is not None else GMPHD()
@@ -96,6 +99,7 @@ class GMPHDTracker(nn.Module):
         self.coast_threshold = coast_threshold
         self.fix_separation = fix_separation
         self.merge_priority = merge_priority
+        self.confirm_new = confirm_new
         self.to(dtype)
         self.dtype = dtype
         self.reset()
@@ -108,7 +112,7 @@ class GMPHDTracker(nn.Module):
         cfg = dict(config or {})
         cfg.update(overrides)
         known = {"filter", "birth", "label_fix", "settled_velocity_var", "handover_frames", "handover_distance",
-                 "coast_threshold", "fix_separation", "merge_priority", "dtype"}
+                 "coast_threshold", "fix_separation", "merge_priority", "confirm_new", "dtype"}
         unknown = set(cfg) - known
         if unknown:
             raise TorchtrackError(f"unknown GM-PHD tracker option(s) {sorted(unknown)}; known: {sorted(known)}")
@@ -127,9 +131,10 @@ class GMPHDTracker(nn.Module):
                    settled_velocity_var=float(cfg.get("settled_velocity_var", 4.0)),
                    handover_frames=int(cfg.get("handover_frames", 8)),
                    handover_distance=float(cfg.get("handover_distance", 20.0)),
-                   coast_threshold=cfg.get("coast_threshold", 0.06),
-                   fix_separation=float(cfg.get("fix_separation", 8.0)),
-                   merge_priority=bool(cfg.get("merge_priority", True)), dtype=dtype)
+                   coast_threshold=cfg.get("coast_threshold", 0.03),
+                   fix_separation=float(cfg.get("fix_separation", 4.0)),
+                   merge_priority=bool(cfg.get("merge_priority", True)),
+                   confirm_new=bool(cfg.get("confirm_new", True)), dtype=dtype)
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
@@ -174,7 +179,17 @@ class GMPHDTracker(nn.Module):
                                     self.handover_distance, dt)
             post = relabel(post, ids, handed)
             ids = handed
+            lost_before = lost
             lost = update_lost(lost, memory.prev_label, memory.prev_pos, memory.prev_vel, ids, self.handover_frames)
+        tentative = None
+        if self.confirm_new:
+            known = torch.isin(ids, memory.prev_label)
+            if self.handover_frames > 0:
+                known = known | torch.isin(ids, lost_before.label)
+            if memory.tentative is not None:
+                known = known | torch.isin(ids, memory.tentative)
+            tentative = ids[~known].detach()
+            sel, ids, pos, vel = sel[known], ids[known], pos[known], vel[known]
         if vmap is not None:
             with torch.no_grad():
                 cov = post.cov[sel]
@@ -187,7 +202,7 @@ class GMPHDTracker(nn.Module):
         b_label = torch.arange(next_label, next_label + B, dtype=torch.long, device=z.device)
         births = phd.gaussian_birth(b_mean, b_std, b_logw, b_label)
         new_state = phd.cap(concat(post, births))
-        new_memory = TrackerMemory(next_label + B, ids.detach(), pos.detach(), vel.detach(), lost)
+        new_memory = TrackerMemory(next_label + B, ids.detach(), pos.detach(), vel.detach(), lost, tentative)
         return StepResult(new_state, new_memory, ids, pos, vel, info.log_likelihood)
 
     def log_likelihood(self, measurements: list[Tensor], velocities: list[Tensor | None] | None = None,
