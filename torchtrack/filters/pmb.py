@@ -236,6 +236,13 @@ class PMBFilter(nn.Module):
         self.estimate_threshold = estimate_threshold
         self._cap_logged = False
         self._cache: dict = {}
+        self._tracked: list[Tensor] | None = None
+
+    def _apply(self, fn, *args, **kwargs):
+        """``.to()``/``.double()`` replace buffers: forget the tensors the constants cache watches."""
+        self._tracked = None
+        self._cache = {}
+        return super()._apply(fn, *args, **kwargs)
 
     # ------------------------------------------------------------------ state
     def init_state(self, batch_shape: tuple[int, ...] = (), undetected_weight: float = 0.0,
@@ -269,7 +276,9 @@ class PMBFilter(nn.Module):
         computed once and reused until a parameter or buffer changes (storage or version counter): the
         dozens of small operations that build ``F``, ``Q``, ``H``, ``R`` are then not repeated per scan.
         """
-        tensors = [*self.parameters(), *self.buffers()]
+        if self._tracked is None:
+            self._tracked = [*self.parameters(), *self.buffers()]
+        tensors = self._tracked
         cacheable = isinstance(dt, (int, float, type(None))) and not (
             torch.is_grad_enabled() and any(t.requires_grad for t in tensors))
         key = None
