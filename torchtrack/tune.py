@@ -75,25 +75,10 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     module = tunable.build()
     trainable = list(cfg["trainable"])
     select_trainable(module, trainable)  # validates names before any data work
-    data = tunable.load_data(cfg["data"] or {}, generator)
     loss = cfg.get("loss") or tunable.losses[0]
-    do_eval = bool(cfg.get("evaluate", True))
-    batch_eval = max(1, int((cfg.get("optimizer") or {}).get("batch_size", 8)))
-
-    held = data.held_out or data.train
-    start_derived = tunable.derived(module)
-    before = {}
-    if do_eval and data.train:
-        before.update(tunable.evaluate(module, held))
-    result = fit(tunable, module, trainable, data, loss, cfg.get("optimizer"), cfg.get("early_stopping"),
-                 generator, progress)
-    before["loss"] = result.held_out[0][1] if data.held_out else float("nan")
-    after = {"loss": evaluate_loss(tunable, module, held, loss, batch_eval)}
-    if not data.held_out:   # no held-out set: the training loss before and after
-        before["loss"] = result.train_loss[0] if result.train_loss else float("nan")
-    if do_eval:
-        after.update(tunable.evaluate(module, held))
-
+    if loss not in tunable.losses:
+        raise TorchtrackError(f"unknown loss {loss!r} for filter {tunable.name!r}; choose from "
+                              f"{', '.join(tunable.losses)}")
     output = dict(cfg.get("output") or {})
     extra = sorted(set(output) - set(OUTPUT_KEYS))
     if extra:
@@ -102,6 +87,24 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     out_dir = Path(out if out is not None else output.get("dir", f"out/tune-{tunable.name}"))
     params_path = Path(output["params"]) if "params" in output and out is None else out_dir / "params.yaml"
     plot_path = Path(output["plot"]) if "plot" in output and out is None else out_dir / "loss.png"
+    data = tunable.load_data(cfg["data"] or {}, generator)
+    do_eval = bool(cfg.get("evaluate", True))
+    batch_eval = max(1, int((cfg.get("optimizer") or {}).get("batch_size", 8)))
+
+    # held-out metrics before and after (the training set stands in when nothing is held out)
+    held = data.held_out or data.train
+    start_derived = tunable.derived(module)
+    before = tunable.evaluate(module, held) if do_eval and data.train else {}
+    result = fit(tunable, module, trainable, data, loss, cfg.get("optimizer"), cfg.get("early_stopping"),
+                 generator, progress)
+    if data.held_out:
+        before["loss"] = result.held_out[0][1]
+    else:
+        before["loss"] = result.train_loss[0] if result.train_loss else float("nan")
+    after = {"loss": evaluate_loss(tunable, module, held, loss, batch_eval)}
+    if do_eval:
+        after.update(tunable.evaluate(module, held))
+
     fitted = _scalars(result.final)
     fitted.update(tunable.derived(module))
     truth = tunable.truth(cfg["data"] or {})
@@ -122,7 +125,7 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
         from torchtrack.tuning.grid import grid_search
 
         report["grid"] = grid_search(tunable, tunable.build(), cfg["grid"], data, progress)
-    save_params(module, params_path, tunable.name, tunable.options, extra=None)
+    save_params(module, params_path, tunable.name, tunable.options)
     exported = tunable.export(module)
     if exported is not None:
         path = out_dir / exported[0]
