@@ -50,5 +50,7 @@ def test_tiny_run_writes_the_json_keys_and_plots(tmp_path):
         assert len(per_step) == 60
         assert all(0.0 <= o <= 20.0 for o in per_step)
         assert abs(sum(per_step) / 60 - payload["mean_ospa"][v]) < 1e-9
+    assert set(payload["extra_mean_ospa"]) == {"inflated_kf"}
+    assert len(payload["extra_ospa_per_step"]["inflated_kf"]) == 60
     assert (tmp_path / "plots" / "pedestrian_ospa.png").is_file()
     assert (tmp_path / "plots" / "pedestrian_positions_joint.png").is_file()

@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import torch  # noqa: E402
 
-COLORS = {"joint": "tab:blue", "inflated": "tab:orange", "naive": "tab:red"}
+COLORS = {"joint": "tab:blue", "inflated": "tab:orange", "naive": "tab:red", "inflated_kf": "tab:green"}
 
 
 def plot_positions(path: Path, truth, run, variant: str) -> None:
