@@ -5,7 +5,9 @@ float32, ``--tracks`` tracks × ``--steps`` steps. Timed in the same run:
 
 * **ours** — the axis-decoupled fast path (:mod:`torchtrack.filters.kalman_fast`, compiled);
 * **general path** — :meth:`KalmanFilter.run` with full 4×4 matrices, any linear model (reported as
-  extras: ``general_path_per_s`` compiled unless ``--no-compile``, ``general_path_eager_per_s``);
+  extras: ``general_path_per_s`` compiled unless ``--no-compile``, ``general_path_eager_per_s``,
+  ``general_path_per_cpu_s``; ``batch_first_loop_per_s`` is the batch-first predict/update loop that
+  was the general path before the batch-last layout);
 * **reference** — a plain batched NumPy implementation of the same equations (4×4 matrices,
   ``np.linalg.solve`` for the gain);
 * **per-track loop** — FilterPy's ``KalmanFilter`` one track at a time (as FilterPy users run it)
@@ -21,7 +23,7 @@ import torch
 
 from torchtrack.bench._timing import best_time, report
 from torchtrack.cli._common import add_common_options
-from torchtrack.filters.kalman import GaussianState, KalmanFilter
+from torchtrack.filters.kalman import GaussianState, KalmanFilter, _GaussianFilter
 from torchtrack.filters.kalman_fast import run_cv_fast
 from torchtrack.models import ConstantVelocity, LinearPosition
 
@@ -91,6 +93,7 @@ def run(args) -> int:
         kf.run(z[:Tg], init, DT, compile=compile)
         general_warmup_s = time.perf_counter() - t0
         general_s = best_time(lambda: kf.run(z[:Tg], init, DT, compile=compile), repeats=5, warmup=0)
+        batch_first_s = best_time(lambda: _GaussianFilter.run(kf, z[:Tg], init, DT), repeats=1, warmup=0)
         c0 = time.process_time()
         kf.run(z[:Tg], init, DT, compile=compile)
         general_cpu_s = time.process_time() - c0      # CPU seconds: what an idle machine would take
@@ -113,6 +116,7 @@ def run(args) -> int:
              "general_path_per_s": N * Tg / general_s,
              "general_path_eager_per_s": N * Tg / general_eager_s,
              "general_path_per_cpu_s": N * Tg / general_cpu_s,
+             "batch_first_loop_per_s": N * Tg / batch_first_s,
              "general_warmup_s": general_warmup_s}
     try:
         import filterpy  # noqa: F401
@@ -130,6 +134,8 @@ def run(args) -> int:
     print(f"general path (KalmanFilter.run, 4x4 matrices{', compiled' if compile else ''}): "
           f"{extra['general_path_per_s']:,.0f} track-steps/s (eager: {extra['general_path_eager_per_s']:,.0f}; "
           f"first call {general_warmup_s:.1f} s; {extra['general_path_per_cpu_s']:,.0f} per CPU-second)")
+    print(f"batch-first predict/update loop (the previous general path): "
+          f"{extra['batch_first_loop_per_s']:,.0f} track-steps/s")
     if extra.get("filterpy_loop_per_s"):
         print(f"FilterPy per-track loop: {extra['filterpy_loop_per_s']:,.0f} track-steps/s "
               f"(ours {extra['ratio_vs_filterpy_loop']:,.0f}x)")
