@@ -6,7 +6,7 @@ track, otherwise it is a new target or clutter (weight ``λ_j``). A joint associ
 weight ``Π_i w_{i,a(i)} · Π_{j unused} λ_j`` and we want the marginals ``p_i(j)``, ``p_i(0)`` and
 ``p_j(new)``.
 
-Williams & Lau (2014, eqs. 30–32) pass messages between track and measurement nodes. Dividing
+Williams & Lau (2014) pass messages between track and measurement nodes. Dividing
 row ``i`` by ``w_i0`` and column ``j`` by ``λ_j`` (the marginals are invariant to this) leaves one
 ratio matrix ``ψ_ij = w_ij / (w_i0 λ_j)`` and the iteration::
 
@@ -16,8 +16,7 @@ ratio matrix ``ψ_ij = w_ij / (w_i0 λ_j)`` and the iteration::
 started from ``ν = 1``. Each sum is formed once per iteration and the own term is subtracted
 ("total minus own"); the iteration carries ``ψ_ij ν_ji`` and ``μ_ij``, so it is four elementwise
 passes and two reductions over the ``n × m`` matrix and no loop over tracks; without autograd the
-passes write into two preallocated buffers. The marginals are
-(eq. 33)::
+passes write into two preallocated buffers. The marginals are::
 
     p_i(j) = ψ_ij ν_ji / (1 + Σ_j' ψ_ij' ν_j'i),  p_i(0) = 1 / (1 + Σ_j' ψ_ij' ν_j'i)
     p_j(i) = μ_ij / (1 + Σ_i' μ_i'j),             p_j(new) = 1 / (1 + Σ_i' μ_i'j)
@@ -99,9 +98,9 @@ def _iterate_functional(psi: Tensor, iterations: int, tol: float | None) -> tupl
     last = None
     for it in range(1, iterations + 1):
         total = 1.0 + prod.sum(-1, keepdim=True)                    # 1 + Σ_j' ψ_ij' ν_j'i
-        mu = psi / (total - prod)                                   # eq. (30)
+        mu = psi / (total - prod)                                   # track → measurement
         col = 1.0 + mu.sum(-2, keepdim=True)                        # 1 + Σ_i' μ_i'j
-        prod = psi / (col - mu)                                     # ψ_ij ν_ji, eq. (31)
+        prod = psi / (col - mu)                                     # ψ_ij ν_ji, measurement → track
         if tol is not None:
             stat = torch.cat([1.0 / total.flatten(), 1.0 / col.flatten()]).detach()
             if last is not None and (stat.numel() == 0 or float((stat - last).abs().amax()) < tol):
@@ -158,7 +157,7 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     if torch.is_grad_enabled() and psi.requires_grad:
         prod, it, converged = _iterate_functional(psi, iterations, tol)
         denom = 1.0 + prod.sum(-1, keepdim=True)
-        assoc = prod / denom                                        # eq. (33), track side
+        assoc = prod / denom                                        # track side
         mu = psi / (denom - prod)                                   # μ from the final ν
         col = 1.0 + mu.sum(-2, keepdim=True)
         meas_assoc = mu / col                                       # measurement side

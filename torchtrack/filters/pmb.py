@@ -1,6 +1,7 @@
 """Poisson multi-Bernoulli filtering: the track-oriented marginal MeMBer/Poisson (TOMB/P) filter.
 
-Williams (2015), "Marginal multi-Bernoulli filters", Sec. IV; linear-Gaussian, batched over any leading
+Williams (2015), "Marginal multi-Bernoulli filters" (IEEE T-AES 51(3)), cited by the PMB paper as [3];
+linear-Gaussian, batched over any leading
 dimensions (Monte Carlo runs, independent scenes) and differentiable in the continuous parameters.
 
 The multi-target density is Poisson multi-Bernoulli (PMB):
@@ -10,24 +11,24 @@ The multi-target density is Poisson multi-Bernoulli (PMB):
 * **detected targets**: ``N`` Bernoulli tracks with existence ``r_i``, Gaussian ``N(x; m_i, P_i)`` and
   an integer label (``-1`` marks an empty slot).
 
-Prediction (Williams 2015, eqs. 38–40)::
+Prediction::
 
     w_k ← p_S w_k, r_i ← p_S r_i, (m, P) ← (F m, F P Fᵀ + Q);  D_u ← D_u + D_b   (birth intensity)
 
 Update with measurements ``Z = {z_1 … z_M}``, ``z = H x + v, v ~ N(0, R)``, clutter intensity ``κ``:
 
 * track ``i`` misses: weight ``w_i0 = 1 − r_i p_D``; posterior existence
-  ``r_i (1 − p_D) / (1 − r_i p_D)``, state unchanged (eq. 43);
+  ``r_i (1 − p_D) / (1 − r_i p_D)``, state unchanged;
 * track ``i`` takes ``z_j`` (inside the gate ``ν_ijᵀ S_i⁻¹ ν_ij < γ``): weight
-  ``w_ij = r_i p_D N(z_j; H m_i, S_i)``, existence 1, Kalman-updated state (eq. 44);
+  ``w_ij = r_i p_D N(z_j; H m_i, S_i)``, existence 1, Kalman-updated state;
 * ``z_j`` is the first detection of a target or clutter: weight ``λ_j = e_j + κ(z_j)`` with
   ``e_j = p_D Σ_k w_k N(z_j; H m_k, S_k)``; the new Bernoulli has existence ``e_j / λ_j`` and the
-  moment-matched mixture of the Kalman updates of the Poisson components (eqs. 45–46);
+  moment-matched mixture of the Kalman updates of the Poisson components;
 * the Poisson intensity becomes ``(1 − p_D) D_u``.
 
 The marginal association probabilities ``p_i(0), p_i(j), p_j(new)`` come from loopy belief
 propagation (:func:`torchtrack.association.lbp.lbp_marginals`) and the **track-oriented merge**
-(TOMB, eq. 47) collapses each track's hypotheses to one Bernoulli by moment matching::
+(TOMB) collapses each track's hypotheses to one Bernoulli by moment matching::
 
     r_i' = p_i(0) r_i^miss + Σ_j p_i(j)
     m_i' = (p_i(0) r_i^miss m_i + Σ_j p_i(j) m_ij) / r_i'
@@ -301,7 +302,7 @@ class PMBFilter(nn.Module):
 
     # ------------------------------------------------------------------ predict
     def predict(self, state: PMBState, dt=1.0) -> PMBState:
-        """Prediction (eqs. 38–40): survival, motion, and the birth component added to the Poisson part."""
+        """Prediction: survival, motion, and the birth component added to the Poisson part."""
         ref = state.mean
         F, Q, ps, log_bw, bm, bc = self._constants("predict", dt, ref)
         mean = state.mean @ F.transpose(-1, -2)
@@ -355,7 +356,7 @@ class PMBFilter(nn.Module):
             R = R + extra_noise.to(ref)
         tiny = torch.finfo(ref.dtype).tiny
 
-        # single-target hypotheses of the existing Bernoullis (eqs. 43–44)
+        # single-target hypotheses of the existing Bernoullis
         valid = state.valid
         r = state.existence
         trk = _kalman_all_pairs(state.mean, state.cov, z, H, R, "PMB: track innovation covariance")
@@ -364,7 +365,7 @@ class PMBFilter(nn.Module):
         log_w = torch.where(gated, log_r.unsqueeze(-1) + log_pd + trk.log_lik, torch.full_like(trk.log_lik, NEG_INF))
         log_miss = _log((1.0 - r * pd).clamp_min(0.0))
 
-        # new-target hypotheses from the Poisson intensity and clutter (eqs. 45–46)
+        # new-target hypotheses from the Poisson intensity and clutter
         poi = _kalman_all_pairs(state.poisson_mean, state.poisson_cov, z, H, R,
                                 "PMB: Poisson innovation covariance")
         l_kj = state.poisson_log_weight.unsqueeze(-1) + log_pd + poi.log_lik     # (*, K, M)
@@ -384,7 +385,7 @@ class PMBFilter(nn.Module):
         marg = lbp_marginals(log_w, log_miss, log_new, iterations=self.lbp_iterations, tol=self.lbp_tol,
                              check=False)
 
-        # track-oriented merge (eq. 47)
+        # track-oriented merge
         r_miss = r * (1.0 - pd) / (1.0 - r * pd).clamp_min(tiny)
         a0 = marg.miss * r_miss                                                  # (*, N)
         aj = marg.assoc                                                          # (*, N, M)
