@@ -1,8 +1,8 @@
 """Poisson multi-Bernoulli filtering: the track-oriented marginal MeMBer/Poisson (TOMB/P) filter.
 
 Williams (2015), "Marginal multi-Bernoulli filters" (IEEE T-AES 51(3)), cited by the PMB paper as [3];
-linear-Gaussian, batched over any leading
-dimensions (Monte Carlo runs, independent scenes) and differentiable in the continuous parameters.
+linear-Gaussian, batched over any leading dimensions (Monte Carlo runs, independent scenes) and
+differentiable in the continuous parameters.
 
 The multi-target density is Poisson multi-Bernoulli (PMB):
 
