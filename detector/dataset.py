@@ -25,7 +25,7 @@ from detector.network import STRIDE
 from detector.targets import Targets, gaussian_heatmap, make_targets
 from torchtrack.errors import TorchtrackError
 
-CACHE_VERSION = 1
+CACHE_VERSION = 2   # bump when the generator changes
 
 
 class SequenceCache(NamedTuple):

@@ -23,6 +23,7 @@ from torch.nn import functional as F
 
 STRIDE = 2
 MULTIPLE = 16
+VELOCITY_SCALE = 8.0   # the velocity head predicts v / 8 (px/frame): unit-scale outputs train fast
 
 
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
@@ -30,10 +31,10 @@ def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 
 
 def correlation(a: torch.Tensor, b: torch.Tensor, radius: int) -> torch.Tensor:
-    """Cost volume ``C[d](p) = <a(p), b(p + d)>`` for all ``d`` in ``[-radius, radius]^2`` (row-major,
-    ``dy`` outer), of L2-normalised features: ``(B, C, h, w), (B, C, h, w) -> (B, (2r+1)^2, h, w)``."""
-    a = F.normalize(a, dim=1)
-    b = F.pad(F.normalize(b, dim=1), (radius, radius, radius, radius))
+    """Cost volume ``C[d](p) = <a(p), b(p + d)> / C`` for all ``d`` in ``[-radius, radius]^2`` (row-major,
+    ``dy`` outer): ``(B, C, h, w), (B, C, h, w) -> (B, (2r+1)^2, h, w)``."""
+    a = a / a.shape[1]
+    b = F.pad(b, (radius, radius, radius, radius))
     h, w = a.shape[-2:]
     k = 2 * radius + 1
     return torch.cat([(a * b[:, :, dy:dy + h, dx:dx + w]).sum(1, keepdim=True)
@@ -55,11 +56,16 @@ class CenterTrackNet(nn.Module):
         super().__init__()
         c2, c3, c4 = widths
         self.widths, self.head_channels, self.radius = tuple(widths), head, radius
+        k2 = (2 * radius + 1) ** 2
         # a 4x4 stride-4 convolution = space-to-depth followed by a 1x1 convolution
         self.stem = nn.Sequential(nn.Conv2d(3, c2, 4, 4), nn.ReLU(inplace=True), _conv(c2, c2), _conv(c2, c2))
-        self.siamese = nn.Sequential(nn.Conv2d(1, motion, 4, 4), nn.ReLU(inplace=True), _conv(motion, motion, 2),
-                                     nn.Conv2d(motion, motion, 3, 1, 1))
-        k2 = (2 * radius + 1) ** 2
+        self.siamese4 = nn.Sequential(nn.Conv2d(1, motion, 4, 4), nn.ReLU(inplace=True),
+                                      nn.Conv2d(motion, motion, 3, 1, 1))
+        self.siamese8 = nn.Sequential(_conv(motion, motion, 2), nn.Conv2d(motion, motion, 3, 1, 1))
+        self.log_temperature = nn.Parameter(torch.tensor(0.0))
+        d = torch.arange(-radius, radius + 1, dtype=torch.float32) * 8.0
+        grid = torch.stack(torch.meshgrid(d, d, indexing="ij"), dim=0).reshape(2, -1)   # (dy, dx)
+        self.register_buffer("displacement", grid.flip(0).clone(), persistent=False)     # (2, K^2) as (dx, dy)
         self.down3 = nn.Sequential(_conv(c2, c3, 2))
         self.fuse3 = nn.Sequential(nn.Conv2d(c3 + k2, c3, 1), nn.ReLU(inplace=True), _conv(c3, c3))
         self.down4 = nn.Sequential(_conv(c3, c4, 2), _conv(c4, c4))
@@ -79,12 +85,17 @@ class CenterTrackNet(nn.Module):
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         d2 = self.stem(x)
-        pair = self.siamese(torch.cat([x[:, :1], x[:, 1:2]], dim=0))     # both frames in one batch
-        cur, prev = pair.chunk(2, dim=0)
+        f4 = self.siamese4(torch.cat([x[:, :1], x[:, 1:2]], dim=0))     # both frames in one batch
+        f4 = f4 - F.avg_pool2d(f4, 3, 1, 1, count_include_pad=False)   # high-pass: keep small objects
+        cur, prev = self.siamese8(f4).chunk(2, dim=0)
         cost = correlation(cur, prev, self.radius)
+        # soft-argmax matching: the object at p in frame k was at p + d in frame k-1, v = -d
+        w = torch.softmax(cost * self.log_temperature.exp(), dim=1)
+        flow = -torch.einsum("bkhw,ck->bchw", w, self.displacement)
         d3 = self.fuse3(torch.cat([self.down3(d2), cost], dim=1))
         d4 = self.down4(d3)
         u3 = self.up3(d3 + F.interpolate(self.lat4(d4), size=d3.shape[-2:], mode="nearest"))
         u2 = self.up2(d2 + F.interpolate(u3, size=d2.shape[-2:], mode="nearest"))
         out = self.shuffle(self.heads(u2))
-        return out[:, :1], out[:, 1:3], out[:, 3:5]
+        flow = F.interpolate(flow, size=out.shape[-2:], mode="bilinear", align_corners=False)
+        return out[:, :1], out[:, 1:3], flow + out[:, 3:5] * VELOCITY_SCALE

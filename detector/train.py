@@ -61,6 +61,7 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
     Each history entry: epoch, mean loss parts, samples/s and the validation scores (precision,
     recall, f1, velocity_error_px) on the held-out ``val`` sequences.
     """
+    started = time.perf_counter()
     world, rank, device = _init_distributed()
     t = cfg.train
     if t.batch % world:
@@ -130,6 +131,7 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
         if rank == 0:
             det.eval()
             entry["val"] = evaluate_cache(det, val_cache, t.val_frames, cfg.decode.radius)
+            entry["elapsed_s"] = time.perf_counter() - started     # this run (a resumed run restarts it)
             det.train()
             history.append(entry)
             v = entry["val"]

@@ -104,7 +104,8 @@ class _World:
         return v
 
     def _add_moving(self, lane: int, s: float) -> None:
-        desired = float(self.cfg.speed_median * np.exp(self.sigma * self.rng.standard_normal()))
+        desired = self.cfg.speed_median * np.exp(self.sigma * self.rng.standard_normal())
+        desired = float(min(self.cfg.speed_max, desired))
         self._new(lane=lane, s=s, desired=desired, speed=desired)
 
     def _park(self, slot: int) -> None:

@@ -44,6 +44,7 @@ class VideoConfig:
     birth_rate: float = 0.06               # entries per lane and frame
     speed_median: float = 11.0
     speed_p90: float = 24.0
+    speed_max: float = 40.0              # desired speeds are clipped here
     intersection_slowdown: float = 0.5    # speed factor at the centre of an intersection
     intersection_radius: float = 30.0
     park_gap: tuple[float, float] = (2.0, 5.0)

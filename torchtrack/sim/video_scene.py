@@ -189,7 +189,7 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     # single trees (dark round crowns with a highlight), partly overhanging roads
     n = cfg.trees
     centres_t = rng.uniform(0, [w, h], size=(n, 2))
-    radii = rng.uniform(1.5, 6.0, n)
+    radii = rng.uniform(2.5, 6.0, n)
     for (x, y), r in zip(centres_t, radii):
         cv2.circle(img, (int(x * 16), int(y * 16)), int(r * 16), float(rng.uniform(22, 42)), -1,
                    cv2.LINE_AA, shift=4)
@@ -198,7 +198,7 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     # static speckles: small dots of vehicle-like contrast
     for x, y in rng.uniform(0, [w, h], size=(cfg.speckles, 2)):
         tone = float(rng.choice([rng.uniform(120, 200), rng.uniform(10, 30)]))
-        r = rng.uniform(0.6, 1.8)
+        r = rng.uniform(0.5, 1.1)
         cv2.circle(img, (int(x * 16), int(y * 16)), int(r * 16), tone, -1, cv2.LINE_AA, shift=4)
 
     buildings = []
