@@ -126,3 +126,22 @@ def test_lanes_update_matches_the_batch_first_update_with_broadcasting():
     for got, want in zip((*post, *info), (*ref_post, *ref_info)):
         torch.testing.assert_close(got, want.expand_as(got), rtol=1e-10, atol=1e-10)
     assert post.cov.shape == (4, 5, n, n)
+
+
+def test_compile_failure_falls_back_to_eager(monkeypatch):
+    def broken(fn, **kw):
+        def call(*args):
+            raise RuntimeError("no compiler here")
+        return call
+
+    monkeypatch.setattr(torch, "compile", broken)
+    monkeypatch.setattr(lanes, "_compiled", [])
+    kf = KalmanFilter(ConstantVelocity(2, q=0.1), LinearPosition(2, sigma=1.0)).double()
+    z = torch.randn(4, 3, 2, generator=torch.Generator().manual_seed(9), dtype=F64)
+    init = GaussianState(torch.zeros(3, 4, dtype=F64), torch.eye(4, dtype=F64))
+    with torch.no_grad():
+        with pytest.warns(UserWarning, match="running eagerly"):
+            got = kf.run(z, init, compile=True)
+        ref = kf.run(z, init)
+    for name in ("mean", "cov", "nis", "log_likelihood"):
+        torch.testing.assert_close(getattr(got, name), getattr(ref, name), rtol=1e-12, atol=1e-12)

@@ -235,6 +235,9 @@ def _block_into(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tens
     ok_out.copy_(ok)
 
 
+_LANE_ARGS = (0, 1, 2, 3, 8, 9, 10, 11, 12)   # arguments of fused_step whose last dimension is the lanes
+
+
 class _Compiled:
     """``torch.compile(fused_step)``, falling back to :func:`_block_into` for good if compilation is
     unavailable or fails (eager gives the same result, only slower)."""
@@ -253,6 +256,9 @@ class _Compiled:
 
     def __call__(self, *args) -> None:
         if self.compiled is not None:
+            for i in _LANE_ARGS:   # one kernel for every track count (no recompilation per count)
+                if args[i] is not None:
+                    torch._dynamo.maybe_mark_dynamic(args[i], args[i].dim() - 1)
             try:
                 return self.compiled(*args)
             except Exception as err:  # noqa: BLE001 - e.g. no C++ compiler
