@@ -359,15 +359,19 @@ class PMBFilter(nn.Module):
         # single-target hypotheses of the existing Bernoullis
         valid = state.valid
         r = state.existence
-        trk = _kalman_all_pairs(state.mean, state.cov, z, H, R, "PMB: track innovation covariance")
+        # tracks and Poisson components in one batch of Kalman hypotheses
+        N = state.existence.shape[-1]
+        both = _kalman_all_pairs(torch.cat([state.mean, state.poisson_mean], -2),
+                                 torch.cat([state.cov, state.poisson_cov], -3), z, H, R,
+                                 "PMB: innovation covariance (track or Poisson component)")
+        trk = _Hypotheses(*(t[..., :N, :] if t.dim() == both.log_lik.dim() else t[..., :N, :, :] for t in both))
+        poi = _Hypotheses(*(t[..., N:, :] if t.dim() == both.log_lik.dim() else t[..., N:, :, :] for t in both))
         gated = (trk.d2 < self.gate_d2) & valid.unsqueeze(-1) & zmask.unsqueeze(-2)
         log_r = _log(torch.where(valid, r, torch.ones_like(r)))
         log_w = torch.where(gated, log_r.unsqueeze(-1) + log_pd + trk.log_lik, torch.full_like(trk.log_lik, NEG_INF))
         log_miss = _log((1.0 - r * pd).clamp_min(0.0))
 
         # new-target hypotheses from the Poisson intensity and clutter
-        poi = _kalman_all_pairs(state.poisson_mean, state.poisson_cov, z, H, R,
-                                "PMB: Poisson innovation covariance")
         l_kj = state.poisson_log_weight.unsqueeze(-1) + log_pd + poi.log_lik     # (*, K, M)
         log_e = torch.logsumexp(l_kj, dim=-2)                                   # (*, M)
         log_lam = torch.logaddexp(log_e, log_kappa.expand_as(log_e)).clamp_min(float(torch.log(torch.tensor(tiny))))
