@@ -88,7 +88,8 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     t_generated = time.perf_counter()
     gt = read_mot(seq / "gt.txt")
     ignore = parked_mask(gt, seq / "velocity.txt") if truth == "moving" else None
-    cfg = config or PipelineConfig(snapshots=(min(vcfg.frames, 20),))
+    cfg = config or PipelineConfig()
+    cfg = cfg.replace(snapshots=tuple(sorted({*cfg.snapshots, min(vcfg.frames, 20)})))
     result = track_video(FolderSource(seq / "frames"), out, cfg, detector=detector, gt=gt,
                          gt_path=str(seq / "gt.txt"), ignore=ignore, camera=read_camera(seq / "camera.json"),
                          keep_detections=True, progress=progress)
