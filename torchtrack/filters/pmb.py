@@ -138,13 +138,28 @@ class _Hypotheses(NamedTuple):
 
 
 def _small_mm(A: Tensor, B: Tensor) -> Tensor:
-    """``A @ B`` for batches of tiny matrices, by broadcasting (batched BLAS is slow for 2×2 and 4×4)."""
-    return (A.unsqueeze(-1) * B.unsqueeze(-3)).sum(-2)
+    """``A @ B`` for batches of tiny matrices: a sum over the (2 or 4) inner index unrolled into
+    elementwise products, since batched BLAS and reductions over a tiny axis are slow at this size."""
+    out = A[..., :, 0:1] * B[..., 0:1, :]
+    for k in range(1, A.shape[-1]):
+        out = out + A[..., :, k:k + 1] * B[..., k:k + 1, :]
+    return out
 
 
 def _small_mv(A: Tensor, x: Tensor) -> Tensor:
-    """``A_c x_cm`` for ``A (*, C, p, q)`` and ``x (*, C, M, q)`` → ``(*, C, M, p)``."""
-    return (A.unsqueeze(-3) * x.unsqueeze(-2)).sum(-1)
+    """``A_c x_cm`` for ``A (*, C, p, q)`` and ``x (*, C, M, q)`` → ``(*, C, M, p)``, unrolled over ``q``."""
+    out = A[..., :, 0].unsqueeze(-2) * x[..., 0:1]
+    for k in range(1, A.shape[-1]):
+        out = out + A[..., :, k].unsqueeze(-2) * x[..., k:k + 1]
+    return out
+
+
+def _sq_norm(x: Tensor) -> Tensor:
+    """``Σ_k x_k²`` over a short last axis, unrolled."""
+    out = x[..., 0] * x[..., 0]
+    for k in range(1, x.shape[-1]):
+        out = out + x[..., k] * x[..., k]
+    return out
 
 
 def _shared_left(H: Tensor, P: Tensor) -> Tensor:
@@ -170,7 +185,7 @@ def _kalman_all_pairs(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor
     Linv = solve_lower(L, eye_d.expand_as(L))                        # (*, C, d, d)
     nu = z.unsqueeze(-3) - (mean @ H.transpose(-1, -2)).unsqueeze(-2)  # (*, C, M, d)
     white = nu @ Linv.transpose(-1, -2)                              # (*, C, M, d), one GEMM per component
-    d2 = white.pow(2).sum(-1)
+    d2 = _sq_norm(white)
     log_lik = -0.5 * (d2 + log_det_from_cholesky(L).unsqueeze(-1) + d * LOG_2PI)
     W = _small_mm(PHt, Linv.transpose(-1, -2))                       # (*, C, n, d)
     K = _small_mm(W, Linv)                                           # (*, C, n, d)
