@@ -1,6 +1,7 @@
 """Fitted-parameter files: exact round-trip, hand edits, bad files; the tune command end to end."""
 
 import json
+from pathlib import Path
 
 import pytest
 import torch
@@ -110,3 +111,15 @@ def test_tune_command_reports_bad_configs(tmp_path, capsys):
     assert "unknown key(s) 'optimiser'" in capsys.readouterr().err
     assert main(["tune", "--config", str(_config(tmp_path, loss="mse")), "--out", str(tmp_path)]) == 2
     assert "unknown loss 'mse'" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("path", sorted((Path(__file__).resolve().parents[1] / "configs")
+                                        .glob("tune-*.yaml")), ids=lambda p: p.name)
+def test_shipped_tune_configs_are_valid(path):
+    from torchtrack.tuning.config import read_tune_config
+    from torchtrack.tuning.parameters import select_trainable
+
+    cfg = read_tune_config(path)
+    tun = get_tunable(cfg["filter"], cfg.get("model") or {})
+    select_trainable(tun.build(), cfg["trainable"])
+    assert (cfg.get("loss") or tun.losses[0]) in tun.losses
