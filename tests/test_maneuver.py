@@ -93,6 +93,7 @@ def test_scenario_command_writes_json_and_plots(tmp_path, capsys):
     assert data["rmse_position_detecting_kf"] < 0.7 * data["rmse_position_kf"]
     assert (tmp_path / "plots" / "maneuver.png").stat().st_size > 10_000
     assert "false alarms per 100 scans" in capsys.readouterr().out
+    assert torch.get_default_dtype() == torch.float32  # the command leaves global state alone
 
 
 def test_scenario_rejects_bad_arguments(capsys):

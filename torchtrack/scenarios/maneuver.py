@@ -51,7 +51,7 @@ def _rmse(err: torch.Tensor) -> float:
 
 def run_stationary(cfg: dict, runs: int, gen: torch.Generator) -> dict:
     seq = sim.stationary(cfg["scans"], runs, cfg["sigma"], gen)
-    kf = KalmanFilter(ConstantPosition(2, q=1e-12, learnable=False), LinearPosition(2, 2, sigma=cfg["sigma"]))
+    kf = KalmanFilter(ConstantPosition(2, q=1e-12, learnable=False), LinearPosition(2, 2, sigma=cfg["sigma"])).double()
     R = kf.measurement.noise_cov().to(seq.measurements)
     init = GaussianState(seq.measurements[0], R.expand(runs, 2, 2))
     res = kf.run(seq.measurements[1:], init, predict_first=True)
@@ -64,7 +64,7 @@ def run_stationary(cfg: dict, runs: int, gen: torch.Generator) -> dict:
 
 
 def _filters(fcfg: dict, sigma: float) -> tuple[ManeuverDetectingKalmanFilter, ManeuverDetectingKalmanFilter]:
-    kf = KalmanFilter(ConstantVelocity(2, q=fcfg["q"], noise="pwca"), LinearPosition(2, sigma=sigma))
+    kf = KalmanFilter(ConstantVelocity(2, q=fcfg["q"], noise="pwca"), LinearPosition(2, sigma=sigma)).double()
     detecting = ManeuverDetectingKalmanFilter(kf, threshold=fcfg["threshold"])
     plain = ManeuverDetectingKalmanFilter(kf, threshold=fcfg["threshold"], reset=False)
     return plain, detecting
@@ -115,7 +115,6 @@ def run(args) -> int:
     if args.runs < 1:
         raise TorchtrackError(f"--runs must be >= 1; got {args.runs}")
     cfg = load_config(args.config)
-    torch.set_default_dtype(torch.float64)
     gen = torch.Generator().manual_seed(args.seed)
     with torch.no_grad():
         st = run_stationary(cfg["stationary"], args.runs, gen)
