@@ -48,23 +48,28 @@ def test_lanes_run_matches_the_batch_first_loop(batch, predict_first):
     assert got.cov.shape == (T, *batch, n, n) and torch.isfinite(got.cov).all()
 
 
+@pytest.mark.parametrize("model", ["random", "cv"])
 @pytest.mark.parametrize("predict_first", [True, False])
-def test_entrywise_step_equals_the_gemm_step(predict_first):
+def test_entrywise_step_equals_the_gemm_step(predict_first, model):
     gen = torch.Generator().manual_seed(4)
-    kf = _random_model(gen)
+    kf = (_random_model(gen) if model == "random"
+          else KalmanFilter(ConstantVelocity(2, q=0.3), LinearPosition(2, sigma=0.7)).double())
     n, m, B = kf.state_dim, kf.measurement.meas_dim, 11
-    mats = kf._shared_matrices(1.0)
+    mats = kf._shared_matrices(0.5)
+    patterns = (None, tuple(lanes.structure(M) for M in mats))
+    if model == "cv":   # structural zeros and ones are found (and then skipped)
+        assert patterns[1][0] == ((1, 0, 2, 0), (0, 1, 0, 2), (0, 0, 1, 0), (0, 0, 0, 1))
     A = torch.randn(B, n, n, generator=gen, dtype=F64)
     x = torch.randn(n, B, generator=gen, dtype=F64)
     P = (A @ A.transpose(-1, -2) + torch.eye(n, dtype=F64)).permute(1, 2, 0).contiguous()
     z = torch.randn(m, B, generator=gen, dtype=F64)
     present = torch.rand(B, generator=gen) > 0.3
     with torch.no_grad():
-        for pres in (None, present):
+        for pres, pattern in [(p, q) for p in (None, present) for q in patterns]:
             want = (lanes.step if predict_first else lanes.update_only)(x, P, z, pres, *mats)
             out = (torch.empty_like(x), torch.empty_like(P), torch.empty(B, dtype=F64), torch.ones(B, dtype=F64),
                    torch.empty(B, dtype=torch.bool))
-            lanes.fused_step(x, P, z, pres, *mats, *out, predict_first)
+            lanes.fused_step(x, P, z, pres, *mats, *out, predict_first, pattern)
             got = (out[0], out[1], out[2], out[3] - 1, out[4])
             for g, w in zip(got, want):
                 torch.testing.assert_close(g, w, rtol=1e-10, atol=1e-10)

@@ -317,10 +317,11 @@ class KalmanFilter(_GaussianFilter):
         ok = torch.empty(T, B, dtype=torch.bool, device=x.device)
         total = x.new_zeros(B)
         step = lanes.compiled_step()
+        pattern = tuple(lanes.structure(M) for M in mats)
         for k in range(T):
             prev = (x, P) if k == 0 else (mean[k - 1], cov[k - 1])
             step(*prev, z[k], None if present is None else present[k], *mats, mean[k], cov[k], nis[k], total,
-                 ok[k], predict_first or k > 0)
+                 ok[k], predict_first or k > 0, pattern)
         return mean, cov, nis, total, ok
 
 

@@ -170,47 +170,77 @@ def update_only(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tens
     return u.mean, u.cov, u.nis, u.log_likelihood, u.ok
 
 
-def _dot(terms: list[Tensor]) -> Tensor:
-    out = terms[0]
-    for t in terms[1:]:
+Pattern = tuple[tuple[int, ...], ...]
+
+
+def structure(M: Tensor) -> Pattern:
+    """Structural codes of a model matrix: 0 where an entry is exactly 0, 1 where exactly 1, else 2."""
+    return tuple(tuple(0 if v == 0 else 1 if v == 1 else 2 for v in row) for row in M.tolist())
+
+
+def _dot(terms: list[Tensor | None], like: Tensor) -> Tensor:
+    """Sum of the terms that are not structurally zero (``None``)."""
+    kept = [t for t in terms if t is not None]
+    if not kept:
+        return torch.zeros_like(like)
+    out = kept[0]
+    for t in kept[1:]:
         out = out + t
     return out
 
 
+def _times(M: Tensor, code: Pattern | None, i: int, k: int, v: Tensor) -> Tensor | None:
+    """``M[i, k] · v``: ``None`` for a structural zero, ``v`` for a structural one."""
+    c = 2 if code is None else code[i][k]
+    return None if c == 0 else v if c == 1 else M[i, k] * v
+
+
+def _plus(v: Tensor, M: Tensor, code: Pattern | None, i: int, k: int) -> Tensor:
+    """``v + M[i, k]``, skipping a structural zero."""
+    return v if code is not None and code[i][k] == 0 else v + M[i, k]
+
+
 def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
                R: Tensor, x_out: Tensor, P_out: Tensor, nis_out: Tensor, loglik_acc: Tensor, ok_out: Tensor,
-               predict_first: bool = True) -> None:
+               predict_first: bool = True, pattern: tuple[Pattern, Pattern, Pattern, Pattern] | None = None) -> None:
     """:func:`step` (or :func:`update_only` without ``predict_first``) written entry by entry: every
     quantity is one ``(B,)`` lane vector, so ``torch.compile`` emits a single loop over the lanes with
     all ``n × n`` arithmetic in registers. Writes ``x⁺ → x_out (n, B)``, ``P⁺ → P_out (n, n, B)``,
     ``nis → nis_out (B,)``, ``ok → ok_out (B,)`` and adds log ℓ to ``loglik_acc (B,)`` (no autograd).
 
     Same equations as :func:`predict` / :func:`update`; covariances are formed on and above the
-    diagonal and mirrored (exactly symmetric) instead of averaged with their transpose.
+    diagonal and mirrored (exactly symmetric) instead of averaged with their transpose. ``pattern``
+    (:func:`structure` of ``F, Q, H, R``; compile-time constants) drops products with structural zeros
+    and ones, e.g. half of ``F`` and three quarters of ``H`` for constant velocity.
     """
+    pF, pQ, pH, pR = pattern if pattern is not None else (None,) * 4
     n, m = x.shape[0], H.shape[0]
     X = [x[i] for i in range(n)]
     Pm = [[P[i, j] for j in range(n)] for i in range(n)]
     if predict_first:
-        X = [_dot([F[i, k] * X[k] for k in range(n)]) for i in range(n)]
-        FP = [[_dot([F[i, k] * Pm[k][j] for k in range(n)]) for j in range(n)] for i in range(n)]
-        up = {(i, j): _dot([FP[i][k] * F[j, k] for k in range(n)]) + Q[i, j] for i in range(n) for j in range(i, n)}
+        X = [_dot([_times(F, pF, i, k, X[k]) for k in range(n)], X[0]) for i in range(n)]
+        FP = [[_dot([_times(F, pF, i, k, Pm[k][j]) for k in range(n)], X[0]) for j in range(n)] for i in range(n)]
+        up = {(i, j): _plus(_dot([_times(F, pF, j, k, FP[i][k]) for k in range(n)], X[0]), Q, pQ, i, j)
+              for i in range(n) for j in range(i, n)}
         Pm = [[up[min(i, j), max(i, j)] for j in range(n)] for i in range(n)]
-    C = [[_dot([Pm[i][j] * H[r, j] for j in range(n)]) for r in range(m)] for i in range(n)]   # P Hᵀ
-    S = [[_dot([H[r, i] * C[i][s] for i in range(n)]) + R[r, s] for s in range(m)] for r in range(m)]
+    C = [[_dot([_times(H, pH, r, j, Pm[i][j]) for j in range(n)], X[0]) for r in range(m)] for i in range(n)]
+    S = [[_plus(_dot([_times(H, pH, r, i, C[i][s]) for i in range(n)], X[0]), R, pR, r, s) for s in range(m)]
+         for r in range(m)]
     S = [[S[max(r, s)][min(r, s)] for s in range(m)] for r in range(m)]
     L, ok = _cholesky_entries(S)
-    nu = [z[r] - _dot([H[r, j] * X[j] for j in range(n)]) for r in range(m)]
+    nu = [z[r] - _dot([_times(H, pH, r, j, X[j]) for j in range(n)], X[0]) for r in range(m)]
     K = [_solve_upper_t(L, _solve_lower(L, C[i])) for i in range(n)]                           # rows of K
-    mean = [X[i] + _dot([K[i][r] * nu[r] for r in range(m)]) for i in range(n)]
-    AP = [[Pm[i][j] - _dot([K[i][r] * C[j][r] for r in range(m)]) for j in range(n)] for i in range(n)]
-    E = [[_dot([AP[i][j] * H[r, j] for j in range(n)]) - _dot([K[i][s] * R[s, r] for s in range(m)])
-          for r in range(m)] for i in range(n)]                                                 # A P Hᵀ − K R
-    up = {(i, j): AP[i][j] - _dot([E[i][r] * K[j][r] for r in range(m)]) for i in range(n) for j in range(i, n)}
+    mean = [X[i] + _dot([K[i][r] * nu[r] for r in range(m)], X[0]) for i in range(n)]
+    AP = [[Pm[i][j] - _dot([K[i][r] * C[j][r] for r in range(m)], X[0]) for j in range(n)] for i in range(n)]
+    E = [[_dot([_times(H, pH, r, j, AP[i][j]) for j in range(n)], X[0])
+          - _dot([_times(R, pR, s, r, K[i][s]) for s in range(m)], X[0]) for r in range(m)]
+         for i in range(n)]                                                                     # A P Hᵀ − K R
+    up = {(i, j): AP[i][j] - _dot([E[i][r] * K[j][r] for r in range(m)], X[0])
+          for i in range(n) for j in range(i, n)}
     cov = [[up[min(i, j), max(i, j)] for j in range(n)] for i in range(n)]
     white = _solve_lower(L, nu)
-    nis = _dot([w * w for w in white])
-    loglik = -0.5 * (nis + m * LOG_2PI) - _dot([torch.log(L[r][r]) for r in range(m)])
+    nis = _dot([w * w for w in white], X[0])
+    loglik = -0.5 * (nis + m * LOG_2PI) - _dot([torch.log(L[r][r]) for r in range(m)], X[0])
     if present is not None:
         mean = [torch.where(present, a, b) for a, b in zip(mean, X)]
         cov = [[torch.where(present, a, b) for a, b in zip(ra, rb)] for ra, rb in zip(cov, Pm)]
@@ -225,7 +255,7 @@ def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tenso
 
 def _block_into(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
                 R: Tensor, x_out: Tensor, P_out: Tensor, nis_out: Tensor, loglik_acc: Tensor, ok_out: Tensor,
-                predict_first: bool = True) -> None:
+                predict_first: bool = True, pattern=None) -> None:
     """:func:`fused_step`'s contract computed eagerly with the GEMM formulation (the fallback)."""
     mean, cov, nis, loglik, ok = (step if predict_first else update_only)(x, P, z, present, F, Q, H, R)
     x_out.copy_(mean)
