@@ -86,7 +86,7 @@ class GMPHDTracker(nn.Module):
 
     def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = True,
                  settled_velocity_var: float = 4.0, handover_frames: int = 8, handover_distance: float = 20.0,
-                 coast_threshold: float | None = 0.03, fix_separation: float = 4.0, merge_priority: bool = True,
+                 coast_threshold: float | None = 0.03, fix_separation: float = 12.0, merge_priority: bool = True,
                  confirm_new: bool = True,
                  dtype: torch.dtype = torch.float32):
         super().__init__()
@@ -132,7 +132,7 @@ class GMPHDTracker(nn.Module):
                    handover_frames=int(cfg.get("handover_frames", 8)),
                    handover_distance=float(cfg.get("handover_distance", 20.0)),
                    coast_threshold=cfg.get("coast_threshold", 0.03),
-                   fix_separation=float(cfg.get("fix_separation", 4.0)),
+                   fix_separation=float(cfg.get("fix_separation", 12.0)),
                    merge_priority=bool(cfg.get("merge_priority", True)),
                    confirm_new=bool(cfg.get("confirm_new", True)), dtype=dtype)
 
