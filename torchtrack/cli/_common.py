@@ -10,12 +10,33 @@ from pathlib import Path
 
 import torch
 
+from torchtrack.errors import TorchtrackError
+
 
 def add_common_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:
     """``--seed`` and ``--json PATH``, which every command takes."""
     parser.add_argument("--seed", type=int, default=seed, help=f"random seed (default {seed})")
     parser.add_argument("--json", type=Path, default=None, metavar="PATH",
                         help="also write the reported numbers to this JSON file")
+
+
+def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, runs: int = 100) -> None:
+    """``--runs``, ``--config`` and ``--plot DIR``, which every ``torchtrack scenario`` takes."""
+    parser.add_argument("--runs", type=int, default=runs, help=f"Monte Carlo runs, batched (default {runs})")
+    parser.add_argument("--config", type=Path, default=default_config, help="scenario YAML (default %(default)s)")
+    parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
+
+
+def load_sections(path: Path, expected: set[str]) -> dict:
+    """Read a YAML config that must consist of exactly the ``expected`` top-level sections."""
+    import yaml
+
+    if not Path(path).is_file():
+        raise TorchtrackError(f"--config: no such file {path}")
+    cfg = yaml.safe_load(Path(path).read_text())
+    if not isinstance(cfg, dict) or set(cfg) != expected:
+        raise TorchtrackError(f"{path}: expected exactly the sections {sorted(expected)}")
+    return cfg
 
 
 def _jsonable(obj):

@@ -26,7 +26,6 @@ import math
 from pathlib import Path
 
 import torch
-import yaml
 
 from torchtrack.association.assignment import assign
 from torchtrack.association.gating import (
@@ -37,7 +36,7 @@ from torchtrack.association.gating import (
     ellipsoidal_gate,
     rectangular_gate,
 )
-from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_bank import BankState, ClassConditionedIMM
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
@@ -53,20 +52,13 @@ GATES = ("rectangular", "ellipsoidal", "class_conditioned_ellipse", "class_condi
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=int, default=100, help="Monte Carlo runs, batched (default 100)")
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="scenario YAML (default %(default)s)")
-    parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
+    add_scenario_options(parser, DEFAULT_CONFIG, runs=100)
     add_common_options(parser)
 
 
 def load_config(path: Path) -> dict:
     """Read and check the scenario YAML (sections ``scenario``, ``filter``, ``association``)."""
-    if not Path(path).is_file():
-        raise TorchtrackError(f"--config: no such file {path}")
-    cfg = yaml.safe_load(Path(path).read_text())
-    expected = {"scenario", "filter", "association"}
-    if not isinstance(cfg, dict) or set(cfg) != expected:
-        raise TorchtrackError(f"{path}: expected exactly the sections {sorted(expected)}")
+    cfg = load_sections(path, {"scenario", "filter", "association"})
     try:
         cfg["scenario"] = FormationConfig(**{**cfg["scenario"], "classes": tuple(cfg["scenario"]["classes"])})
     except TypeError as exc:

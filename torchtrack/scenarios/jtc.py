@@ -18,10 +18,9 @@ import time
 from pathlib import Path
 
 import torch
-import yaml
 from tqdm import tqdm
 
-from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import MMPFOutput, MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import Trajectory, jtc_trajectory, simulate_measurements, true_modes
@@ -33,10 +32,8 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "jtc.yaml"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=int, default=100, help="Monte Carlo runs, batched (default 100)")
     parser.add_argument("--no-speed-constraints", action="store_true",
                         help="report the bank without speed likelihoods as the main result")
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="scenario YAML (default %(default)s)")
     parser.add_argument("--particles", type=int, default=None,
                         help="particles per class (default: the config's, 3000 as in the paper)")
     parser.add_argument("--threads", type=int, default=1,
@@ -48,17 +45,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile the filter step (inductor; needs a C compiler; ~1 min of compilation "
                              "per batch shape, then ~25%% less CPU per scan)")
-    parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
+    add_scenario_options(parser, DEFAULT_CONFIG, runs=100)
     add_common_options(parser)
 
 
 def load_config(path: Path) -> dict:
-    if not Path(path).is_file():
-        raise TorchtrackError(f"--config: no such file {path}")
-    cfg = yaml.safe_load(Path(path).read_text())
-    expected = {"trajectory", "sensor", "filter", "true_class"}
-    if not isinstance(cfg, dict) or set(cfg) != expected:
-        raise TorchtrackError(f"{path}: expected exactly the sections {sorted(expected)}")
+    cfg = load_sections(path, {"trajectory", "sensor", "filter", "true_class"})
     return cfg
 
 

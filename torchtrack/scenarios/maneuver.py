@@ -12,9 +12,8 @@ import argparse
 from pathlib import Path
 
 import torch
-import yaml
 
-from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter
@@ -28,19 +27,12 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "maneuver.yam
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=int, default=100, help="Monte Carlo runs, batched (default 100)")
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="scenario YAML (default %(default)s)")
-    parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
+    add_scenario_options(parser, DEFAULT_CONFIG, runs=100)
     add_common_options(parser)
 
 
 def load_config(path: Path) -> dict:
-    if not Path(path).is_file():
-        raise TorchtrackError(f"--config: no such file {path}")
-    cfg = yaml.safe_load(Path(path).read_text())
-    expected = {"stationary", "constant_velocity", "maneuver", "filter"}
-    if not isinstance(cfg, dict) or set(cfg) != expected:
-        raise TorchtrackError(f"{path}: expected exactly the sections {sorted(expected)}")
+    cfg = load_sections(path, {"stationary", "constant_velocity", "maneuver", "filter"})
     return cfg
 
 

@@ -19,10 +19,9 @@ from pathlib import Path
 from typing import NamedTuple
 
 import torch
-import yaml
 from tqdm import tqdm
 
-from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter
 from torchtrack.filters.pmb_sensor import JointSensorPMB, SensorState, v2f_update
@@ -39,24 +38,17 @@ PAPER_OSPA = {"joint": 0.87, "inflated": 0.99, "naive": 2.61}
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--runs", type=int, default=10, help="Monte Carlo runs, batched (default 10)")
-    parser.add_argument("--config", type=Path, default=DEFAULT_CONFIG, help="scenario YAML (default %(default)s)")
     parser.add_argument("--steps", type=int, default=None, help="shorten the recording to this many steps")
     parser.add_argument("--p-survival", type=float, default=None,
                         help="feature survival probability (config default 0.99; the paper states 0.7)")
-    parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch intra-op threads (default 1: the tensors are small, more threads only spin)")
+    add_scenario_options(parser, DEFAULT_CONFIG, runs=10)
     add_common_options(parser)
 
 
 def load_config(path: Path) -> dict:
-    if not Path(path).is_file():
-        raise TorchtrackError(f"--config: no such file {path}")
-    cfg = yaml.safe_load(Path(path).read_text())
-    expected = {"scene", "filter", "ospa"}
-    if not isinstance(cfg, dict) or set(cfg) != expected:
-        raise TorchtrackError(f"{path}: expected exactly the sections {sorted(expected)}")
+    cfg = load_sections(path, {"scene", "filter", "ospa"})
     return cfg
 
 
