@@ -250,8 +250,9 @@ class KalmanFilter(_GaussianFilter):
         returned ``mean``/``cov`` are then views of batch-last storage (not contiguous). A failed
         factorisation of ``S`` raises :class:`TorchtrackError` naming the step (checked once, after
         the last step, so the loop never waits on the host). ``compile=True`` runs each step through
-        ``torch.compile`` (one fused loop over the tracks; compiled once per process and dtype,
-        falls back to eager where unavailable).
+        ``torch.compile`` when no gradient is needed (one fused loop over the tracks; compiled once
+        per process for each model size, dtype and with/without missing measurements; falls back to
+        eager where unavailable).
         """
         mats = self._shared_matrices(dt) if measurements.dim() >= 2 else None
         if mats is None:
