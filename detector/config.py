@@ -41,6 +41,7 @@ class TrainConfig:
     epochs: int = 10
     steps_per_epoch: int = 150
     batch: int = 16                    # global batch (divided among torchrun ranks)
+    optimizer: str = "adam"            # adam | sgd (momentum 0.9)
     lr: float = 2e-3
     weight_decay: float = 0.0
     offset_weight: float = 1.0
@@ -87,6 +88,8 @@ def config_from_dict(values: dict, source: str = "config") -> DetectorConfig:
     if unknown:
         raise TorchtrackError(f"{source}: unknown section(s) {unknown}; known: {sorted(sections)}")
     cfg = DetectorConfig(**{k: _section(c, values.get(k), f"{source}: {k}") for k, c in sections.items()})
+    if cfg.train.optimizer not in ("adam", "sgd"):
+        raise TorchtrackError(f"{source}: train.optimizer must be adam or sgd, got {cfg.train.optimizer!r}")
     if cfg.data.crop % 16:
         raise TorchtrackError(f"{source}: data.crop must be a multiple of 16, got {cfg.data.crop}")
     if cfg.data.video:

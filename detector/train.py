@@ -70,7 +70,10 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
     det = Detector(cfg)
     model = det.net.to(device)
     net = DistributedDataParallel(model) if world > 1 else model
-    opt = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
+    if t.optimizer == "sgd":
+        opt = torch.optim.SGD(model.parameters(), lr=t.lr, momentum=0.9, weight_decay=t.weight_decay)
+    else:
+        opt = torch.optim.Adam(model.parameters(), lr=t.lr, weight_decay=t.weight_decay)
     total = t.epochs * t.steps_per_epoch
     warm = min(50, max(1, total // 10))
     sched = torch.optim.lr_scheduler.LambdaLR(

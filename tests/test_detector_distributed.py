@@ -28,7 +28,9 @@ def test_torchrun_two_processes_match_single_process(tmp_path):
         "data": {"train_sequences": 2, "val_sequences": 1, "frames": 3, "cache": str(tmp_path / "cache"),
                  "crop": 64, "video": {"height": 96, "width": 96, "margin": 16, "trees": 20, "speckles": 10,
                                        "buildings": 2, "car_parks": 1, "highways": 1, "local_roads": 1}},
-        "train": {"epochs": 1, "steps_per_epoch": 3, "batch": 4, "val_frames": 2},
+        # SGD: Adam's update ~ lr * sign(g) turns float-rounding differences of near-zero gradients into
+        # visible parameter differences; with SGD the parameters differ only as much as the gradients do
+        "train": {"epochs": 1, "steps_per_epoch": 3, "batch": 4, "val_frames": 2, "optimizer": "sgd", "lr": 0.05},
     }
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(cfg))
@@ -45,7 +47,7 @@ def test_torchrun_two_processes_match_single_process(tmp_path):
     a = load_checkpoint(tmp_path / "one" / "last.pt")["model"]
     b = load_checkpoint(tmp_path / "two" / "last.pt")["model"]
     for k in a:
-        torch.testing.assert_close(a[k], b[k], rtol=1e-4, atol=1e-5)
+        torch.testing.assert_close(a[k], b[k], rtol=1e-5, atol=1e-6)
     # and training did move the parameters away from their (seeded) initial values
     torch.manual_seed(3)
     init = Detector(load_checkpoint(tmp_path / "one" / "last.pt")["config"]).net.state_dict()
