@@ -38,15 +38,15 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    epochs: int = 10
+    epochs: int = 22
     steps_per_epoch: int = 150
     batch: int = 16                    # global batch (divided among torchrun ranks)
     optimizer: str = "adam"            # adam | sgd (momentum 0.9)
     lr: float = 2e-3
     weight_decay: float = 0.0
     offset_weight: float = 1.0
-    velocity_weight: float = 0.1
-    out: str = "runs/detector"
+    velocity_weight: float = 0.5
+    out: str = "out/detector-train"
     val_frames: int = 8                # frames of each validation sequence scored per epoch
 
 
