@@ -13,14 +13,6 @@ from torchtrack.tune import fit, get_tunable, get_values, load_filter, load_para
 from torchtrack.tuning.parameters import get_raw
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
 def test_written_config_reproduces_the_fitted_filter_exactly(tmp_path, dtype):
     tun = get_tunable("kalman", {"q": 3.0, "sigma": 6.0, "dtype": dtype})

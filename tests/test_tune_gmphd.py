@@ -15,14 +15,6 @@ from torchtrack.tuning.parameters import get_raw, set_raw, set_values, tunable_p
 AREA = 300.0 * 300.0
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def truth_file(tmp_path, targets=6, frames=60, seed=0):
     g = np.random.default_rng(seed)
     pos = g.uniform(60, 240, (targets, 2))

@@ -1,19 +1,10 @@
 """Tuning the IMM: exact likelihood gradient vs finite differences; a fit moves towards the truth."""
 
-import pytest
 import torch
 
 from torchtrack.tune import fit, get_tunable, get_values, select_trainable
 from torchtrack.tuning.parameters import tunable_parameters
 from torchtrack.tuning.trainer import Reparametrised
-
-
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
 
 
 def problem(runs=2, steps=15, seed=0):

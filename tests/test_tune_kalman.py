@@ -11,14 +11,6 @@ from torchtrack.tuning.parameters import get_raw, set_raw, tunable_parameters
 from torchtrack.tuning.registry import TuneData
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def small_problem(q=1.0, sigma=2.0, sequences=6, steps=30, seed=0, **model):
     tun = get_tunable("kalman", {"q": 3.0 * q, "sigma": 3.0 * sigma, "dtype": "float64", **model})
     data = tun.load_data({"simulate": {"sequences": sequences, "steps": steps, "q": q, "sigma": sigma},

@@ -8,14 +8,6 @@ from torchtrack.tune import get_tunable, select_trainable
 from torchtrack.tuning.parameters import get_raw, set_raw, tunable_parameters
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
-
-
 def problem(sequences=2, steps=8, **opts):
     options = {"q": 2.0, "sigma": 3.0, "init_velocity_std": 10.0, "dtype": "float64", **opts}
     data = get_tunable("kalman", options).load_data(

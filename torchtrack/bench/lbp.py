@@ -17,7 +17,7 @@ import torch
 
 from torchtrack.association.lbp import LOG_RATIO_MAX, lbp_marginals
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options, format_table
+from torchtrack.cli._common import add_common_options, format_table, torch_threads
 from torchtrack.errors import TorchtrackError
 
 NAME = "lbp"
@@ -96,14 +96,8 @@ def _loadavg() -> float | None:
 
 
 def run(args) -> int:
-    if args.threads < 1:
-        raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
-    previous = torch.get_num_threads()
-    torch.set_num_threads(args.threads)
-    try:
+    with torch_threads(args.threads):
         return _run(args)
-    finally:
-        torch.set_num_threads(previous)
 
 
 def _run(args) -> int:

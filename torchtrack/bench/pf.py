@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, torch_threads
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import jtc_trajectory, simulate_measurements
@@ -110,11 +110,8 @@ def _cpu_time(fn):
 
 
 def run(args) -> int:
-    previous = torch.get_num_threads()
-    try:
+    with torch_threads(None):  # _run sets --threads itself; the count is restored here
         return _run(args)
-    finally:
-        torch.set_num_threads(previous)
 
 
 def _run(args) -> int:

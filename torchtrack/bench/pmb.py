@@ -18,6 +18,7 @@ import torch
 
 from torchtrack.bench._timing import best_time, report
 from torchtrack.bench.lbp import _loadavg, best_cpu_time, numpy_lbp
+from torchtrack.cli._common import torch_threads
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter, PMBState
 from torchtrack.models import ConstantVelocity, LinearPosition
@@ -146,14 +147,8 @@ def _to_numpy_state(st: PMBState) -> dict:
 
 
 def run(args) -> int:
-    if args.threads < 1:
-        raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
-    previous = torch.get_num_threads()
-    torch.set_num_threads(args.threads)
-    try:
+    with torch_threads(args.threads):
         return _run(args)
-    finally:
-        torch.set_num_threads(previous)
 
 
 def _run(args) -> int:

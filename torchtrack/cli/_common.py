@@ -6,6 +6,7 @@ import argparse
 import json
 import math
 from collections.abc import Mapping, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import torch
@@ -18,6 +19,20 @@ def add_common_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:
     parser.add_argument("--seed", type=int, default=seed, help=f"random seed (default {seed})")
     parser.add_argument("--json", type=Path, default=None, metavar="PATH",
                         help="also write the reported numbers to this JSON file")
+
+
+@contextmanager
+def torch_threads(n: int | None):
+    """Run the block with ``n`` torch intra-op threads (``None``: unchanged); restore the count after."""
+    if n is not None and n < 1:
+        raise TorchtrackError(f"--threads must be >= 1; got {n}")
+    previous = torch.get_num_threads()
+    if n is not None:
+        torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(previous)
 
 
 def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, runs: int = 100) -> None:

@@ -20,7 +20,14 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
+from torchtrack.cli._common import (
+    add_common_options,
+    add_scenario_options,
+    format_table,
+    load_sections,
+    torch_threads,
+    write_json,
+)
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import MMPFOutput, MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import Trajectory, jtc_trajectory, simulate_measurements, true_modes
@@ -121,11 +128,8 @@ def time_one_run(bank: MultipleModelParticleFilter, cfg: dict, traj: Trajectory,
 
 
 def run(args) -> int:
-    previous = torch.get_num_threads()
-    try:
+    with torch_threads(None):  # _run sets --threads itself; the count is restored here
         return _run(args)
-    finally:
-        torch.set_num_threads(previous)
 
 
 def _run(args) -> int:

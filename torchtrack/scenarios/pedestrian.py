@@ -21,7 +21,14 @@ from typing import NamedTuple
 import torch
 from tqdm import tqdm
 
-from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
+from torchtrack.cli._common import (
+    add_common_options,
+    add_scenario_options,
+    format_table,
+    load_sections,
+    torch_threads,
+    write_json,
+)
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter
 from torchtrack.filters.pmb_sensor import JointSensorPMB, SensorState, v2f_update
@@ -190,14 +197,8 @@ def ospa_per_step(truth: Truth, run: Run, c: float, p: float) -> torch.Tensor:
 
 
 def run(args) -> int:
-    if args.threads < 1:
-        raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
-    previous = torch.get_num_threads()
-    torch.set_num_threads(args.threads)
-    try:
+    with torch_threads(args.threads):
         return _run(args)
-    finally:
-        torch.set_num_threads(previous)
 
 
 def _run(args) -> int:
