@@ -38,6 +38,7 @@ stop-gradient *selections*; weights, means and covariances stay differentiable w
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 from typing import NamedTuple
@@ -46,13 +47,28 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.gaussian import LOG_2PI, symmetrize
+from torchtrack.gaussian import LOG_2PI
 from torchtrack.models import ConstantVelocity, LinearPosition, MeasurementModel, MotionModel
 from torchtrack.params import Positive, Probability
 
 log = logging.getLogger(__name__)
 
 NEG_INF = float("-inf")
+
+
+@functools.lru_cache(maxsize=256)
+def _cached_scalar(value: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    with torch.inference_mode(False):       # usable in autograd graphs even when first made while streaming
+        return torch.tensor(value, dtype=dtype, device=device)
+
+
+def scalar(value: float, like: Tensor) -> Tensor:
+    """A cached 0-dim tensor ``value`` of ``like``'s dtype and device (no gradient).
+
+    ``x * scalar(c, x)`` computes exactly what ``x * c`` does (a Python number is cast to ``x``'s dtype)
+    but with one tensor operation instead of five (the number is not converted on every call).
+    """
+    return _cached_scalar(float(value), like.dtype, like.device)
 
 
 class MixtureState(NamedTuple):
@@ -191,8 +207,11 @@ class GMPHD(nn.Module):
     def predict(self, state: MixtureState, mats: Matrices) -> MixtureState:
         """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
         F, Q = mats.F, mats.Q
-        mean = state.mean @ F.transpose(-1, -2)
-        cov = F @ state.cov @ F.transpose(-1, -2) + Q      # symmetric up to rounding; update symmetrises
+        Ft = F.transpose(-1, -2)
+        J, n = state.mean.shape
+        mean = torch.mm(state.mean, Ft)
+        # F P Fᵀ + Q as one batched and one folded product (the kernels ``F @ P @ Fᵀ`` dispatches to)
+        cov = torch.mm(torch.bmm(F.expand(J, n, n), state.cov).view(J * n, n), Ft).view(J, n, n) + Q
         log_w = state.log_weight + mats.log_p_survival
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
@@ -211,7 +230,8 @@ class GMPHD(nn.Module):
         z = z.to(state.mean.dtype)
         pd, log_pd = mats.p_detection, mats.log_p_detection
         log_kappa = (mats.log_clutter if clutter is None else torch.log(clutter)).expand(z.shape[0])
-        live_w = torch.where(state.mask, state.log_weight, torch.full_like(state.log_weight, NEG_INF))
+        neg_inf = scalar(NEG_INF, state.log_weight)
+        live_w = torch.where(state.mask, state.log_weight, neg_inf)
 
         if mats.selects_position:                                    # H = [I 0]: slices, no products
             PHt = state.cov[:, :, :m_dim]
@@ -221,28 +241,34 @@ class GMPHD(nn.Module):
             PHt = state.cov @ H.transpose(-1, -2)                   # (J, n, m)
             S = H @ PHt + R                      # (J, m, m); Cholesky reads its lower triangle only
             z_hat = state.mean @ H.transpose(-1, -2)                # (J, m)
-        L, info = torch.linalg.cholesky_ex(S)
-        if state.size and bool((info != 0).any()):
+        try:
+            L = torch.linalg.cholesky_ex(S, check_errors=True).L
+        except RuntimeError:
+            info = torch.linalg.cholesky_ex(S).info
             raise TorchtrackError("GMPHD update: innovation covariance S is not positive definite "
-                                  f"for {int((info != 0).sum())} components")
+                                  f"for {int((info != 0).sum())} components") from None
         eye_m = torch.eye(m_dim, dtype=S.dtype, device=S.device)
         Linv = torch.linalg.solve_triangular(L, eye_m.expand_as(L), upper=False)   # (J, m, m)
-        K = PHt @ (Linv.transpose(-1, -2) @ Linv)                  # (J, n, m)  K = P Hᵀ S⁻¹
-        P_upd = symmetrize(state.cov - K @ PHt.transpose(-1, -2))    # P − K S Kᵀ, symmetrised
+        # batched products called as torch.bmm directly (the kernel ``@`` dispatches to, fewer ops)
+        K = torch.bmm(PHt, torch.bmm(Linv.transpose(-1, -2), Linv))   # (J, n, m)  K = P Hᵀ S⁻¹
+        P_upd = state.cov - torch.bmm(K, PHt.transpose(-1, -2))                # P − K S Kᵀ
+        half = scalar(0.5, P_upd)
+        P_upd = (P_upd + P_upd.transpose(-1, -2)) * half                       # symmetrised
         half_logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (J,)
-        base = log_pd + live_w - half_logdet - 0.5 * m_dim * LOG_2PI            # (J,)
+        base = log_pd + live_w - half_logdet - scalar(0.5 * m_dim * LOG_2PI, live_w)   # (J,)
+        gate = scalar(self.gate, live_w)
 
         pair_j, pair_k, pair_logw, log_den = [], [], [], []
         for start in range(0, z.shape[0], self.chunk):
             zc = z[start:start + self.chunk]
             nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
-            y = nu @ Linv.transpose(-1, -2)                          # whitened innovations
+            y = torch.bmm(nu, Linv.transpose(-1, -2))                # whitened innovations
             nis = y.pow(2).sum(-1)                                   # (J, C)
-            gated = (nis <= self.gate) & state.mask.unsqueeze(1)
-            log_num = torch.where(gated, base.unsqueeze(1) - 0.5 * nis, torch.full_like(nis, NEG_INF))
+            gated = (nis <= gate) & state.mask.unsqueeze(1)
+            log_num = torch.where(gated, base.unsqueeze(1) - nis * half, neg_inf)
             den = torch.logaddexp(log_kappa[start:start + self.chunk], torch.logsumexp(log_num, 0)) \
                 if state.size else log_kappa[start:start + self.chunk]
-            jj, kk = gated.nonzero(as_tuple=True)
+            jj, kk = gated.nonzero().unbind(1)
             pair_j.append(jj)
             pair_k.append(kk + start if start else kk)
             pair_logw.append(log_num[jj, kk] - den[kk])
@@ -255,7 +281,7 @@ class GMPHD(nn.Module):
             kk = torch.cat(pair_k) if pair_k else torch.empty(0, dtype=torch.long, device=z.device)
             det_logw = torch.cat(pair_logw) if pair_logw else live_w[:0]
         nu_sel = z[kk] - z_hat[jj]                                   # (G, m)
-        det_mean = state.mean[jj] + (K[jj] @ nu_sel.unsqueeze(-1)).squeeze(-1)
+        det_mean = state.mean[jj] + torch.bmm(K[jj], nu_sel.unsqueeze(-1)).squeeze(-1)
 
         miss_logw = live_w + mats.log_p_missed
         post = MixtureState(
@@ -263,7 +289,7 @@ class GMPHD(nn.Module):
             torch.cat([state.mean, det_mean]),
             torch.cat([state.cov, P_upd[jj]]),
             torch.cat([state.label, state.label[jj]]),
-            torch.cat([state.mask, torch.ones_like(jj, dtype=torch.bool)]),
+            torch.cat([state.mask, torch.ones(jj.shape[0], dtype=torch.bool, device=jj.device)]),
         )
         loglik = log_den_t.sum() - pd * live_w.exp().sum()
         if self.area is not None:
@@ -294,17 +320,28 @@ class GMPHD(nn.Module):
         """Prune, merge, cap (Vo & Ma 2006, Table II); ``keep_label (P,)`` labels that win a merge
         (see :func:`merge`). More than ``2 capacity`` components are capped before merging, so the
         pairwise merge stays bounded in memory."""
-        state = self.cap(self.prune(state), 2 * self.capacity)   # bounds the O(J²) merge
-        return self.cap(self.merge(state, keep_label))
+        lw = state.log_weight
+        keep = (state.mask & (lw > scalar(math.log(self.prune_threshold), lw))).nonzero().squeeze(1)
+        J = int(keep.shape[0])
+        if J > 2 * self.capacity or J <= 1 or self.merge_threshold <= 0:
+            state = self.cap(state.select(keep), 2 * self.capacity)   # bounds the O(J²) merge
+            return self.cap(self.merge(state, keep_label))
+        # prune and sort by weight with one composed index (what prune + merge's sort select)
+        order = keep[torch.argsort(state.log_weight[keep].detach(), descending=True)]
+        state = MixtureState(state.log_weight[order], state.mean[order], state.cov[order], state.label[order],
+                             torch.ones(J, dtype=torch.bool, device=keep.device))
+        return self.cap(_merge_sorted(state, self.merge_threshold, self.merge_rounds, keep_label))
 
     def extract(self, state: MixtureState) -> Tensor:
         """Bool mask ``(J,)`` of components reported as targets (weight above ``extract_threshold``)."""
-        return state.mask & (state.log_weight > math.log(self.extract_threshold))
+        lw = state.log_weight
+        return state.mask & (lw > scalar(math.log(self.extract_threshold), lw))
 
     def gaussian_birth(self, mean: Tensor, std: Tensor, log_weight: Tensor, label: Tensor) -> MixtureState:
         """Birth components ``N(mean, diag(std²))`` with log-weights ``log_weight``; ``mean, std (B, n)``."""
         cov = torch.diag_embed(std.pow(2))
-        return MixtureState(log_weight, mean, cov, label, torch.ones_like(label, dtype=torch.bool))
+        return MixtureState(log_weight, mean, cov, label, torch.ones(label.shape[0], dtype=torch.bool,
+                                                                    device=label.device))
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -330,12 +367,12 @@ def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, 
     lam = torch.diagonal(cov[:, :k, :k], dim1=-2, dim2=-1).sum(-1)
     pos = mean[:, :k]
     d2 = (pos.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)                 # [i, j]
-    cand = torch.tril(d2 <= threshold * lam.unsqueeze(1) * (1 + 1e-4), diagonal=-1)
-    ii, jj = cand.nonzero(as_tuple=True)
+    cand = torch.tril(d2 <= lam.unsqueeze(1) * scalar(threshold, lam) * scalar(1 + 1e-4, lam), diagonal=-1)
+    ii, jj = cand.nonzero().unbind(1)
     if ii.numel():
         L, _ = torch.linalg.cholesky_ex(cov[ii])
         y = torch.linalg.solve_triangular(L, (mean[jj] - mean[ii]).unsqueeze(-1), upper=False)
-        ok = y.pow(2).sum((-1, -2)) <= threshold
+        ok = (y.pow(2).sum((-1, -2)) <= scalar(threshold, y)).nonzero().squeeze(1)
         ii, jj = ii[ok], jj[ok]
     return ii, jj
 
@@ -361,11 +398,15 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     labels keeps it (the highest-weight such member's) instead of the leader's label, so an established
     identity is not taken over by a younger duplicate merging into it.
     """
-    J = state.size
-    if J <= 1 or threshold <= 0:
+    if state.size <= 1 or threshold <= 0:
         return state
     order = torch.argsort(state.log_weight.detach(), descending=True)
-    state = state.select(order)
+    return _merge_sorted(state.select(order), threshold, rounds, keep_label)
+
+
+def _merge_sorted(state: MixtureState, threshold: float, rounds: int, keep_label: Tensor | None) -> MixtureState:
+    """:func:`merge` of a compacted mixture already sorted by decreasing weight."""
+    J = state.size
     mean, cov, log_w = state.mean, state.cov, state.log_weight
     with torch.no_grad():
         idx = torch.arange(J, device=mean.device)
@@ -375,8 +416,9 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
         big = torch.full((J,), J, dtype=torch.long, device=mean.device)
         # round 1 (every component alive): leaders have no heavier component within reach
         blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii, True)
-        cand = ~blocked[jj]
-        first = big.scatter_reduce(0, ii[cand], jj[cand], "amin")
+        # amin over the candidates: a non-candidate pair offers J, the initial value (no bool indexing)
+        none = scalar(J, jj)
+        first = big.scatter_reduce(0, ii, torch.where(blocked[jj], none, jj), "amin")
         joins = first < J
         owner = torch.where(joins, first, idx)
         alive = blocked & ~joins
@@ -385,7 +427,7 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
             blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii[live], True)
             leader = alive & ~blocked
             cand = alive[ii] & leader[jj]
-            first = big.scatter_reduce(0, ii[cand], jj[cand], "amin")     # heaviest leader within reach
+            first = big.scatter_reduce(0, ii, torch.where(cand, jj, none), "amin")   # heaviest leader within reach
             joins = alive & ~leader & (first < J)
             owner = torch.where(joins, first, owner)
             alive = alive & ~leader & ~joins
@@ -394,20 +436,19 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
         is_head = owner == idx
         group = torch.cumsum(is_head.long(), 0) - 1
         gid = group[owner]
-        G = int(is_head.sum())
+        G = int(group[-1]) + 1
     if G == J:
         return state
     w_max = log_w.max()
     w = torch.exp(log_w - w_max)                                             # (J,)
-    wsum = torch.zeros(G, dtype=w.dtype, device=w.device).index_add(0, gid, w)
-    mu = torch.zeros(G, mean.shape[1], dtype=w.dtype, device=w.device).index_add(0, gid, w.unsqueeze(1) * mean)
+    wsum = torch.zeros(G, dtype=w.dtype, device=w.device).index_add_(0, gid, w)
+    mu = torch.zeros(G, mean.shape[1], dtype=w.dtype, device=w.device).index_add_(0, gid, w.unsqueeze(1) * mean)
     mu = mu / wsum.unsqueeze(1)
     d = mean - mu[gid]
     spread = cov + d.unsqueeze(-1) * d.unsqueeze(-2)
-    P = torch.zeros(G, *cov.shape[1:], dtype=w.dtype, device=w.device).index_add(
+    P = torch.zeros(G, *cov.shape[1:], dtype=w.dtype, device=w.device).index_add_(
         0, gid, w.view(-1, 1, 1) * spread) / wsum.view(-1, 1, 1)
-    heads = is_head.nonzero(as_tuple=True)[0]
-    label = state.label[heads]
+    label = state.label[is_head]
     if keep_label is not None and keep_label.numel():
         with torch.no_grad():
             key = torch.isin(state.label, keep_label).to(w.dtype) * 2.0 + w / wsum[gid]

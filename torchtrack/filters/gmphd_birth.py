@@ -31,6 +31,7 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.gmphd import scalar
 from torchtrack.params import Positive
 
 
@@ -143,14 +144,17 @@ class AdaptiveBirth(nn.Module):
         ``pred_pos (J, 2)`` predicted positions ``H F x_i``, ``pred_log_w (J,)`` their log-weights.
         """
         with torch.no_grad():
-            keep = pred_log_w > math.log(self.suppress_weight)
-            p = pred_pos.detach()[keep]
-            if p.shape[0] == 0 or z.shape[0] == 0:
+            if pred_pos.shape[0] == 0 or z.shape[0] == 0:
                 return torch.ones(z.shape[0], dtype=torch.bool, device=z.device)
+            # a component below the suppression weight is infinitely far (same minimum as dropping it)
+            far = ~(pred_log_w > scalar(math.log(self.suppress_weight), pred_log_w))
+            inf, reach = scalar(float("inf"), z), scalar(self.distance_threshold ** 2, z)
+            p = pred_pos.detach()
             out = []
             for start in range(0, z.shape[0], chunk):
                 d2 = (z[start:start + chunk].unsqueeze(1) - p.unsqueeze(0)).pow(2).sum(-1)   # (C, J)
-                out.append(d2.amin(1) > self.distance_threshold ** 2)
+                d2 = torch.where(far, inf, d2)
+                out.append(d2.amin(1) > reach)
             return torch.cat(out)
 
     def constants(self) -> BirthConstants:
@@ -179,6 +183,5 @@ class AdaptiveBirth(nn.Module):
             vel = torch.where(valid.unsqueeze(1), hv, vel)
             s_vel = torch.where(valid, c.sigma_vel_map, s_vel)
         mean = torch.cat([z, vel], 1)
-        s_pos = c.sigma_pos.expand(B)
-        std = torch.stack([s_pos, s_pos, s_vel, s_vel], 1)
+        std = torch.cat([c.sigma_pos.expand(B, 2), s_vel.unsqueeze(1).expand(B, 2)], 1)   # [σp, σp, σv, σv]
         return mean, std, c.log_weight.expand(B)

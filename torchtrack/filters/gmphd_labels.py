@@ -89,8 +89,7 @@ def best_per_label(state: MixtureState, estimate: Tensor) -> Tensor:
     idx = estimate.nonzero(as_tuple=True)[0]
     if idx.numel() < 2:
         return idx
-    sl = torch.sort(state.label[idx]).values
-    if not bool((sl[1:] == sl[:-1]).any()):
+    if torch.unique(state.label[idx]).shape[0] == idx.shape[0]:     # labels already unique
         return idx
     by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
     o, first = _first_of_label(state.label[idx], by_weight)

@@ -171,8 +171,9 @@ class GMPHDTracker(nn.Module):
         else:
             sel = best_per_label(post, est)
         ids = post.label[sel]
-        pos = post.mean[sel, :2]
-        vel = post.mean[sel, 2:4]
+        mean = post.mean[sel]
+        pos = mean[:, :2]
+        vel = mean[:, 2:4]
         lost = memory.lost
         if self.handover_frames > 0:
             handed = label_handover(ids, pos.detach(), memory.prev_label, memory.prev_pos, memory.prev_vel, lost,
