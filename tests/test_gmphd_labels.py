@@ -6,6 +6,7 @@ import torch
 
 from torchtrack.filters.gmphd import MixtureState
 from torchtrack.filters.gmphd_labels import (
+    LostLabels,
     best_per_label,
     label_fix,
     label_handover,
@@ -57,6 +58,17 @@ def test_relabel_and_handover():
     far = label_handover(torch.tensor([12]), torch.tensor([[9.0, 0.0]], dtype=F64), torch.tensor([4]),
                          torch.tensor([[0.0, 0.0]], dtype=F64), torch.tensor([[3.0, 0.0]], dtype=F64), lost, 2.0)
     assert far.tolist() == [12]
+
+
+def test_handover_never_gives_a_label_that_is_reported_in_the_same_frame():
+    # label 7 was lost two frames ago near (0, 0) moving +3 px/frame and is reported again now at (6, 0);
+    # a brand-new estimate (label 12) also lies on its path: it must not take 7 (no duplicate identities)
+    lost = LostLabels(torch.tensor([7]), torch.tensor([[0.0, 0.0]], dtype=F64), torch.tensor([[3.0, 0.0]], dtype=F64),
+                      torch.tensor([1]))
+    out = label_handover(torch.tensor([7, 12]), torch.tensor([[6.0, 0.0], [6.5, 0.0]], dtype=F64),
+                         torch.tensor([3]), torch.tensor([[50.0, 0.0]], dtype=F64),
+                         torch.tensor([[0.0, 0.0]], dtype=F64), lost, max_distance=2.0)
+    assert out.tolist() == [7, 12]
 
 
 def _split_scene(tracker_name: str):

@@ -146,6 +146,8 @@ def label_handover(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Ten
     steps = torch.cat([lost.age + 1, torch.ones_like(prev_label[gone])]).to(pos.dtype) * dt
     start = torch.cat([lost.pos, prev_pos[gone]]).to(pos.dtype)
     travel = torch.cat([lost.vel, prev_vel[gone]]).to(pos.dtype) * steps.unsqueeze(1)
+    free = ~torch.isin(pool_label, label)  # a lost label reported again this frame is not free
+    pool_label, start, travel = pool_label[free], start[free], travel[free]
     ni = new.nonzero(as_tuple=True)[0]
     # distance from each new estimate to the segment [p, p + v·Δt]: robust to a target slowing down
     rel = pos[ni].detach().unsqueeze(1) - start.unsqueeze(0)                         # (N, L, 2)
