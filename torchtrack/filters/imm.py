@@ -111,6 +111,18 @@ def check_probabilities(p: Tensor, name: str, atol: float = 1e-5) -> None:
                               f"[{float(sums.min()):.6g}, {float(sums.max()):.6g}]")
 
 
+def probabilities_or_uniform(p, K: int, name: str, like: Tensor) -> Tensor:
+    """``p (*, K)`` as a tensor with ``like``'s dtype and device (uniform over ``K`` when ``None``),
+    checked to have ``K`` entries that form a distribution."""
+    if p is None:
+        p = torch.full((K,), 1.0 / K, dtype=like.dtype, device=like.device)
+    p = torch.as_tensor(p, dtype=like.dtype, device=like.device)
+    if p.shape[-1] != K:
+        raise TorchtrackError(f"{name} must have {K} entries; got shape {tuple(p.shape)}")
+    check_probabilities(p, name)
+    return p
+
+
 def mix(state: IMMState, log_transition: Tensor) -> IMMState:
     """Interaction step (eq. 26–27): mixed initial conditions and predicted mode log-probabilities.
 
@@ -208,12 +220,7 @@ class InteractingMultipleModel(nn.Module):
         if mean.shape[-1] != self.state_dim or cov.shape[-2:] != (self.state_dim, self.state_dim):
             raise TorchtrackError(f"IMM initial state must be (*, {self.state_dim}) and (*, {self.state_dim}, "
                                   f"{self.state_dim}); got {tuple(mean.shape)} and {tuple(cov.shape)}")
-        if mode_prob is None:
-            mode_prob = torch.full((M,), 1.0 / M, dtype=mean.dtype, device=mean.device)
-        mode_prob = torch.as_tensor(mode_prob, dtype=mean.dtype, device=mean.device)
-        if mode_prob.shape[-1] != M:
-            raise TorchtrackError(f"mode probabilities must have {M} entries; got shape {tuple(mode_prob.shape)}")
-        check_probabilities(mode_prob, "mode probabilities")
+        mode_prob = probabilities_or_uniform(mode_prob, M, "mode probabilities", mean)
         batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], mode_prob.shape[:-1])
         mean = mean.unsqueeze(-2).expand(*batch, M, self.state_dim)
         cov = cov.unsqueeze(-3).expand(*batch, M, self.state_dim, self.state_dim)

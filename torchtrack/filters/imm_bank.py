@@ -26,7 +26,7 @@ from torch import Tensor, nn
 
 from torchtrack.association.gating import mixture_log_density, sample_mixture
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.imm import IMMState, check_probabilities
+from torchtrack.filters.imm import IMMState, check_probabilities, probabilities_or_uniform
 from torchtrack.filters.kalman import GaussianState
 from torchtrack.gaussian import moment_match
 
@@ -73,12 +73,7 @@ class ClassConditionedIMM(nn.Module):
     def initial_state(self, mean: Tensor, cov: Tensor, class_prob: Tensor | None = None) -> BankState:
         """All classes and models start at ``mean (*, n)``, ``cov (*, n, n)``; ``class_prob (*, C)``."""
         C = self.num_classes
-        if class_prob is None:
-            class_prob = torch.full((C,), 1.0 / C, dtype=mean.dtype, device=mean.device)
-        class_prob = torch.as_tensor(class_prob, dtype=mean.dtype, device=mean.device)
-        if class_prob.shape[-1] != C:
-            raise TorchtrackError(f"class probabilities must have {C} entries; got shape {tuple(class_prob.shape)}")
-        check_probabilities(class_prob, "class probabilities")
+        class_prob = probabilities_or_uniform(class_prob, C, "class probabilities", mean)
         states = tuple(imm.initial_state(mean, cov) for imm in self.imms)
         batch = states[0].log_prob.shape[:-1]
         return BankState(torch.log(class_prob).expand(*batch, C), states)
