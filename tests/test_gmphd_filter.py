@@ -180,3 +180,58 @@ def test_gradients_reach_pd_kappa_q_r_and_birth_weight():
     h = 1e-6
     fd = (value(h) - value(-h)) / (2 * h)
     assert float(tracker.phd.p_detection.raw.grad) == pytest.approx(fd, rel=1e-5, abs=1e-6)
+
+
+def test_velocity_update_matches_the_four_dimensional_textbook_update():
+    """With ``velocity_sigma`` each detection is ``[z, v]`` measured by ``H = I_4``, ``R_4 = blockdiag(R, σ_v² I)``
+    and clutter ``κ κ_v``: weights and means equal the per-pair Vo & Ma formulas in four dimensions."""
+    phd = make_phd(pd=0.8, kappa=2e-3, gate_probability=1.0, velocity_sigma=0.7, velocity_clutter_density=0.01)
+    mats = phd.matrices(1.0)
+    g = torch.Generator().manual_seed(5)
+    J, M = 3, 4
+    mean = torch.randn(J, 4, generator=g, dtype=F64) * 2
+    A = torch.randn(J, 4, 4, generator=g, dtype=F64)
+    cov = A @ A.transpose(-1, -2) + torch.eye(4, dtype=F64)
+    w = torch.rand(J, generator=g, dtype=F64) + 0.2
+    state = MixtureState(w.log(), mean, cov, torch.arange(J), torch.ones(J, dtype=torch.bool))
+    z = torch.randn(M, 2, generator=g, dtype=F64) * 2
+    v = torch.randn(M, 2, generator=g, dtype=F64)
+    post, info = phd.update(state, z, mats, velocity=v)
+    zz = torch.cat([z, v], 1)
+    s_z, s_v = phd.measurement.sigma().detach(), phd.velocity_sigma().detach()   # 1.5, 0.7 (float32-rounded)
+    R4 = torch.diag(torch.stack([s_z, s_z, s_v, s_v]).reshape(4) ** 2)
+    q = torch.zeros(J, M, dtype=F64)
+    upd = torch.zeros(J, M, 4, dtype=F64)
+    for j in range(J):
+        S = cov[j] + R4
+        q[j] = torch.distributions.MultivariateNormal(mean[j], S).log_prob(zz).exp()
+        K = cov[j] @ torch.linalg.inv(S)
+        upd[j] = mean[j] + (zz - mean[j]) @ K.T
+    pd = phd.p_detection().detach()
+    clutter = phd.clutter_density().detach() * phd.velocity_clutter_density().detach()
+    num = pd * w[:, None] * q
+    expected = num / (clutter + num.sum(0, keepdim=True))
+    torch.testing.assert_close(post.log_weight[J:].exp().detach().reshape(J, M), expected, rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(post.mean[J:].detach().reshape(J, M, 4), upd, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(info.log_denominator.detach(), torch.log(clutter + num.sum(0)), rtol=1e-9, atol=1e-9)
+    # without velocities the same filter is the position-only update
+    post2, _ = phd.update(state, z, mats)
+    ref, _ = make_phd(pd=0.8, kappa=2e-3, gate_probability=1.0).update(state, z, mats._replace(R_velocity=None))
+    torch.testing.assert_close(post2.log_weight, ref.log_weight)
+
+
+def test_gradients_reach_the_velocity_noise_and_velocity_clutter_density():
+    tracker = GMPHDTracker(GMPHD(ConstantVelocity(2, q=0.5), LinearPosition(2, sigma=1.0), velocity_sigma=1.0),
+                           AdaptiveBirth(birth_weight=0.05), dtype=F64)
+    g = torch.Generator().manual_seed(1)
+    p = torch.tensor([[20.0, 30.0], [60.0, 50.0]], dtype=F64)
+    v = torch.tensor([[1.0, 0.5], [-0.5, 1.0]], dtype=F64)
+    zs, vs = [], []
+    for t in range(5):
+        zs.append(torch.cat([p + v * t + 0.5 * torch.randn(2, 2, generator=g, dtype=F64),
+                             torch.rand(2, 2, generator=g, dtype=F64) * 100]))
+        vs.append(torch.cat([v + 0.3 * torch.randn(2, 2, generator=g, dtype=F64), torch.zeros(2, 2, dtype=F64)]))
+    tracker.log_likelihood(zs, vs).sum().backward()
+    for prm in (tracker.phd.velocity_sigma.raw, tracker.phd.velocity_clutter_density.raw,
+                tracker.phd.p_detection.raw, tracker.phd.measurement.sigma.raw):
+        assert prm.grad is not None and torch.isfinite(prm.grad).all() and prm.grad.abs().sum() > 0

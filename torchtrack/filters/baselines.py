@@ -29,12 +29,14 @@ def enhanced_gmphd(config: dict | None = None) -> GMPHDTracker:
 
 def labelled_gmphd(config: dict | None = None) -> GMPHDTracker:
     """The labelled GM-PHD baseline: the label fix and its extensions (hand-over, coasting, merge priority),
-    the velocity map and the detector's velocity are off whatever the config says (births start at rest
-    with ``birth.sigma_vel_unknown``)."""
+    the velocity map and the detector's velocity (at birth and in the update) are off whatever the config says
+    (births start at rest with ``birth.sigma_vel_unknown``)."""
     cfg = dict(config or {})
     birth = dict(cfg.get("birth") or {})
     birth.update(use_velocity_map=False, use_detector_velocity=False)
-    cfg.update(birth=birth, label_fix=False, handover_frames=0, coast_threshold=None, confirm_new=False)
+    filt = {k: v for k, v in dict(cfg.get("filter") or {}).items()
+            if k not in ("velocity_sigma", "velocity_clutter_density")}   # no velocity in the update
+    cfg.update(filter=filt, birth=birth, label_fix=False, handover_frames=0, coast_threshold=None, confirm_new=False)
     return GMPHDTracker.from_config(cfg)
 
 

@@ -127,6 +127,8 @@ class Matrices(NamedTuple):
     log_p_missed: Tensor     # log(1 − p_D)
     log_clutter: Tensor      # log κ
     selects_position: bool = False   # H = [I_m 0]: H x is a slice of x (a faster exact path)
+    R_velocity: Tensor | None = None          # (m + 2, m + 2) blockdiag(R, σ_v² I): noise of [z, v]
+    log_clutter_velocity: Tensor | None = None   # log κ_v, clutter density over velocities
 
 
 class UpdateInfo(NamedTuple):
@@ -153,13 +155,19 @@ class GMPHD(nn.Module):
         capacity: maximum number of components ``J_max`` kept after a step.
         extract_threshold: components with weight above it are reported as targets.
         chunk: measurements processed per batched chunk of the update.
+        velocity_sigma: noise std ``σ_v`` (px/frame; learnable) of the detector's velocity; when given and
+            the update receives velocities, each detection is the 4-vector ``[z, v]`` measured through
+            ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)`` (None: velocities are not used in the update).
+        velocity_clutter_density: ``κ_v`` (learnable), the density of a clutter detection's velocity; the
+            clutter intensity of ``[z, v]`` is ``κ(z) κ_v`` (default 1/400: uniform over ±10 px/frame).
     """
 
     def __init__(self, motion: MotionModel | None = None, measurement: MeasurementModel | None = None,
                  p_survival: float = 0.99, p_detection: float = 0.9, clutter_density: float = 1e-4,
                  area: float | None = None, gate_probability: float = 0.999, prune_threshold: float = 1e-4,
                  merge_threshold: float = 4.0, merge_rounds: int = 3, capacity: int = 1024,
-                 extract_threshold: float = 0.5, chunk: int = 4096):
+                 extract_threshold: float = 0.5, chunk: int = 4096, velocity_sigma: float | None = None,
+                 velocity_clutter_density: float = 2.5e-3):
         super().__init__()
         self.motion = motion if motion is not None else ConstantVelocity(2, q=1.0)
         self.measurement = measurement if measurement is not None else LinearPosition(2, sigma=1.0)
@@ -188,6 +196,10 @@ class GMPHD(nn.Module):
         self.extract_threshold = extract_threshold
         self.chunk = chunk
         self.cap_hits = 0
+        self.gate_velocity = chi2_quantile(gate_probability, m + 2)   # gate of [z, v] (velocity_sigma)
+        self.velocity_sigma = None if velocity_sigma is None else Positive(velocity_sigma, "velocity_sigma")
+        self.velocity_clutter_density = (None if velocity_sigma is None
+                                         else Positive(velocity_clutter_density, "velocity_clutter_density"))
 
     @property
     def state_dim(self) -> int:
@@ -200,9 +212,16 @@ class GMPHD(nn.Module):
         m, n = H.shape
         eye = torch.eye(m, n, dtype=H.dtype, device=H.device)
         selects = bool(torch.equal(H.detach(), eye))
+        R = self.measurement.noise_cov()
+        R_v = log_kv = None
+        if self.velocity_sigma is not None:
+            if not selects or n != m + 2:
+                raise TorchtrackError("GMPHD velocity_sigma needs H = [I 0] and a state [position, velocity]")
+            R_v = torch.block_diag(R, self.velocity_sigma().pow(2) * torch.eye(2, dtype=R.dtype, device=R.device))
+            log_kv = torch.log(self.velocity_clutter_density())
         return Matrices(self.motion.transition_matrix(dt), self.motion.process_noise(dt),
-                        H, self.measurement.noise_cov(), ps, pd, kappa,
-                        torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa), selects)
+                        H, R, ps, pd, kappa,
+                        torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa), selects, R_v, log_kv)
 
     def predict(self, state: MixtureState, mats: Matrices) -> MixtureState:
         """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
@@ -215,13 +234,15 @@ class GMPHD(nn.Module):
         log_w = state.log_weight + mats.log_p_survival
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
-    def update(self, state: MixtureState, z: Tensor, mats: Matrices,
-               clutter: Tensor | None = None) -> tuple[MixtureState, UpdateInfo]:
+    def update(self, state: MixtureState, z: Tensor, mats: Matrices, clutter: Tensor | None = None,
+               velocity: Tensor | None = None) -> tuple[MixtureState, UpdateInfo]:
         """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
 
         ``clutter`` optionally gives ``κ(z_k)`` per measurement ``(M,)``; by default the uniform
-        ``clutter_density``. Returns the posterior (missed-detection components first, then the gated
-        detection components, ``J + G`` in all) and :class:`UpdateInfo`.
+        ``clutter_density``. ``velocity (M, 2)``: the detector's velocities, used as measurements (with
+        ``H = I``, ``R_4 = blockdiag(R, σ_v² I)``, clutter ``κ κ_v``) when the filter has a
+        ``velocity_sigma``, ignored otherwise. Returns the posterior (missed-detection components first,
+        then the gated detection components, ``J + G`` in all) and :class:`UpdateInfo`.
         """
         H, R = mats.H, mats.R
         m_dim = H.shape[0]
@@ -230,6 +251,14 @@ class GMPHD(nn.Module):
         z = z.to(state.mean.dtype)
         pd, log_pd = mats.p_detection, mats.log_p_detection
         log_kappa = (mats.log_clutter if clutter is None else torch.log(clutter)).expand(z.shape[0])
+        gate = self.gate
+        if velocity is not None and mats.R_velocity is not None:
+            if velocity.shape != z.shape:
+                raise TorchtrackError(f"velocities must have shape {tuple(z.shape)}; got {tuple(velocity.shape)}")
+            z = torch.cat([z, velocity.to(z.dtype)], 1)
+            R, m_dim = mats.R_velocity, m_dim + 2
+            log_kappa = log_kappa + mats.log_clutter_velocity
+            gate = self.gate_velocity
         neg_inf = scalar(NEG_INF, state.log_weight)
         live_w = torch.where(state.mask, state.log_weight, neg_inf)
 
@@ -256,7 +285,7 @@ class GMPHD(nn.Module):
         P_upd = (P_upd + P_upd.transpose(-1, -2)) * half                       # symmetrised
         half_logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (J,)
         base = log_pd + live_w - half_logdet - scalar(0.5 * m_dim * LOG_2PI, live_w)   # (J,)
-        gate = scalar(self.gate, live_w)
+        gate = scalar(gate, live_w)
 
         pair_j, pair_k, pair_logw, log_den = [], [], [], []
         for start in range(0, z.shape[0], self.chunk):

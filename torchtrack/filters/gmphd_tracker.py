@@ -155,7 +155,7 @@ class GMPHDTracker(nn.Module):
         phd = self.phd
         pred = phd.predict(state, mats)
         is_birth = self.birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.chunk)
-        post, info = phd.update(pred, z, mats)
+        post, info = phd.update(pred, z, mats, velocity=velocity)
         post = phd.reduce(post, memory.prev_label if self.label_fix and self.merge_priority else None)
         est = phd.extract(post)
         next_label = memory.next_label
