@@ -35,11 +35,31 @@ def torch_threads(n: int | None):
         torch.set_num_threads(previous)
 
 
-def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, runs: int = 100) -> None:
-    """``--runs``, ``--config`` and ``--plot DIR``, which every ``torchtrack scenario`` takes."""
+PARAMS_SCENARIOS = "formation (imm), maneuver (kalman)"
+"""The scenarios whose filter ``torchtrack tune`` fits (they take ``--params``), with the tune filter name."""
+
+
+class _NoFittedParams(argparse.Action):
+    """``--params`` of a scenario whose filter ``torchtrack tune`` cannot fit: a usage error."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string}: this scenario's filter is not one that torchtrack tune fits; "
+                     f"fitted parameters load into: {PARAMS_SCENARIOS}")
+
+
+def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, runs: int = 100,
+                         params: str | None = None) -> None:
+    """``--runs``, ``--config``, ``--plot DIR`` and ``--params FITTED.yaml``, which every ``torchtrack
+    scenario`` takes; ``params`` says what a fitted-parameter file sets (None: the scenario has no tunable
+    filter and ``--params`` is a usage error)."""
     parser.add_argument("--runs", type=int, default=runs, help=f"Monte Carlo runs, batched (default {runs})")
     parser.add_argument("--config", type=Path, default=default_config, help="scenario YAML (default %(default)s)")
     parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
+    if params is None:
+        parser.add_argument("--params", action=_NoFittedParams, metavar="FITTED", help=argparse.SUPPRESS)
+    else:
+        parser.add_argument("--params", type=Path, default=None, metavar="FITTED",
+                            help=f"fitted parameters from torchtrack tune (OUT/params.yaml): {params}")
 
 
 def load_sections(path: Path, expected: set[str]) -> dict:

@@ -46,6 +46,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--config", type=Path, default=None, metavar="YAML",
                         help="tracker options: a YAML mapping with one section per tracker name "
                              "(e.g. configs/gmphd.yaml); defaults are the built-in values")
+    parser.add_argument("--params", type=Path, default=None, metavar="FITTED",
+                        help="fitted GM-PHD parameters from torchtrack tune (OUT/params.yaml): the tracker is "
+                             "built from the file's options with the fitted values, exactly the tuned tracker "
+                             "(with --detections; --tracker must be the file's, not with --config)")
     parser.add_argument("--gt", type=Path, default=None, help="ground truth (MOTChallenge) to score against")
     parser.add_argument("--out", type=Path, default=Path("out/track"), help="output folder (default out/track)")
     parser.add_argument("--threshold", type=float, default=10.0, help="CLEAR-MOT centre distance in px "
@@ -143,13 +147,16 @@ def score(gt, tracks: dict, threshold: float) -> dict:
     return clear_mot(gt, pred, threshold=threshold)
 
 
-def track_detections(det, tracker_name: str, config: dict, out: Path, gt=None, threshold: float = 10.0) -> dict:
+def track_detections(det, tracker_name: str, config: dict, out: Path, gt=None, threshold: float = 10.0,
+                     tracker: Tracker | None = None) -> dict:
     """Run one tracker on detections ``det`` (MOTData); writes ``out/tracks.txt`` and ``out/metrics.json``.
 
-    Returns the metrics (CLEAR-MOT keys where ``gt`` is given) with ``tracker``, ``frames``, ``FPS`` and,
-    for the GM-PHD trackers, ``cap_hits``.
+    ``tracker`` (already built, e.g. :func:`fitted_tracker`) replaces the one ``tracker_name`` and
+    ``config`` describe. Returns the metrics (CLEAR-MOT keys where ``gt`` is given) with ``tracker``,
+    ``frames``, ``FPS`` and, for the GM-PHD trackers, ``cap_hits``.
     """
-    tracker = make_tracker(tracker_name, config.get(tracker_name))
+    if tracker is None:
+        tracker = make_tracker(tracker_name, config.get(tracker_name))
     frames = frame_range(det, gt)
     tracks, seconds, n = run_frames(tracker, detection_frames(det, frames), out / "tracks.txt")
     metrics = score(gt, tracks, threshold) if gt is not None else {}
@@ -159,6 +166,27 @@ def track_detections(det, tracker_name: str, config: dict, out: Path, gt=None, t
         metrics["cap_hits"] = tracker.cap_hits
     write_json(out / "metrics.json", metrics)
     return metrics
+
+
+def fitted_tracker(args: argparse.Namespace) -> Tracker:
+    """The GM-PHD tracker of a ``torchtrack tune`` fitted-parameter file (``--params``): built from the
+    file's tracker options and loaded with the fitted values exactly (:func:`torchtrack.tune.load_filter`)."""
+    from torchtrack.tune import load_filter
+    from torchtrack.tuning.config import read_params_file
+
+    doc = read_params_file(args.params, ("gmphd",), "torchtrack track --params")
+    kind = (doc.get("model") or {}).get("tracker", "gmphd")
+    if kind != args.tracker:
+        raise TorchtrackError(f"{args.params}: fitted for --tracker {kind}; got --tracker {args.tracker}")
+    given = {"--config": args.config, "--compare": args.compare, "--benchmark": args.benchmark,
+             "--video/--frames/--sequences": args.video or args.frames or args.sequences}
+    clash = [flag for flag, value in given.items() if value]
+    if clash:
+        raise TorchtrackError(f"--params sets the whole tracker and runs on --detections; it does not combine "
+                              f"with {', '.join(clash)}")
+    tracker = load_filter(args.params)
+    tracker.reset()
+    return tracker
 
 
 def table_row(name: str, m: dict) -> list:
@@ -185,6 +213,7 @@ def compare(det, config: dict, out: Path, gt, threshold: float, trackers: list[s
 def run(args: argparse.Namespace) -> int:
     torch.set_num_threads(max(1, args.threads))
     torch.manual_seed(args.seed)
+    fitted = fitted_tracker(args) if args.params is not None else None
     rc = run_frame_inputs(args, load_tracker_config(args.config).get(args.tracker))
     if rc is not None:
         return rc
@@ -209,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
         write_json(args.out / "comparison.json", results)
         write_json(args.json, results)
         return 0
-    m = track_detections(det, args.tracker, config, args.out, gt, args.threshold)
+    m = track_detections(det, args.tracker, config, args.out, gt, args.threshold, fitted)
     if gt is not None:
         print(format_table(TABLE_HEADER, [table_row(args.tracker, m)], floatfmt=".2f"))
     else:

@@ -42,6 +42,7 @@ from torchtrack.filters.imm_bank import BankState, ClassConditionedIMM
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
 from torchtrack.gaussian import moment_match
 from torchtrack.models import LinearPosition, ModeControlInput
+from torchtrack.params import RowStochastic
 from torchtrack.sim.formation import FormationConfig, FormationData, simulate_formation
 
 NAME = "formation"
@@ -52,7 +53,9 @@ GATES = ("rectangular", "ellipsoidal", "class_conditioned_ellipse", "class_condi
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_scenario_options(parser, DEFAULT_CONFIG, runs=100)
+    add_scenario_options(parser, DEFAULT_CONFIG, runs=100,
+                         params="every class IMM's transition matrix and process and measurement noise "
+                                "(an 'imm' file with 3 modes)")
     add_common_options(parser)
 
 
@@ -70,16 +73,39 @@ def load_config(path: Path) -> dict:
     return cfg
 
 
-def build_bank(fcfg: dict, sigma_w: float, confusion) -> ClassConditionedIMM:
-    """One :class:`ConstantVelocityIMM` per class: control inputs ``model_sets[c] · g`` along ``input_axis``."""
+def build_bank(fcfg: dict, sigma_w: float, confusion, params: Path | None = None, dt: float = 1.0
+               ) -> ClassConditionedIMM:
+    """One :class:`ConstantVelocityIMM` per class: control inputs ``model_sets[c] · g`` along ``input_axis``.
+
+    With ``params`` (a ``torchtrack tune`` file of an ``imm`` filter fitted with scan time ``dt``) every
+    class IMM takes its fitted transition matrix ``transition.learned``, per-mode process noise
+    ``motion.sigma`` and measurement noise ``measurement.sigma`` (loaded exactly,
+    :func:`torchtrack.tune.load_params`); the classes keep their own control inputs.
+    """
+    doc = None
+    if params is not None:
+        from torchtrack.tuning.config import load_params, read_params_file
+        from torchtrack.tuning.imm import floored_transition
+
+        doc = read_params_file(params, ("imm",), "scenario formation")
+        if float((doc.get("model") or {}).get("dt", 1.0)) != float(dt):
+            raise TorchtrackError(f"{params}: fitted with dt {(doc.get('model') or {}).get('dt', 1.0)}; the "
+                                  f"formation scans every {dt} s")
     imms = []
     for inputs in fcfg["model_sets"]:
         axis = {"x": 0, "y": 1}[fcfg["input_axis"]]
         controls = [[a * fcfg["g"] if d == axis else 0.0 for d in range(2)] for a in inputs]
         motion = ModeControlInput(controls, [fcfg["process_sigma"]] * len(inputs), learnable=False)
         meas = LinearPosition(2, sigma=sigma_w, learnable=False)
-        imms.append(ConstantVelocityIMM(motion, meas, torch.tensor(fcfg["transition"])))
-    return ClassConditionedIMM(imms, torch.tensor(confusion)).double()
+        transition = torch.tensor(fcfg["transition"])
+        if doc is not None:   # a learnable (RowStochastic) matrix to load the fitted one into
+            transition = RowStochastic(floored_transition(transition, 1e-3).to(transition), requires_grad=False)
+        imms.append(ConstantVelocityIMM(motion, meas, transition))
+    bank = ClassConditionedIMM(imms, torch.tensor(confusion)).double()
+    if doc is not None:
+        for imm in bank.imms:
+            load_params(imm, params)
+    return bank
 
 
 def _kinematic_gate(kind: str, bank: ClassConditionedIMM, state: BankState, z, z_mask, alpha) -> Gate:
@@ -134,7 +160,7 @@ def track_formation(data: FormationData, cfg: dict, gate: str, gen: torch.Genera
     scfg: FormationConfig = cfg["scenario"]
     acfg = cfg["association"]
     alpha = acfg["alpha"]
-    bank = build_bank(cfg["filter"], scfg.measurement_sigma, scfg.confusion)
+    bank = build_bank(cfg["filter"], scfg.measurement_sigma, scfg.confusion, cfg.get("params"), scfg.dt)
     R, K, N = data.truth.shape[:3]
     dtype = data.z.dtype
     sw, sv = scfg.measurement_sigma, cfg["filter"]["init_velocity_sigma"]
@@ -189,6 +215,7 @@ def association_probability(result: dict, target_class: torch.Tensor, num_classe
 
 def run(args) -> int:
     cfg = load_config(args.config)
+    cfg["params"] = args.params
     if args.runs < 1:
         raise TorchtrackError(f"--runs must be >= 1; got {args.runs}")
     gen = torch.Generator().manual_seed(args.seed)
@@ -213,7 +240,8 @@ def run(args) -> int:
     print("paper: rectangular 53/61 %, ellipsoidal 76/79 %, class-conditioned 100/100 %")
     payload = {"association_probability": prob, "gate_volume": vol, "runs": args.runs, "seed": args.seed,
                "scans": scfg.num_steps, "alpha": cfg["association"]["alpha"],
-               "class_conditioned_region": cfg["association"]["cc_region"]}
+               "class_conditioned_region": cfg["association"]["cc_region"],
+               "params": None if args.params is None else str(args.params)}
     write_json(args.json, payload)
     if args.plot is not None:
         from torchtrack.scenarios._formation_plots import plot_formation

@@ -27,7 +27,9 @@ DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "maneuver.yam
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_scenario_options(parser, DEFAULT_CONFIG, runs=100)
+    add_scenario_options(parser, DEFAULT_CONFIG, runs=100,
+                         params="the Kalman filter's q and sigma of the constant-velocity and maneuver experiments "
+                                "(a 'kalman' file, motion cv, noise pwca)")
     add_common_options(parser)
 
 
@@ -55,17 +57,37 @@ def run_stationary(cfg: dict, runs: int, gen: torch.Generator) -> dict:
             "final_error": _rmse(est[-1] - seq.truth[-1])}
 
 
-def _filters(fcfg: dict, sigma: float) -> tuple[ManeuverDetectingKalmanFilter, ManeuverDetectingKalmanFilter]:
+def fitted_kalman(fcfg: dict, sigma: float, params: Path | None = None) -> KalmanFilter:
+    """The Kalman filter of the constant-velocity and maneuver experiments (CV, PWCA noise ``q``, position
+    measurements ``sigma``); with ``params`` (a ``torchtrack tune`` file of a ``kalman`` filter with
+    ``motion: cv``, ``noise: pwca``, ``ndim: 2`` and the same ``dt``) its ``motion.q`` and
+    ``measurement.sigma`` are the fitted ones, loaded exactly (:func:`torchtrack.tune.load_params`)."""
     kf = KalmanFilter(ConstantVelocity(2, q=fcfg["q"], noise="pwca"), LinearPosition(2, sigma=sigma)).double()
+    if params is not None:
+        from torchtrack.tuning.config import load_params, read_params_file
+
+        model = read_params_file(params, ("kalman",), "scenario maneuver").get("model") or {}
+        got = {"motion": model.get("motion", "cv"), "noise": model.get("noise", "cwna"),
+               "ndim": int(model.get("ndim", 2)), "dt": float(model.get("dt", 1.0))}
+        want = {"motion": "cv", "noise": "pwca", "ndim": 2, "dt": float(fcfg["dt"])}
+        if got != want:
+            raise TorchtrackError(f"{params}: fitted with model {got}; the maneuver scenario's filter is {want}")
+        load_params(kf, params)
+    return kf
+
+
+def _filters(fcfg: dict, sigma: float, params: Path | None = None
+             ) -> tuple[ManeuverDetectingKalmanFilter, ManeuverDetectingKalmanFilter]:
+    kf = fitted_kalman(fcfg, sigma, params)
     detecting = ManeuverDetectingKalmanFilter(kf, threshold=fcfg["threshold"])
     plain = ManeuverDetectingKalmanFilter(kf, threshold=fcfg["threshold"], reset=False)
     return plain, detecting
 
 
-def run_constant_velocity(cfg: dict, fcfg: dict, runs: int, gen: torch.Generator) -> dict:
+def run_constant_velocity(cfg: dict, fcfg: dict, runs: int, gen: torch.Generator, params: Path | None = None) -> dict:
     seq = sim.maneuvering(cfg["scans"], runs, cfg["speed"], [], [], 1, cfg["sigma"], cfg["sigma_a"],
                           fcfg["dt"], gen)
-    plain, _ = _filters(fcfg, cfg["sigma"])
+    plain, _ = _filters(fcfg, cfg["sigma"], params)
     res = plain.run(seq.measurements, fcfg["dt"])
     settle = 10
     return {"seq": seq, "result": res,
@@ -74,10 +96,10 @@ def run_constant_velocity(cfg: dict, fcfg: dict, runs: int, gen: torch.Generator
             "rmse_velocity": _rmse(res.mean[settle:, :, 2:] - seq.truth[settle:, :, 2:])}
 
 
-def run_maneuver(cfg: dict, fcfg: dict, runs: int, gen: torch.Generator) -> dict:
+def run_maneuver(cfg: dict, fcfg: dict, runs: int, gen: torch.Generator, params: Path | None = None) -> dict:
     seq = sim.maneuvering(cfg["scans"], runs, cfg["speed"], cfg["onsets"], cfg["turn_deg"], cfg["turn_scans"],
                           cfg["sigma"], cfg["sigma_a"], fcfg["dt"], gen)
-    plain, detecting = _filters(fcfg, cfg["sigma"])
+    plain, detecting = _filters(fcfg, cfg["sigma"], params)
     res_plain = plain.run(seq.measurements, fcfg["dt"])
     res_det = detecting.run(seq.measurements, fcfg["dt"])
     scans = cfg["scans"]
@@ -110,8 +132,8 @@ def run(args) -> int:
     gen = torch.Generator().manual_seed(args.seed)
     with torch.no_grad():
         st = run_stationary(cfg["stationary"], args.runs, gen)
-        cv = run_constant_velocity(cfg["constant_velocity"], cfg["filter"], args.runs, gen)
-        mv = run_maneuver(cfg["maneuver"], cfg["filter"], args.runs, gen)
+        cv = run_constant_velocity(cfg["constant_velocity"], cfg["filter"], args.runs, gen, args.params)
+        mv = run_maneuver(cfg["maneuver"], cfg["filter"], args.runs, gen, args.params)
     onsets = cfg["maneuver"]["onsets"]
 
     print(f"Maneuver paper, {args.runs} Monte Carlo runs (seed {args.seed})\n")
@@ -148,6 +170,7 @@ def run(args) -> int:
         "threshold": cfg["filter"]["threshold"],
         "runs": args.runs,
         "seed": args.seed,
+        "params": None if args.params is None else str(args.params),
     })
     if args.plot is not None:
         from torchtrack.scenarios._maneuver_plots import plot_all

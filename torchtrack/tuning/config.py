@@ -93,6 +93,20 @@ def save_params(module: nn.Module, path: str | os.PathLike, filter_name: str,
     return path
 
 
+def read_params_file(path: str | os.PathLike, filters: Iterable[str], where: str) -> dict:
+    """A fitted-parameter file, checked to come from one of the tunable ``filters`` (e.g. ``("kalman",)``)
+    that ``where`` (e.g. ``"scenario maneuver"``) can load."""
+    doc = read_yaml(path)
+    filters = tuple(filters)
+    if doc.get("filter") not in filters:
+        raise TorchtrackError(f"{path}: fitted parameters of a {doc.get('filter')!r} filter; {where} takes "
+                              f"those of {' or '.join(map(repr, filters))} (torchtrack tune --config "
+                              f"configs/tune-{filters[0]}*.yaml)")
+    if not isinstance(doc.get("model") or {}, Mapping):
+        raise TorchtrackError(f"{path}: 'model' must be a mapping of builder options")
+    return doc
+
+
 def load_params(module: nn.Module, path: str | os.PathLike) -> dict[str, torch.Tensor]:
     """Set ``module``'s parameters from a fitted-parameter file; returns the constrained values set.
 
