@@ -138,8 +138,11 @@ class _World:
                     d = float(np.min(np.abs(lane.intersections - v.s)))
                     factor = min(1.0, cfg.intersection_slowdown
                                  + (1 - cfg.intersection_slowdown) * d / cfg.intersection_radius)
-                v.speed += 0.5 * (v.desired * factor - v.speed)
                 limit = leader_s - (leader_len + v.length) / 2 - 2.0
+                target = v.desired * factor
+                if cfg.headway > 0:
+                    target = min(target, max(0.0, limit - v.s) / cfg.headway)
+                v.speed += 0.5 * (target - v.speed)
                 new_s = max(v.s, min(v.s + v.speed, limit))
                 v.speed, v.s = new_s - v.s, new_s
                 leader_s, leader_len = v.s, v.length
