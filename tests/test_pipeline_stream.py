@@ -18,7 +18,7 @@ from torchtrack.sim.video import VideoConfig, generate_sequence
 
 @pytest.fixture(scope="module")
 def sequence():
-    cfg = VideoConfig(height=128, width=128, frames=5)
+    cfg = VideoConfig(height=160, width=160, frames=5)
     return list(generate_sequence(cfg, torch.Generator().manual_seed(3)))
 
 
@@ -71,7 +71,7 @@ def test_positions_reach_the_tracker_in_reference_coordinates(tmp_path, sequence
         # Truth in frame k mapped to frame 1 by the TRUE camera motion H_1 H_k^{-1}.
         expected = tv.apply_homography(f.xy, h1 @ np.linalg.inv(f.homography))
         err = np.linalg.norm(seen.numpy() - expected, axis=1)
-        assert np.median(err) < 0.5 and err.max() < 1.0  # registration of a tiny 128 x 128 frame
+        assert np.median(err) < 0.5 and err.max() < 1.0  # registration of a tiny 160 x 160 frame
     # tracks.txt is in frame coordinates again: the truth of each frame, exactly.
     tracks = read_mot(result.files["tracks"])
     for f, idx in zip(sequence, tracks.split(range(1, 6))):
@@ -116,7 +116,7 @@ def test_annotated_video_decodes(tmp_path, sequence, monkeypatch):
         ok, img = cap.read()
         if not ok:
             break
-        assert img.shape == (256, 256, 3)
+        assert img.shape == (320, 320, 3)
         n += 1
     assert n == 5
 
@@ -148,7 +148,7 @@ def test_size_change_mid_run_names_the_file_and_leaves_no_complete_results(tmp_p
     out = tmp_path / "out"
     (out).mkdir()
     (out / "metrics.json").write_text("{}")  # a previous run's result must not survive beside the new files
-    with pytest.raises(TorchtrackError, match=r"003\.png: frame size 128x100 differs from 128x128"):
+    with pytest.raises(TorchtrackError, match=r"003\.png: frame size 160x100 differs from 160x160"):
         tv.track_video(FolderSource(frames), out, PipelineConfig(), detector=OnePoint(), progress=False)
     assert not (out / "metrics.json").exists() and not (out / "annotated.mp4").exists()
     assert read_mot(out / "tracks.txt").frames().tolist() == [1, 2]  # complete up to the last good frame
@@ -181,3 +181,25 @@ def test_repeated_identity_is_dropped_counted_and_warned(tmp_path, sequence, mon
     tracks = read_mot(result.files["tracks"])  # a valid file: one line per (frame, id)
     assert tracks.size == 10 and set(tracks.id.tolist()) == {5, 6}
     assert result.metrics["duplicate_identities_dropped"] == 5
+
+
+class TwoSpeeds:
+    """Two detections per frame: one at rest, one moving at 3 px/frame."""
+
+    def detect(self, frame, prev_frame, prev_points):
+        return SimpleNamespace(xy=torch.tensor([[40.0, 40.0], [80.0, 90.0]]), score=torch.ones(2),
+                               velocity=torch.tensor([[0.0, 0.0], [3.0, 0.0]]))
+
+
+def test_min_speed_keeps_slow_detections_from_the_tracker_only(tmp_path, sequence, monkeypatch):
+    result, tracker = _run(tmp_path, sequence, monkeypatch, TwoSpeeds(), min_speed=2.0, video=False)
+    assert [len(seen) for seen in tracker.seen] == [1] * 5
+    assert read_mot(result.files["detections"]).size == 10  # the detector's output is recorded whole
+
+
+def test_pipeline_tracker_options_per_name():
+    cfg = PipelineConfig(tracker="sort", trackers={"sort": {"max_age": 3}, "greedy": {"max_distance": 5.0}},
+                         tracker_options={"max_age": 7})
+    assert cfg.options_for("sort") == {"max_age": 7}
+    assert cfg.options_for("greedy") == {"max_distance": 5.0}
+    assert cfg.options_for("gmphd") is None

@@ -17,6 +17,11 @@ class PipelineConfig:
     """Every knob of :func:`torchtrack.pipeline.track_video.track_video`.
 
     tracker / tracker_options: the tracker's name and its options (``make_tracker(name, options)``).
+    trackers: options per tracker name for the trackers compared on the same detections (``demo``,
+    ``track --compare``); ``tracker_options``, where given, overrides the entry of ``tracker``.
+    min_speed: detections whose predicted speed (the detector's velocity head, px/frame) is below this are
+    not given to the tracker: the paper tracks moving objects only (still recorded in ``detections.txt``
+    and used for the detector's prior heatmap). 0 passes every detection.
     detector_weights: a weights file (``None``: the shipped weights).
     prior: where the detector's prior heatmap comes from: the previous frame's ``detections`` (the
     paper's eq. 1) or its ``tracks``.
@@ -31,6 +36,8 @@ class PipelineConfig:
 
     tracker: str = "gmphd"
     tracker_options: dict = field(default_factory=dict)
+    trackers: dict = field(default_factory=dict)
+    min_speed: float = 0.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
     prior: str = "detections"
@@ -48,11 +55,21 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.prior not in ("detections", "tracks"):
             raise TorchtrackError(f"pipeline config: prior must be 'detections' or 'tracks', got {self.prior!r}")
+        if not self.min_speed >= 0:
+            raise TorchtrackError(f"pipeline config: min_speed must be >= 0 px/frame, got {self.min_speed!r}")
+        if not isinstance(self.trackers, dict) or not all(isinstance(v, dict) for v in self.trackers.values()):
+            raise TorchtrackError("pipeline config: trackers must map tracker names to option mappings")
         if self.dtype not in ("float32", "float64"):
             raise TorchtrackError(f"pipeline config: dtype must be float32 or float64, got {self.dtype!r}")
         if isinstance(self.registration, dict):
             self.registration = _build(RegistrationConfig, self.registration, "registration")
         self.snapshots = tuple(int(s) for s in self.snapshots)
+
+    def options_for(self, name: str) -> dict | None:
+        """The options tracker ``name`` runs with in the pipeline (``None``: its defaults)."""
+        if name == self.tracker and self.tracker_options:
+            return self.tracker_options
+        return self.trackers.get(name) or None
 
     def replace(self, **changes) -> PipelineConfig:
         """A copy with some fields changed."""

@@ -95,10 +95,9 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
                          keep_detections=True, progress=progress)
     metrics = result.metrics
     scores = {cfg.tracker: {**metrics["clear_mot"], "FPS": metrics["fps"].get("tracking_only", float("inf"))}}
-    dtype = getattr(torch, cfg.dtype)
     for name in [n for n in (trackers or tracker_names()) if n != cfg.tracker]:
         with torch_threads(cfg.threads):
-            path, seconds = rerun_tracker(name, None, result.detections, out / "trackers" / f"{name}.txt", dtype)
+            path, seconds = rerun_tracker(name, cfg, result.detections, out / "trackers" / f"{name}.txt")
         scores[name] = {**score(gt, read_mot(path), cfg.threshold, ignore), "FPS": len(result.detections) / seconds}
     homographies = {d.index: d.homography for d in result.detections}
     first = next(iter(FolderSource(seq / "frames"))).image

@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 import torch.distributed as dist
 
 from detector import load_detector
@@ -109,8 +108,8 @@ def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, pro
     tracks = {config.tracker: (read_mot(result.files["tracks"]), result.metrics["timings_s"].get("tracking", 0.0))}
     for name in others:
         with torch_threads(config.threads):
-            path, tracker_s = rerun_tracker(name, None, result.detections,
-                                            out / seq.name / "trackers" / f"{name}.txt", getattr(torch, config.dtype))
+            path, tracker_s = rerun_tracker(name, config, result.detections,
+                                            out / seq.name / "trackers" / f"{name}.txt")
         tracks[name] = (read_mot(path), tracker_s)
     return {"name": seq.name, "metrics": result.metrics, "seconds": seconds, "gt": gt, "ignore": ignore,
             "tracks": tracks}

@@ -151,13 +151,15 @@ class Detection:
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel)
 
 
-def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, int]:
-    """One ``tracker.step`` on a frame's detections; returns ``ids (N,)``, reference ``positions (N, 2)``
-    and how many estimates were dropped because their identity was already reported in this frame
-    (the trackers' contract is unique identities per frame; a repeat is kept out of ``tracks.txt``, which
-    must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
-    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype),
-                                  torch.as_tensor(det.velocities, dtype=dtype))
+def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype,
+                     min_speed: float = 0.0) -> tuple[np.ndarray, np.ndarray, int]:
+    """One ``tracker.step`` on a frame's detections moving at ``min_speed`` px/frame or more; returns
+    ``ids (N,)``, reference ``positions (N, 2)`` and how many estimates were dropped because their identity
+    was already reported in this frame (the trackers' contract is unique identities per frame; a repeat is
+    kept out of ``tracks.txt``, which must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
+    keep = np.hypot(det.velocities[:, 0], det.velocities[:, 1]) >= min_speed
+    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions[keep], dtype=dtype),
+                                  torch.as_tensor(det.velocities[keep], dtype=dtype))
     ids = _numpy(ids, ()).astype(np.int64)
     positions = _numpy(positions, (2,))
     _, first = np.unique(ids, return_index=True)
@@ -167,17 +169,18 @@ def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple
     return ids, positions, 0
 
 
-def rerun_tracker(name: str, options: dict | None, detections: list[FrameDetections], out: Path,
-                  dtype: torch.dtype) -> tuple[Path, float]:
-    """Run tracker ``name`` on the kept detections of a pipeline run (no registration or detection
-    again), writing its tracks to ``out`` in frame coordinates; returns the file and the seconds spent
-    in the tracker."""
-    tracker = make_tracker(name, options)
+def rerun_tracker(name: str, config: PipelineConfig, detections: list[FrameDetections], out: Path
+                  ) -> tuple[Path, float]:
+    """Run tracker ``name`` (with ``config.options_for(name)``) on the kept detections of a pipeline run
+    (no registration or detection again), writing its tracks to ``out`` in frame coordinates; returns the
+    file and the seconds spent in the tracker."""
+    tracker = make_tracker(name, config.options_for(name))
+    dtype = getattr(torch, config.dtype)
     seconds = 0.0
     with MOTWriter(out) as writer:
         for det in detections:
             t0 = time.perf_counter()
-            ids, pos, _ = run_tracker_step(tracker, det, dtype)
+            ids, pos, _ = run_tracker_step(tracker, det, dtype, config.min_speed)
             seconds += time.perf_counter() - t0
             img = apply_homography(pos, np.linalg.inv(det.homography))
             writer.write_frame(det.index, ids, img[:, 0], img[:, 1])
@@ -252,7 +255,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
     dtype = getattr(torch, cfg.dtype)
     timer = StageTimer()
     detection = Detection(detector, Registration(cfg.registration), timer)
-    tracker = make_tracker(cfg.tracker, cfg.tracker_options or None)
+    tracker = make_tracker(cfg.tracker, cfg.options_for(cfg.tracker))
     truth = _truth_by_frame(gt if ignore is None or gt is None else gt.select(~ignore))
     files = {"tracks": out / "tracks.txt", "detections": out / "detections.txt"}
     video = AnnotatedVideoWriter(out / "annotated.mp4", fps=cfg.video_fps, trail=cfg.trail, box=cfg.box,
@@ -280,7 +283,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                     true_h = camera[0] @ np.linalg.inv(camera[frame.index - 1])
                     reg_errors.append(float(np.median(transfer_error(det.homography, true_h, frame.image.shape))))
                 with timer("tracking"):
-                    ids, pos_ref, dropped = run_tracker_step(tracker, det, dtype)
+                    ids, pos_ref, dropped = run_tracker_step(tracker, det, dtype, cfg.min_speed)
                 duplicates += dropped
                 if cfg.prior == "tracks":
                     detection.prior_ref = pos_ref
