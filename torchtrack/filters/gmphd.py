@@ -134,7 +134,7 @@ class Matrices(NamedTuple):
 class UpdateInfo(NamedTuple):
     """What :meth:`GMPHD.update` reports besides the posterior."""
 
-    log_likelihood: Tensor   # () PHD predictive log-likelihood of the measurement set
+    log_likelihood: Tensor | None   # () PHD predictive log-likelihood of the measurement set (None: not asked)
     log_denominator: Tensor  # (M,) log(κ(z_k) + p_D Σ_j w_j g_jk)
     gated_pairs: int         # number of (component, measurement) pairs inside the gate
 
@@ -235,14 +235,15 @@ class GMPHD(nn.Module):
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
     def update(self, state: MixtureState, z: Tensor, mats: Matrices, clutter: Tensor | None = None,
-               velocity: Tensor | None = None) -> tuple[MixtureState, UpdateInfo]:
+               velocity: Tensor | None = None, likelihood: bool = True) -> tuple[MixtureState, UpdateInfo]:
         """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
 
         ``clutter`` optionally gives ``κ(z_k)`` per measurement ``(M,)``; by default the uniform
         ``clutter_density``. ``velocity (M, 2)``: the detector's velocities, used as measurements (with
         ``H = I``, ``R_4 = blockdiag(R, σ_v² I)``, clutter ``κ κ_v``) when the filter has a
         ``velocity_sigma``, ignored otherwise. Returns the posterior (missed-detection components first,
-        then the gated detection components, ``J + G`` in all) and :class:`UpdateInfo`.
+        then the gated detection components, ``J + G`` in all) and :class:`UpdateInfo` (its
+        ``log_likelihood`` is None with ``likelihood=False``, which saves its operations when streaming).
         """
         H, R = mats.H, mats.R
         m_dim = H.shape[0]
@@ -276,41 +277,41 @@ class GMPHD(nn.Module):
             info = torch.linalg.cholesky_ex(S).info
             raise TorchtrackError("GMPHD update: innovation covariance S is not positive definite "
                                   f"for {int((info != 0).sum())} components") from None
-        eye_m = torch.eye(m_dim, dtype=S.dtype, device=S.device)
-        Linv = torch.linalg.solve_triangular(L, eye_m.expand_as(L), upper=False)   # (J, m, m)
+        S_inv = torch.cholesky_inverse(L)                                     # (J, m, m) from the factor
         # batched products called as torch.bmm directly (the kernel ``@`` dispatches to, fewer ops)
-        K = torch.bmm(PHt, torch.bmm(Linv.transpose(-1, -2), Linv))   # (J, n, m)  K = P Hᵀ S⁻¹
-        P_upd = state.cov - torch.bmm(K, PHt.transpose(-1, -2))                # P − K S Kᵀ
+        K = torch.bmm(PHt, S_inv)                                             # (J, n, m)  K = P Hᵀ S⁻¹
+        P_upd = torch.baddbmm(state.cov, K, PHt.transpose(-1, -2), alpha=-1)  # P − K S Kᵀ
         half = scalar(0.5, P_upd)
         P_upd = (P_upd + P_upd.transpose(-1, -2)) * half                       # symmetrised
         half_logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (J,)
         base = log_pd + live_w - half_logdet - scalar(0.5 * m_dim * LOG_2PI, live_w)   # (J,)
         gate = scalar(gate, live_w)
+        mean_t = state.mean.unsqueeze(2)                                      # (J, n, 1)
 
-        pair_j, pair_k, pair_logw, log_den = [], [], [], []
-        for start in range(0, z.shape[0], self.chunk):
-            zc = z[start:start + self.chunk]
+        pair_j, pair_k, pair_logw, pair_mean, log_den = [], [], [], [], []
+        M, C = z.shape[0], self.chunk
+        for start in range(0, M, C):
+            zc, kc = (z, log_kappa) if M <= C else (z[start:start + C], log_kappa[start:start + C])
             nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
-            y = torch.bmm(nu, Linv.transpose(-1, -2))                # whitened innovations
-            nis = y.pow(2).sum(-1)                                   # (J, C)
+            nis = (torch.bmm(nu, S_inv) * nu).sum(-1)                # (J, C)  νᵀ S⁻¹ ν
             gated = (nis <= gate) & state.mask.unsqueeze(1)
             log_num = torch.where(gated, base.unsqueeze(1) - nis * half, neg_inf)
-            den = torch.logaddexp(log_kappa[start:start + self.chunk], torch.logsumexp(log_num, 0)) \
-                if state.size else log_kappa[start:start + self.chunk]
+            den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
             jj, kk = gated.nonzero().unbind(1)
+            # m + K ν for every pair of the chunk at once, then the gated ones: (J, n, C)[jj, :, kk]
+            pair_mean.append(torch.baddbmm(mean_t, K, nu.transpose(1, 2))[jj, :, kk])
             pair_j.append(jj)
             pair_k.append(kk + start if start else kk)
             pair_logw.append(log_num[jj, kk] - den[kk])
             log_den.append(den)
         if len(log_den) == 1:
-            log_den_t, jj, kk, det_logw = log_den[0], pair_j[0], pair_k[0], pair_logw[0]
+            log_den_t, jj, kk, det_logw, det_mean = log_den[0], pair_j[0], pair_k[0], pair_logw[0], pair_mean[0]
         else:
             log_den_t = torch.cat(log_den) if log_den else log_kappa
             jj = torch.cat(pair_j) if pair_j else torch.empty(0, dtype=torch.long, device=z.device)
             kk = torch.cat(pair_k) if pair_k else torch.empty(0, dtype=torch.long, device=z.device)
             det_logw = torch.cat(pair_logw) if pair_logw else live_w[:0]
-        nu_sel = z[kk] - z_hat[jj]                                   # (G, m)
-        det_mean = state.mean[jj] + torch.bmm(K[jj], nu_sel.unsqueeze(-1)).squeeze(-1)
+            det_mean = torch.cat(pair_mean) if pair_mean else state.mean[:0]
 
         miss_logw = live_w + mats.log_p_missed
         post = MixtureState(
@@ -318,11 +319,13 @@ class GMPHD(nn.Module):
             torch.cat([state.mean, det_mean]),
             torch.cat([state.cov, P_upd[jj]]),
             torch.cat([state.label, state.label[jj]]),
-            torch.cat([state.mask, torch.ones(jj.shape[0], dtype=torch.bool, device=jj.device)]),
+            nn.functional.pad(state.mask, (0, jj.shape[0]), value=True),
         )
-        loglik = log_den_t.sum() - pd * live_w.exp().sum()
-        if self.area is not None:
-            loglik = loglik - mats.clutter_density * self.area
+        loglik = None
+        if likelihood:
+            loglik = log_den_t.sum() - pd * live_w.exp().sum()
+            if self.area is not None:
+                loglik = loglik - mats.clutter_density * self.area
         return post, UpdateInfo(loglik, log_den_t, int(jj.shape[0]))
 
     def prune(self, state: MixtureState) -> MixtureState:
@@ -433,35 +436,81 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     return _merge_sorted(state.select(order), threshold, rounds, keep_label)
 
 
+def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> Tensor | None:
+    """The greedy leader rounds of :func:`merge` on screened candidate pairs; None when nothing merges."""
+    J = mean.shape[0]
+    idx = torch.arange(J, device=mean.device)
+    ii, jj = _within_reach(mean, cov, threshold)   # i within reach of heavier j
+    if ii.numel() == 0:
+        return None
+    big = torch.full((J,), J, dtype=torch.long, device=mean.device)
+    # round 1 (every component alive): leaders have no heavier component within reach
+    blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii, True)
+    # amin over the candidates: a non-candidate pair offers J, the initial value (no bool indexing)
+    none = scalar(J, jj)
+    first = big.scatter_reduce(0, ii, torch.where(blocked[jj], none, jj), "amin")
+    joins = first < J
+    owner = torch.where(joins, first, idx)
+    alive = blocked & ~joins
+    for _ in range(rounds - 1 if bool(alive.any()) else 0):
+        live = alive[ii] & alive[jj]
+        blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii[live], True)
+        leader = alive & ~blocked
+        cand = alive[ii] & leader[jj]
+        first = big.scatter_reduce(0, ii, torch.where(cand, jj, none), "amin")   # heaviest leader within reach
+        joins = alive & ~leader & (first < J)
+        owner = torch.where(joins, first, owner)
+        alive = alive & ~leader & ~joins
+        if not bool(alive.any()):
+            break
+    return owner
+
+
+DENSE_MERGE = 256
+"""Up to this many components the merge tests every pair at once (one batched solve, few operations);
+above it, pairs are screened on positions first (:func:`_within_reach`, memory ``O(candidates)``)."""
+
+
+def _reach_matrix(mean: Tensor, cov: Tensor, threshold: float) -> Tensor:
+    """Bool ``(J, J)``: ``[i, j]`` when ``j < i`` and ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U`` (every pair in one
+    batched triangular solve ``L_i⁻¹ [m_1 − m_i, …, m_J − m_i]``)."""
+    L, _ = torch.linalg.cholesky_ex(cov)
+    diff = (mean.unsqueeze(0) - mean.unsqueeze(1)).transpose(1, 2)              # [i, :, j] = m_j − m_i
+    y = torch.linalg.solve_triangular(L, diff, upper=False)                    # (J, n, J)
+    return torch.tril(y.pow(2).sum(1) <= scalar(threshold, y), diagonal=-1)
+
+
+def _owners_dense(reach: Tensor, rounds: int) -> Tensor:
+    """The greedy leader rounds of :func:`merge` on a dense reach matrix; ``owner (J,)`` per component."""
+    owner = torch.arange(reach.shape[0], device=reach.device)
+    live = reach                                   # [i, j]: alive heavier j within reach of i (all alive)
+    alive = None
+    for _ in range(rounds):
+        blocked = live.any(1)                      # an alive heavier component within reach: not a leader
+        leader = ~blocked if alive is None else alive & ~blocked
+        has, first = (live & leader.unsqueeze(0)).max(1)     # first (heaviest) leader within reach
+        if alive is not None:
+            blocked = blocked & alive
+        owner = torch.where(blocked & has, first, owner)     # joins its leader
+        alive = blocked & ~has
+        if not bool(alive.any()):
+            break
+        live = reach & alive.unsqueeze(0)
+    return owner
+
+
 def _merge_sorted(state: MixtureState, threshold: float, rounds: int, keep_label: Tensor | None) -> MixtureState:
     """:func:`merge` of a compacted mixture already sorted by decreasing weight."""
     J = state.size
     mean, cov, log_w = state.mean, state.cov, state.log_weight
     with torch.no_grad():
         idx = torch.arange(J, device=mean.device)
-        ii, jj = _within_reach(mean.detach(), cov.detach(), threshold)   # i within reach of heavier j
-        if ii.numel() == 0:
-            return state
-        big = torch.full((J,), J, dtype=torch.long, device=mean.device)
-        # round 1 (every component alive): leaders have no heavier component within reach
-        blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii, True)
-        # amin over the candidates: a non-candidate pair offers J, the initial value (no bool indexing)
-        none = scalar(J, jj)
-        first = big.scatter_reduce(0, ii, torch.where(blocked[jj], none, jj), "amin")
-        joins = first < J
-        owner = torch.where(joins, first, idx)
-        alive = blocked & ~joins
-        for _ in range(rounds - 1 if bool(alive.any()) else 0):
-            live = alive[ii] & alive[jj]
-            blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii[live], True)
-            leader = alive & ~blocked
-            cand = alive[ii] & leader[jj]
-            first = big.scatter_reduce(0, ii, torch.where(cand, jj, none), "amin")   # heaviest leader within reach
-            joins = alive & ~leader & (first < J)
-            owner = torch.where(joins, first, owner)
-            alive = alive & ~leader & ~joins
-            if not bool(alive.any()):
-                break
+        if J <= DENSE_MERGE:
+            owner = _owners_dense(_reach_matrix(mean.detach(), cov.detach(), threshold), rounds)
+        else:
+            owner = _owners_sparse(mean.detach(), cov.detach(), threshold, rounds)
+            if owner is None:
+                return state
         is_head = owner == idx
         group = torch.cumsum(is_head.long(), 0) - 1
         gid = group[owner]
@@ -470,13 +519,23 @@ def _merge_sorted(state: MixtureState, threshold: float, rounds: int, keep_label
         return state
     w_max = log_w.max()
     w = torch.exp(log_w - w_max)                                             # (J,)
-    wsum = torch.zeros(G, dtype=w.dtype, device=w.device).index_add_(0, gid, w)
-    mu = torch.zeros(G, mean.shape[1], dtype=w.dtype, device=w.device).index_add_(0, gid, w.unsqueeze(1) * mean)
-    mu = mu / wsum.unsqueeze(1)
+    n = mean.shape[1]
+    if J <= DENSE_MERGE:   # group sums as products with the (G, J) membership matrix W[g, j] = w_j [j in g]
+        W = torch.zeros(G, J, dtype=w.dtype, device=w.device).index_put_((gid, idx), w)
+        wsum = W.sum(1)                                                      # (G,)
+        Wn = W / wsum.unsqueeze(1)
+        mu = torch.mm(Wn, mean)                                              # (G, n)
+    else:
+        wsum = torch.zeros(G, dtype=w.dtype, device=w.device).index_add_(0, gid, w)
+        mu = torch.zeros(G, n, dtype=w.dtype, device=w.device).index_add_(0, gid, w.unsqueeze(1) * mean)
+        mu = mu / wsum.unsqueeze(1)
     d = mean - mu[gid]
-    spread = cov + d.unsqueeze(-1) * d.unsqueeze(-2)
-    P = torch.zeros(G, *cov.shape[1:], dtype=w.dtype, device=w.device).index_add_(
-        0, gid, w.view(-1, 1, 1) * spread) / wsum.view(-1, 1, 1)
+    spread = (cov + d.unsqueeze(-1) * d.unsqueeze(-2)).view(J, n * n)       # P_i + (m_i − m)(m_i − m)ᵀ
+    if J <= DENSE_MERGE:
+        P = torch.mm(Wn, spread).view(G, n, n)
+    else:
+        P = (torch.zeros(G, n * n, dtype=w.dtype, device=w.device).index_add_(0, gid, w.unsqueeze(1) * spread)
+             / wsum.unsqueeze(1)).view(G, n, n)
     label = state.label[is_head]
     if keep_label is not None and keep_label.numel():
         with torch.no_grad():

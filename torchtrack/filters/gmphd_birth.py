@@ -51,6 +51,7 @@ class VelocityMap:
         self.max_spread = max_spread
         self.decay = decay
         self.dtype, self.device = dtype, device
+        self._geom: tuple[Tensor, Tensor, Tensor] | None = None   # origin, grid size, strides as tensors
         self.reset()
 
     def reset(self) -> None:
@@ -60,10 +61,15 @@ class VelocityMap:
         self.sum_v2 = torch.zeros(n, dtype=self.dtype, device=self.device)
 
     def _cells(self, pos: Tensor) -> tuple[Tensor, Tensor]:
-        col = torch.floor((pos[:, 0] - self.origin[0]) / self.cell).long()
-        row = torch.floor((pos[:, 1] - self.origin[1]) / self.cell).long()
-        inside = (col >= 0) & (col < self.shape[1]) & (row >= 0) & (row < self.shape[0])
-        return (row.clamp(0, self.shape[0] - 1) * self.shape[1] + col.clamp(0, self.shape[1] - 1)), inside
+        """Flat cell index ``(E,)`` (clamped into the grid) and a bool ``(E,)``: inside the grid."""
+        if self._geom is None or self._geom[0].dtype != pos.dtype or self._geom[0].device != pos.device:
+            self._geom = (torch.tensor(self.origin, dtype=pos.dtype, device=pos.device),
+                          torch.tensor([self.shape[1], self.shape[0]], device=pos.device),        # cols, rows
+                          torch.tensor([1, self.shape[1]], device=pos.device))                    # flat strides
+        origin, size, stride = self._geom
+        colrow = torch.floor((pos - origin) / self.cell).long()                                     # (E, 2)
+        inside = ((colrow >= 0) & (colrow < size)).all(1)
+        return (torch.minimum(colrow.clamp_min(0), size - 1) * stride).sum(1), inside
 
     def update(self, pos: Tensor, vel: Tensor) -> None:
         """Add estimates ``pos, vel (E, 2)`` to their cells (no gradient)."""
@@ -147,14 +153,16 @@ class AdaptiveBirth(nn.Module):
             if pred_pos.shape[0] == 0 or z.shape[0] == 0:
                 return torch.ones(z.shape[0], dtype=torch.bool, device=z.device)
             # a component below the suppression weight is infinitely far (same minimum as dropping it)
-            far = ~(pred_log_w > scalar(math.log(self.suppress_weight), pred_log_w))
+            far = pred_log_w <= scalar(math.log(self.suppress_weight), pred_log_w)
             inf, reach = scalar(float("inf"), z), scalar(self.distance_threshold ** 2, z)
-            p = pred_pos.detach()
+            p = pred_pos.unsqueeze(0)
+            M = z.shape[0]
+            if M <= chunk:
+                return torch.where(far, inf, (z.unsqueeze(1) - p).pow(2).sum(-1)).amin(1) > reach
             out = []
-            for start in range(0, z.shape[0], chunk):
-                d2 = (z[start:start + chunk].unsqueeze(1) - p.unsqueeze(0)).pow(2).sum(-1)   # (C, J)
-                d2 = torch.where(far, inf, d2)
-                out.append(d2.amin(1) > reach)
+            for start in range(0, M, chunk):
+                d2 = (z[start:start + chunk].unsqueeze(1) - p).pow(2).sum(-1)   # (C, J)
+                out.append(torch.where(far, inf, d2).amin(1) > reach)
             return torch.cat(out)
 
     def constants(self) -> BirthConstants:

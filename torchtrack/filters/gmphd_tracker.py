@@ -60,7 +60,7 @@ class StepResult(NamedTuple):
     ids: Tensor           # (E,) labels of the reported targets
     positions: Tensor     # (E, 2)
     velocities: Tensor    # (E, 2)
-    log_likelihood: Tensor  # () PHD predictive log-likelihood of the frame's measurements
+    log_likelihood: Tensor | None  # () PHD predictive log-likelihood of the frame's measurements (None: not asked)
 
 
 class GMPHDTracker(nn.Module):
@@ -146,16 +146,17 @@ class GMPHDTracker(nn.Module):
 
     def advance(self, state: MixtureState, memory: TrackerMemory, z: Tensor, velocity: Tensor | None,
                 mats: Matrices, vmap: VelocityMap | None = None, dt: float = 1.0,
-                birth_consts: BirthConstants | None = None) -> StepResult:
+                birth_consts: BirthConstants | None = None, likelihood: bool = True) -> StepResult:
         """One frame of the tracker (see the module docstring); ``z (M, 2)``, ``velocity (M, 2)`` or None.
 
         The label fix compares each hypothesis with its label's previous estimate moved on by its own
-        velocity, ``p̂_{k−1} + v̂_{k−1} dt`` (the position the label is expected at now).
+        velocity, ``p̂_{k−1} + v̂_{k−1} dt`` (the position the label is expected at now). With
+        ``likelihood=False`` the result's ``log_likelihood`` is None (not computed).
         """
         phd = self.phd
         pred = phd.predict(state, mats)
         is_birth = self.birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.chunk)
-        post, info = phd.update(pred, z, mats, velocity=velocity)
+        post, info = phd.update(pred, z, mats, velocity=velocity, likelihood=likelihood)
         post = phd.reduce(post, memory.prev_label if self.label_fix and self.merge_priority else None)
         est = phd.extract(post)
         next_label = memory.next_label
@@ -259,6 +260,7 @@ class GMPHDTracker(nn.Module):
                 mats = self._mats[dt] = self.phd.matrices(dt)
             if self._birth_consts is None:
                 self._birth_consts = self.birth.constants()
-            res = self.advance(self._state, self._memory, z, v, mats, self._vmap, dt, self._birth_consts)
+            res = self.advance(self._state, self._memory, z, v, mats, self._vmap, dt, self._birth_consts,
+                               likelihood=False)
         self._state, self._memory, self._last_frame = res.state, res.memory, frame
         return res.ids, res.positions
