@@ -30,8 +30,9 @@ def test_many_empty_frames_then_targets(name):
     assert ids.numel() == 0 and tracker.state.size == 0
 
 
-def test_tens_of_thousands_of_detections_bounded_and_reported(caplog):
-    tracker = make_tracker("gmphd", {"filter": {"capacity": 512, "chunk": 2048}})
+@pytest.mark.parametrize("velocity_sigma", [None, 1.5])
+def test_tens_of_thousands_of_detections_bounded_and_reported(caplog, velocity_sigma):
+    tracker = make_tracker("gmphd", {"filter": {"capacity": 512, "chunk": 2048, "velocity_sigma": velocity_sigma}})
     g = torch.Generator().manual_seed(0)
     with caplog.at_level(logging.WARNING, logger="torchtrack.filters.gmphd"):
         for k in range(1, 3):
@@ -57,3 +58,22 @@ def test_bad_input_is_a_clear_error():
         make_tracker("gmphd", {"filter": {"p_detection": 0.9, "nonsense": 1}})
     with pytest.raises(TorchtrackError, match="p_detection"):
         make_tracker("gmphd", {"filter": {"p_detection": 1.5}})
+
+
+@pytest.mark.parametrize("name", ["gmphd", "labelled-gmphd"])
+def test_long_sequence_memory_bounded_and_every_cap_hit_reported(caplog, name):
+    """Hundreds of frames of dense clutter: the mixture never exceeds the cap, each hit is logged and counted;
+    with room to spare the cap is never reported."""
+    g = torch.Generator().manual_seed(1)
+    frames = [torch.rand(60, 2, generator=g) * 400 for _ in range(300)]
+    tight = make_tracker(name, {"filter": {"capacity": 40}})
+    with caplog.at_level(logging.WARNING, logger="torchtrack.filters.gmphd"):
+        for k, z in enumerate(frames, start=1):
+            tight.step(k, z, torch.zeros_like(z))
+            assert tight.state.size <= 40
+    hits = sum("cap hit" in r.getMessage() for r in caplog.records)
+    assert tight.cap_hits == hits > 100          # every frame's births overflow 40 slots: counted and logged
+    roomy = make_tracker(name, {"filter": {"capacity": 4096}})
+    for k, z in enumerate(frames[:50], start=1):
+        roomy.step(k, z, torch.zeros_like(z))
+    assert roomy.cap_hits == 0 and roomy.state.size < 4096

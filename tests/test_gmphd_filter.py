@@ -235,3 +235,25 @@ def test_gradients_reach_the_velocity_noise_and_velocity_clutter_density():
     for prm in (tracker.phd.velocity_sigma.raw, tracker.phd.velocity_clutter_density.raw,
                 tracker.phd.p_detection.raw, tracker.phd.measurement.sigma.raw):
         assert prm.grad is not None and torch.isfinite(prm.grad).all() and prm.grad.abs().sum() > 0
+
+
+def test_dense_and_screened_merges_agree(monkeypatch):
+    """Small mixtures test every pair at once, large ones screen pairs on positions first: same merge."""
+    import torchtrack.filters.gmphd as gm
+
+    g = torch.Generator().manual_seed(4)
+    for _ in range(30):
+        J = int(torch.randint(2, 80, (1,), generator=g))
+        mean = torch.randn(J, 4, generator=g, dtype=F64) * float(torch.rand(1, generator=g) * 8 + 0.5)
+        A = torch.randn(J, 4, 4, generator=g, dtype=F64) * 0.5
+        cov = A @ A.transpose(-1, -2) + torch.eye(4, dtype=F64)
+        state = MixtureState(torch.rand(J, generator=g, dtype=F64).log(), mean, cov, torch.arange(J),
+                             torch.ones(J, dtype=torch.bool))
+        monkeypatch.setattr(gm, "DENSE_MERGE", 256)
+        dense = merge(state, 9.0, 3, keep_label=torch.tensor([J - 1]))
+        monkeypatch.setattr(gm, "DENSE_MERGE", 0)
+        screened = merge(state, 9.0, 3, keep_label=torch.tensor([J - 1]))
+        assert dense.size == screened.size
+        assert torch.equal(dense.label, screened.label)
+        for a, b in zip(dense[:3], screened[:3]):
+            torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
