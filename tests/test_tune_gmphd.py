@@ -125,3 +125,31 @@ def test_exported_tracker_options_are_accepted_by_track(tmp_path):
     values = get_values(rebuilt)
     assert values["phd.p_detection"].item() == pytest.approx(0.77, rel=1e-6)
     assert values["birth.birth_weight"].item() == pytest.approx(0.03, rel=1e-6)
+
+
+def test_contiguous_windows_are_scored_as_one_stream(tmp_path):
+    tun, tracker, data = problem(tmp_path, frames=60, window=10)
+    _, _, whole = problem(tmp_path, frames=60, window=40)   # the same detections (same seed), one window
+    assert len(data.train) == 4 and len(whole.train) == 1
+    assert tun.evaluate(tracker, data.train) == tun.evaluate(tracker, whole.train)
+
+
+def test_refine_line_search_uses_training_items_only_and_counts_its_evaluations(tmp_path):
+    from torchtrack.tuning.refine import refine
+    from torchtrack.tuning.registry import TuneData
+
+    tun, tracker, data = problem(tmp_path, frames=50, window=15, start={"pd": 0.15})
+    train_only = TuneData(data.train, [object()])        # scoring a held-out item would fail
+    start = tun.evaluate(tracker, data.train)["MOTA"]
+    out = refine(tun, tracker, {"metric": "MOTA", "parameters": ["phd.p_detection"], "step": 1.0,
+                                "evaluations": 5}, train_only, ["phd.p_detection"], progress=False)
+    assert out["start"] == pytest.approx(start)
+    assert out["best"] >= out["start"]
+    assert out["best"] == pytest.approx(tun.evaluate(tracker, data.train)["MOTA"])   # left at the best point
+    assert out["metric_evaluations"] <= 5
+    assert out["filter_evaluations"] == out["metric_evaluations"] * len(data.train)
+    assert out["frames"] == out["metric_evaluations"] * sum(len(w.frames) for w in data.train)
+    if out["best"] > out["start"]:
+        assert get_values(tracker)["phd.p_detection"].item() > 0.15
+    with pytest.raises(TorchtrackError, match="valid names"):
+        refine(tun, tracker, {"parameters": ["phd.nope"]}, data, ["phd.p_detection"], progress=False)

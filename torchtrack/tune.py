@@ -104,8 +104,17 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     after = {"loss": evaluate_loss(tunable, module, held, loss, batch_eval)}
     if do_eval:
         after.update(tunable.evaluate(module, held))
+    refined = None
+    if cfg.get("refine"):   # a short line search on the task metric over the training items
+        from torchtrack.tuning.refine import refine
 
-    fitted = _scalars(result.final)
+        after_fit = after
+        refined = refine(tunable, module, cfg["refine"], data, trainable, progress)
+        after = {"loss": evaluate_loss(tunable, module, held, loss, batch_eval)}
+        if do_eval:
+            after.update(tunable.evaluate(module, held))
+
+    fitted = _scalars(get_values(module, trainable))
     fitted.update(tunable.derived(module))
     truth = tunable.truth(cfg["data"] or {})
     report = {
@@ -116,11 +125,20 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
         "truth": truth, "relative_error": _relative_errors(fitted, truth),
         "held_out_before": before, "held_out_after": after,
         "steps": len(result.train_loss), "best_step": result.best_step, "stopped": result.stopped,
-        "message": result.message, "filter_evaluations": result.evaluations,
+        "message": result.message, "filter_evaluations": result.evaluations, "frames": result.frames,
         "training_passes": result.evaluations / max(len(data.train), 1),
         "seconds": result.seconds,
         "output": {"params": str(params_path), "plot": str(plot_path)},
     }
+    if refined is not None:
+        report["fit"] = {"values": _scalars(result.final), "held_out": after_fit,
+                         "filter_evaluations": result.evaluations, "frames": result.frames,
+                         "seconds": result.seconds}
+        report["refine"] = refined
+        report["filter_evaluations"] += refined["filter_evaluations"]
+        report["frames"] += refined["frames"]
+        report["training_passes"] = report["filter_evaluations"] / max(len(data.train), 1)
+        report["seconds"] += refined["seconds"]
     if cfg.get("grid"):
         from torchtrack.tuning.grid import grid_search
 

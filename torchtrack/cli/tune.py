@@ -37,6 +37,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch CPU threads (default 1: small per-step matrices are fastest on one thread)")
     parser.add_argument("--loss", default=None, help="override the config's loss (e.g. gospa)")
     parser.add_argument("--no-grid", action="store_true", help="skip the config's grid-search baseline")
+    parser.add_argument("--no-refine", action="store_true", help="skip the config's line search on the task metric")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_common_options(parser, seed=None)
     for action in parser._actions:
@@ -74,6 +75,8 @@ def run(args) -> int:
         config["loss"] = args.loss
     if args.no_grid:
         config.pop("grid", None)
+    if args.no_refine:
+        config.pop("refine", None)
     report = tune(config, out=args.out, seed=args.seed, progress=not args.no_progress)
     print(format_table(["parameter", "start", "fitted", "truth", "error"], _rows(report)))
     before, after = report["held_out_before"], report["held_out_after"]
@@ -81,19 +84,28 @@ def run(args) -> int:
     print()
     print(format_table(["held-out", "before", "after"], [[k, float(before[k]), float(after[k])] for k in keys],
                        floatfmt=".4g"))
+    fit = report.get("fit", report)
     print(f"\n{report['steps']} steps ({report['stopped']}; kept step {report['best_step']}), "
-          f"{report['filter_evaluations']} item evaluations ({report['training_passes']:.1f} training passes), "
-          f"{report['seconds']:.1f} s")
-    if "grid" in report:
-        g = report["grid"]
-        metrics = [k for k in ("MOTA", "OSPA", "IDS") if k in after]
-        rows = [["start", "-", *[before.get(k, float("nan")) for k in metrics], "-"],
-                ["gradient tuning", report["filter_evaluations"], *[after[k] for k in metrics],
-                 f"{report['seconds']:.1f}"],
-                [f"grid ({g['combinations']} points)", g["filter_evaluations"],
-                 *[g["held_out"].get(k, float("nan")) for k in metrics], f"{g['seconds']:.1f}"]]
+          f"{fit['filter_evaluations']} item evaluations ({fit['frames']} frames), {fit['seconds']:.1f} s")
+    if "refine" in report:
+        r = report["refine"]
+        print(f"refine: training {r['metric']} {r['start']:.4g} -> {r['best']:.4g} in {r['metric_evaluations']} "
+              f"evaluations ({r['filter_evaluations']} items, {r['frames']} frames), {r['seconds']:.1f} s; total "
+              f"{report['filter_evaluations']} item evaluations ({report['frames']} frames)")
+    metrics = [k for k in ("MOTA", "OSPA", "IDS") if k in after]
+    if "grid" in report or "refine" in report:
+        rows = [["start", "-", "-", *[before.get(k, float("nan")) for k in metrics], "-"]]
+        if "refine" in report:
+            rows.append(["gradient fit", fit["filter_evaluations"], fit["frames"],
+                         *[fit["held_out"].get(k, float("nan")) for k in metrics], f"{fit['seconds']:.1f}"])
+        rows.append(["gradient fit + refine" if "refine" in report else "gradient fit", report["filter_evaluations"],
+                     report["frames"], *[after[k] for k in metrics], f"{report['seconds']:.1f}"])
+        if "grid" in report:
+            g = report["grid"]
+            rows.append([f"grid ({g['combinations']} points)", g["filter_evaluations"], g["frames"],
+                         *[g["held_out"].get(k, float("nan")) for k in metrics], f"{g['seconds']:.1f}"])
         print()
-        print(format_table(["held-out", "item evaluations", *metrics, "seconds"], rows, floatfmt=".4g"))
+        print(format_table(["held-out", "item evaluations", "frames", *metrics, "seconds"], rows, floatfmt=".4g"))
     for key, path in report["output"].items():
         print(f"{key}: {path}")
     write_json(args.json, report)

@@ -31,7 +31,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.tuning.parameters import get_raw, get_values, set_raw, set_values, tunable_parameters
 
 TUNE_KEYS = ("filter", "model", "trainable", "data", "loss", "optimizer", "early_stopping", "output", "seed",
-             "evaluate", "grid")
+             "evaluate", "grid", "refine")
 
 
 def read_yaml(path: str | os.PathLike) -> dict:

@@ -278,19 +278,28 @@ class GMPHDTunable(Tunable):
                 total, count = total + s, count + c
         return total / max(count, 1)
 
+    def item_frames(self, item: FrameWindow) -> int:
+        return len(item.frames)
+
     def evaluate(self, module: GMPHDTracker, items: Sequence[FrameWindow]) -> dict[str, float]:
-        """CLEAR-MOT (MOTA, IDS, FP, FN) and mean OSPA of the streaming tracker over the held-out windows."""
+        """CLEAR-MOT (MOTA, IDS, FP, FN) and mean OSPA of the streaming tracker over the windows.
+
+        Windows that continue one another (the training windows of one ``train_frames`` span) are
+        streamed as one sequence, as ``torchtrack track`` would run them; the tracker restarts only
+        where the frames jump, and each restart gets fresh identities."""
         from torchtrack.io.mot import from_points
         from torchtrack.metrics import clear_mot
         from torchtrack.metrics.ospa import mot_ospa_gospa
 
         out: dict[str, float] = {}
         fr, ids, cx, cy, gts = [], [], [], [], []
-        offset = 0
+        offset, top, last = 0, 0, None
         caps = module.phd.cap_hits
         for item in items:
-            module.reset()
-            top = 0
+            if last is None or item.frames[0] != last + 1:
+                module.reset()
+                offset, top = offset + top, 0
+            last = item.frames[-1]
             for frame, z, v in zip(item.frames, item.z, item.velocity):
                 with quiet_caps():
                     i, p = module.step(frame, z, v)
@@ -299,7 +308,6 @@ class GMPHDTunable(Tunable):
                 top = max(top, int(i.max()) + 1) if i.numel() else top
                 cx.append(p[:, 0].double().numpy())
                 cy.append(p[:, 1].double().numpy())
-            offset += top
             gts.append(item.truth)
         module.reset()
         pred = from_points(np.concatenate(fr), np.concatenate(ids), np.concatenate(cx), np.concatenate(cy))

@@ -56,6 +56,10 @@ class Tunable:
         """Scalar loss (a mean per measurement / frame) of ``module`` on a batch of ``items``."""
         raise NotImplementedError
 
+    def item_frames(self, item) -> int:
+        """Time steps in one item (here a single-target track ``item.z (T, m)``), to count the filter's work."""
+        return int(item.z.shape[0])
+
     def evaluate(self, module: nn.Module, items: Sequence) -> dict[str, float]:
         """Task metrics on held-out items (e.g. MOTA, OSPA); none by default."""
         return {}

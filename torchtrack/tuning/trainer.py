@@ -93,6 +93,7 @@ class FitResult:
     stopped: str = "finished"          # finished | early-stopped | non-finite
     message: str = ""
     evaluations: int = 0               # items filtered (training + held-out), forward passes
+    frames: int = 0                    # time steps filtered in those passes
     seconds: float = 0.0
     start: dict[str, Tensor] = field(default_factory=dict)
     final: dict[str, Tensor] = field(default_factory=dict)
@@ -195,6 +196,7 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
             except TorchtrackError as exc:
                 raise NonFiniteLoss(f"the filter failed ({exc})") from exc
             result.evaluations += len(items)
+            result.frames += sum(tunable.item_frames(i) for i in items)
             if not _finite(value):
                 raise NonFiniteLoss(f"loss is {float(value.detach())}")
             value.backward()
@@ -205,12 +207,14 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
             return value
         return closure
 
+    held_frames = sum(tunable.item_frames(i) for i in data.held_out)
     if data.held_out:   # the start point, so that the curve begins where training does
         try:
             held0 = evaluate_loss(tunable, module, data.held_out, loss, max(batch_size, 1))
         except TorchtrackError:
             held0 = math.inf
         result.evaluations += len(data.held_out)
+        result.frames += held_frames
         result.held_out.append((0, held0))
         best = (held0, 0, scaled.snapshot())
 
@@ -244,6 +248,7 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
                 except TorchtrackError:
                     held = math.inf
                 result.evaluations += len(data.held_out)
+                result.frames += held_frames
                 result.held_out.append((step, held))
                 postfix["held_out"] = f"{held:.4g}"
                 if not math.isfinite(held):

@@ -1,0 +1,105 @@
+"""A short line search on a task metric (e.g. MOTA) after the gradient fit, on the training items only.
+
+The gradient losses — a likelihood, a soft GOSPA — are not the task metric: MOTA also depends on the
+tracker's discrete logic (extraction at ``w > ½``, label confirmation, coasting), which no gradient
+sees, so the likelihood's optimum (the best *model* of the data) need not be the best MOTA. This stage
+starts at the fitted values and moves each listed parameter along the optimiser's scaled variable
+``u`` (``raw = raw_fit + s·u``, :func:`~torchtrack.tuning.trainer.step_scale`: a step ``δ`` is about a
+relative change ``δ`` of a positive parameter, a change ``δ`` of a probability's logit): it steps
+``+δ`` and keeps stepping while the training metric improves, otherwise tries ``−δ`` the same way, then
+goes on to the next parameter; after a sweep over all of them ``δ`` halves. A vector or matrix
+parameter moves all its entries together. Every metric evaluation is one forward pass over all
+training items (counted in the report); held-out items are never used.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Mapping, Sequence
+from typing import Any
+
+from torch import Tensor, nn
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.tuning.parameters import get_values, set_raw, tunable_parameters
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys
+from torchtrack.tuning.trainer import step_scale
+
+REFINE_KEYS = ("metric", "maximize", "parameters", "step", "sweeps", "evaluations")
+
+
+def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data: TuneData,
+           trainable: Sequence[str], progress: bool = True) -> dict[str, Any]:
+    """Line search of ``config`` (``metric`` (default ``MOTA``), ``maximize`` (default true),
+    ``parameters`` (default: the trainable ones), ``step`` δ (default 0.5), ``sweeps`` (default 2),
+    ``evaluations`` (the budget of metric evaluations, default 12)) from ``module``'s current values,
+    which it leaves at the best point found. Returns the start and best training metric, the values,
+    the number of metric evaluations, items and frames filtered, and the seconds spent."""
+    check_keys(config, REFINE_KEYS, "refine")
+    metric = str(config.get("metric", "MOTA"))
+    sign = 1.0 if config.get("maximize", True) else -1.0
+    names = list(config.get("parameters") or trainable)
+    params = tunable_parameters(module)
+    unknown = [n for n in names if n not in params]
+    if unknown:
+        raise TorchtrackError(f"refine: unknown parameter(s) {', '.join(map(repr, unknown))}; valid names: "
+                              f"{', '.join(sorted(params))}")
+    delta = float(config.get("step", 0.5))
+    sweeps, budget = int(config.get("sweeps", 2)), int(config.get("evaluations", 12))
+    if delta <= 0 or sweeps < 1 or budget < 1:
+        raise TorchtrackError(f"refine needs step > 0, sweeps >= 1 and evaluations >= 1; got {delta}, {sweeps}, "
+                              f"{budget}")
+    if not data.train:
+        raise TorchtrackError("the training set is empty: refine has nothing to score")
+    base: dict[str, Tensor] = {n: params[n].raw.detach().clone() for n in names}
+    scale: dict[str, Tensor] = {n: step_scale(params[n]) for n in names}
+    t0 = time.perf_counter()
+    evaluations = 0
+    reported: dict[str, dict] = {}
+
+    def score(point: Mapping[str, float]) -> float:
+        nonlocal evaluations
+        set_raw(module, {n: base[n] + scale[n] * point[n] for n in names})
+        scores = tunable.evaluate(module, data.train)
+        evaluations += 1
+        if metric not in scores:
+            raise TorchtrackError(f"refine.metric {metric!r} is not reported by {tunable.name}; choose from "
+                                  f"{', '.join(scores)}")
+        reported[_key(point)] = scores
+        value = sign * float(scores[metric])
+        return value if math.isfinite(value) else -math.inf
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=budget, desc=f"refine {metric}", disable=not progress, leave=False)
+    u = {n: 0.0 for n in names}
+    start = best = score(u)
+    bar.update(1)
+    for _ in range(sweeps):
+        for n in names:
+            for direction in (1.0, -1.0):
+                moved = False
+                while evaluations < budget:
+                    trial = {**u, n: u[n] + direction * delta}
+                    value = score(trial)
+                    bar.update(1)
+                    if value > best:
+                        u, best, moved = trial, value, True
+                    else:
+                        break
+                if moved or evaluations >= budget:
+                    break
+        delta /= 2
+    bar.close()
+    set_raw(module, {n: base[n] + scale[n] * u[n] for n in names})
+    train_frames = sum(tunable.item_frames(i) for i in data.train)
+    return {"metric": metric, "parameters": names, "start": sign * start, "best": sign * best,
+            "train": reported[_key(u)], "moved": dict(u),
+            "values": {n: (float(v) if v.numel() == 1 else v.tolist()) for n, v in get_values(module, names).items()},
+            "metric_evaluations": evaluations, "filter_evaluations": evaluations * len(data.train),
+            "frames": evaluations * train_frames, "seconds": time.perf_counter() - t0}
+
+
+def _key(point: Mapping[str, float]) -> str:
+    return ",".join(f"{v:.12g}" for v in point.values())
