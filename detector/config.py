@@ -46,6 +46,7 @@ class TrainConfig:
     weight_decay: float = 0.0
     offset_weight: float = 1.0
     velocity_weight: float = 0.5
+    match_weight: float = 0.0          # cross-entropy of the matching logits on the true displacement
     out: str = "out/detector-train"
     val_frames: int = 8                # frames of each validation sequence scored per epoch
 
@@ -55,6 +56,9 @@ class DecodeConfig:
     threshold: float = 0.3
     top_k: int = 1000
     radius: float = 10.0               # px, match distance for precision / recall / F1
+    refine_radius: int = 6             # px, block-matching search around the network's velocity (0: off)
+    refine_patch: int = 3              # half-size of the matched patch (7x7 px)
+    refine_pull: float = 0.002         # pull towards the network's velocity (see detector.refine)
 
 
 @dataclass(frozen=True)

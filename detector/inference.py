@@ -14,6 +14,7 @@ from detector.config import DetectorConfig
 from detector.dataset import normalise
 from detector.decode import Detections, decode
 from detector.network import MULTIPLE, STRIDE, CenterTrackNet
+from detector.refine import refine_velocity
 from detector.targets import gaussian_heatmap
 from torchtrack.errors import TorchtrackError
 
@@ -76,7 +77,10 @@ class Detector(nn.Module):
         d = self.config.decode
         det = decode(hm, off, vel, STRIDE, d.threshold if threshold is None else threshold, d.top_k)
         keep = det.mask[0]
-        return Detections(det.xy[0, keep], det.score[0, keep], det.velocity[0, keep], keep[keep])
+        xy, vel = det.xy[0, keep], det.velocity[0, keep]
+        if prev_frame is not None and d.refine_radius > 0:
+            vel = refine_velocity(x[0, 0], x[0, 1], xy, vel, d.refine_patch, d.refine_radius, d.refine_pull)
+        return Detections(xy, det.score[0, keep], vel, keep[keep])
 
 
 def detector_from_checkpoint(data: dict) -> Detector:

@@ -83,14 +83,18 @@ class CenterTrackNet(nn.Module):
             self.heads.bias.zero_()
             self.heads.bias[:4] = -math.log((1 - 0.01) / 0.01)   # heatmap channel: about -4.6
 
-    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def forward(self, x: torch.Tensor, with_matching: bool = False):
+        """``(heatmap_logits, offset, velocity)``; with ``with_matching`` also the matching logits
+        ``(B, (2r+1)^2, H/8, W/8)`` (the scaled cost volume whose softmax gives the soft-argmax flow),
+        supervised in training by a cross-entropy on the true displacement."""
         d2 = self.stem(x)
         f4 = self.siamese4(torch.cat([x[:, :1], x[:, 1:2]], dim=0))     # both frames in one batch
         f4 = f4 - F.avg_pool2d(f4, 3, 1, 1, count_include_pad=False)   # high-pass: keep small objects
         cur, prev = self.siamese8(f4).chunk(2, dim=0)
         cost = correlation(cur, prev, self.radius)
         # soft-argmax matching: the object at p in frame k was at p + d in frame k-1, v = -d
-        w = torch.softmax(cost * self.log_temperature.exp(), dim=1)
+        logits = cost * self.log_temperature.exp()
+        w = torch.softmax(logits, dim=1)
         flow = -torch.einsum("bkhw,ck->bchw", w, self.displacement)
         d3 = self.fuse3(torch.cat([self.down3(d2), cost], dim=1))
         d4 = self.down4(d3)
@@ -98,4 +102,6 @@ class CenterTrackNet(nn.Module):
         u2 = self.up2(d2 + F.interpolate(u3, size=d2.shape[-2:], mode="nearest"))
         out = self.shuffle(self.heads(u2))
         flow = F.interpolate(flow, size=out.shape[-2:], mode="bilinear", align_corners=False)
+        if with_matching:
+            return out[:, :1], out[:, 1:3], flow + out[:, 3:5] * VELOCITY_SCALE, logits
         return out[:, :1], out[:, 1:3], flow + out[:, 3:5] * VELOCITY_SCALE

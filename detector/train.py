@@ -110,11 +110,13 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
             from tqdm import tqdm
 
             bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{t.epochs}", unit="step")
-        sums, n, t0 = {"loss": 0.0, "heatmap": 0.0, "offset": 0.0, "velocity": 0.0}, 0, time.perf_counter()
+        sums = {"loss": 0.0, "heatmap": 0.0, "offset": 0.0, "velocity": 0.0, "matching": 0.0}
+        n, t0 = 0, time.perf_counter()
         for x, tg in loader:
             x = x.to(device).contiguous(memory_format=torch.channels_last)
             tg = Targets(*(v.to(device) for v in tg))
-            loss, parts = detection_loss(net(x), tg, t.offset_weight, t.velocity_weight)
+            loss, parts = detection_loss(net(x, with_matching=t.match_weight > 0), tg, t.offset_weight,
+                                         t.velocity_weight, t.match_weight)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
