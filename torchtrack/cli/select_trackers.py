@@ -1,0 +1,77 @@
+"""``torchtrack select-trackers``: choose the pipeline's min_speed and tracker options on validation sequences."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import yaml
+
+from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.multitarget import tracker_names
+from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
+from torchtrack.pipeline.selection import GRIDS, collect, select
+
+NAME = "select-trackers"
+HELP = "grid-search the video pipeline's min_speed and each tracker's options on validation sequences"
+DESCRIPTION = """\
+Run registration and the detector once on every sequence of --sequences (folders as for
+`torchtrack track --sequences`, with gt.txt and, for synthetic ones, velocity.txt), then every tracker
+with every option set of its grid (torchtrack/pipeline/selection.py: GRIDS) at every --min-speeds value,
+scored by pooled CLEAR-MOT. Each tracker keeps its best options by MOTA; min_speed is where the
+pipeline's tracker (--pipeline-config's, default gmphd) scores best. Writes --out, a pipeline config
+for `torchtrack demo --config` and `torchtrack track --pipeline-config`, and OUT.json with every run.
+
+Use sequences that are not the ones you report (docs/pipeline.md). Example:
+  for i in 1 2 3; do torchtrack simulate-video --seed $((10000000 + i)) --out out/val/seq$i; done
+  torchtrack select-trackers --sequences out/val --out out/pipeline-selected.yaml
+"""
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--sequences", type=Path, required=True, metavar="DIR", help="validation sequences")
+    parser.add_argument("--out", type=Path, required=True, metavar="YAML", help="pipeline config to write")
+    parser.add_argument("--pipeline-config", type=Path, default=None, metavar="YAML",
+                        help="starting pipeline settings (default: the embedded ones)")
+    parser.add_argument("--trackers", nargs="+", choices=tracker_names(), default=None,
+                        help="trackers to tune (default: all)")
+    parser.add_argument("--min-speeds", nargs="+", type=float, default=[0.0, 1.0, 2.0, 3.0], metavar="V",
+                        help="min_speed values to try, px/frame (default 0 1 2 3)")
+    parser.add_argument("--work", type=Path, default=Path("out/select-trackers"), metavar="DIR",
+                        help="folder for the detection runs (default out/select-trackers)")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_common_options(parser)
+
+
+def config_mapping(config: PipelineConfig) -> dict:
+    """The pipeline config as a YAML-ready mapping (the layout of configs/pipeline.yaml)."""
+    data = dataclasses.asdict(config)
+    data["snapshots"] = list(config.snapshots)
+    return {"pipeline": data}
+
+
+def run(args) -> int:
+    if any(s < 0 for s in args.min_speeds):
+        raise TorchtrackError(f"--min-speeds must be >= 0, got {args.min_speeds}")
+    config = load_pipeline_config(args.pipeline_config)
+    trackers = args.trackers or tracker_names()
+    data = collect(args.sequences, args.work, config, progress=not args.no_progress)
+    if not data:
+        raise TorchtrackError(f"{args.sequences}: no sequence with a gt.txt")
+    chosen, log = select(data, config, trackers, args.min_speeds, GRIDS, progress=not args.no_progress)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    header = (f"# written by: torchtrack select-trackers --sequences {args.sequences} "
+              f"--min-speeds {' '.join(str(s) for s in args.min_speeds)}\n")
+    args.out.write_text(header + yaml.safe_dump(config_mapping(chosen), sort_keys=False))
+    args.out.with_suffix(".json").write_text(json.dumps(log, indent=1) + "\n")
+    best = {r["tracker"]: r for r in log if r["min_speed"] == chosen.min_speed
+            and r["options"] == chosen.trackers.get(r["tracker"], {})}
+    rows = [[n, best[n]["MOTA"], best[n]["IDS"], best[n]["FP"], best[n]["FN"], json.dumps(best[n]["options"])]
+            for n in trackers if n in best]
+    print(f"{len(data)} sequences, {len(log)} tracker runs; min_speed {chosen.min_speed} px/frame")
+    print(format_table(["tracker", "MOTA", "IDS", "FP", "FN", "options"], rows, floatfmt=".3f"))
+    print(f"wrote {args.out} and {args.out.with_suffix('.json')}")
+    write_json(args.json, {"min_speed": chosen.min_speed, "trackers": chosen.trackers, "runs": log})
+    return 0

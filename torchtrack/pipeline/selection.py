@@ -1,0 +1,122 @@
+"""Choose the video pipeline's tracker settings on validation sequences (``torchtrack select-trackers``).
+
+The detector runs once per sequence (:func:`collect`); then, for every ``min_speed`` of the grid and every
+tracker, each option set of that tracker's grid runs on the same kept detections and is scored by pooled
+CLEAR-MOT over all sequences (:func:`evaluate`). Per ``min_speed`` each tracker keeps its best option set
+by MOTA; the ``min_speed`` is the one where the pipeline's own tracker scores best, so that every tracker is
+compared on the same detections (:func:`select`). The result is a pipeline config (``min_speed`` and
+``trackers``) for ``torchtrack demo --config`` / ``torchtrack track --pipeline-config``.
+
+Selection must use sequences that are not the ones reported: the demo and the held-out sequences are drawn
+from the detector's test split, so validate on other seeds (docs/pipeline.md).
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from torchtrack.filters.multitarget import make_tracker
+from torchtrack.io.mot import MOTData, from_points, read_mot
+from torchtrack.io.video_writer import apply_homography
+from torchtrack.pipeline.config import PipelineConfig
+from torchtrack.pipeline.sequences import concatenate, find_sequences
+from torchtrack.pipeline.track_video import FrameDetections, run_tracker_step, score, track_video
+from torchtrack.pipeline.truth import parked_mask
+
+GRIDS: dict[str, dict[str, list]] = {
+    "gmphd": {"fix_separation": [0.0, 4.0, 8.0], "confirm_new": [True, False],
+              "filter.velocity_sigma": [None, 1.5, 3.0], "filter.p_detection": [0.8, 0.9]},
+    "labelled-gmphd": {"filter.p_detection": [0.8, 0.9], "filter.clutter_density": [1e-4, 3e-4],
+                       "filter.q": [2.0, 5.0]},
+    "sort": {"max_distance": [10.0, 20.0, 30.0], "max_age": [1, 3], "min_hits": [1, 2, 3]},
+    "greedy": {"max_distance": [10.0, 20.0], "max_age": [0, 2]},
+    "pmb": {},
+}
+"""Option grids per tracker; a dotted key ``section.key`` sets ``options[section][key]``."""
+
+
+@dataclass
+class SequenceDetections:
+    """One validation sequence: its truth, don't-care mask and the detector's kept detections."""
+
+    name: str
+    gt: MOTData
+    ignore: np.ndarray | None
+    detections: list[FrameDetections]
+
+
+def collect(root: str | Path, out: str | Path, config: PipelineConfig, detector=None,
+            progress: bool = True) -> list[SequenceDetections]:
+    """Run registration and detection once on every sequence of ``root`` that has truth."""
+    data = []
+    cfg = config.replace(video=False)
+    for seq in find_sequences(root):
+        if seq.gt is None:
+            continue
+        gt = read_mot(seq.gt)
+        ignore = parked_mask(gt, seq.velocity) if seq.velocity else None
+        result = track_video(seq.source(), Path(out) / seq.name, cfg, detector=detector, gt=gt,
+                             gt_path=str(seq.gt), ignore=ignore, keep_detections=True, progress=progress)
+        data.append(SequenceDetections(seq.name, gt, ignore, result.detections))
+    return data
+
+
+def option_sets(grid: dict[str, list]) -> list[dict]:
+    """Every combination of ``grid`` as a nested options mapping (``{}`` for an empty grid)."""
+    sets = []
+    for values in itertools.product(*grid.values()):
+        options: dict = {}
+        for key, value in zip(grid, values):
+            section, _, name = key.rpartition(".")
+            (options.setdefault(section, {}) if section else options)[name] = value
+        sets.append(options)
+    return sets
+
+
+def evaluate(name: str, options: dict | None, min_speed: float, data: list[SequenceDetections],
+             config: PipelineConfig) -> dict:
+    """Pooled CLEAR-MOT of tracker ``name`` with ``options`` over ``data`` (frame coordinates)."""
+    dtype = getattr(torch, config.dtype)
+    parts, masks = [], []
+    for seq in data:
+        tracker = make_tracker(name, copy.deepcopy(options) if options else None)
+        frames, ids, points = [], [], []
+        for det in seq.detections:
+            i, pos, _ = run_tracker_step(tracker, det, dtype, min_speed)
+            frames.append(np.full(len(i), det.index))
+            ids.append(i)
+            points.append(apply_homography(pos, np.linalg.inv(det.homography)))
+        p = np.concatenate(points) if points else np.zeros((0, 2))
+        tracks = from_points(np.concatenate(frames).astype(np.int64), np.concatenate(ids), p[:, 0], p[:, 1])
+        parts.append((seq.gt, tracks))
+        masks.append(seq.ignore if seq.ignore is not None else np.zeros(seq.gt.size, bool))
+    return score(*concatenate(parts), config.threshold, np.concatenate(masks))
+
+
+def select(data: list[SequenceDetections], config: PipelineConfig, trackers: list[str],
+           min_speeds: list[float], grids: dict[str, dict[str, list]] | None = None,
+           progress: bool = True) -> tuple[PipelineConfig, list[dict]]:
+    """Grid search (module docstring); returns the chosen config and every evaluation
+    (``tracker, min_speed, options, MOTA, IDS, FP, FN``)."""
+    grids = GRIDS if grids is None else grids
+    runs = [(s, name, o) for s in min_speeds for name in trackers for o in option_sets(grids.get(name, {}))]
+    log = []
+    best: dict[tuple[float, str], dict] = {}
+    for s, name, options in tqdm(runs, desc="select-trackers", unit="run", disable=not progress):
+        m = evaluate(name, options, s, data, config)
+        row = {"tracker": name, "min_speed": s, "options": options,
+               **{k: m[k] for k in ("MOTA", "IDS", "FP", "FN", "IDF1")}}
+        log.append(row)
+        if (s, name) not in best or row["MOTA"] > best[(s, name)]["MOTA"]:
+            best[(s, name)] = row
+    main = config.tracker if config.tracker in trackers else trackers[0]
+    speed = max(min_speeds, key=lambda s: best[(s, main)]["MOTA"])
+    chosen = {name: best[(speed, name)]["options"] for name in trackers if best[(speed, name)]["options"]}
+    return config.replace(min_speed=speed, trackers=chosen, tracker_options={}), log
