@@ -32,8 +32,7 @@ def _gather_windows(img: torch.Tensor, centre: torch.Tensor, half: int) -> torch
 
 
 def refine_velocity(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity: torch.Tensor,
-                    patch: int = 3, radius: int = 5, pull: float = 0.005, prior: torch.Tensor | None = None,
-                    prior_weight: float = 0.0) -> torch.Tensor:
+                    patch: int = 3, radius: int = 5, pull: float = 0.005) -> torch.Tensor:
     """Refined velocities ``(K, 2)`` for detections ``xy (K, 2)`` (x, y) px with coarse ``velocity (K, 2)``.
 
     cur, prev: (H, W) float frames (normalised alike); ``patch`` = p (the patch is (2p+1)^2 px),
@@ -60,8 +59,6 @@ def refine_velocity(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, vel
     sx = s0[:, 0, None, None] + d[None, None, :]
     sy = s0[:, 1, None, None] + d[None, :, None]
     cost = cost + pull * ((sx + velocity[:, 0, None, None]) ** 2 + (sy + velocity[:, 1, None, None]) ** 2)
-    if prior is not None and prior_weight > 0:
-        cost = cost - prior_weight * _gather_windows(prior.float(), r + s0, radius + 1)
     best = cost[:, 1:-1, 1:-1].reshape(k, -1).argmin(1)
     by, bx = torch.div(best, m - 2, rounding_mode="floor") + 1, best % (m - 2) + 1
     idx = torch.arange(k, device=xy.device)

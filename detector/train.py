@@ -153,10 +153,37 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
     return {"history": history, "best": str(out / "best.pt"), "last": str(out / "last.pt")}
 
 
-def export_weights(src: str | Path, dst: str | Path, extra: dict | None = None) -> Path:
-    """Write the model part of a training checkpoint (config, weights, history) for shipping."""
+THRESHOLDS = (0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55)
+
+
+def calibrate_threshold(det: Detector, cache, n_frames: int, radius: float,
+                        grid: tuple[float, ...] = THRESHOLDS) -> tuple[float, list[dict]]:
+    """The decoding threshold of ``grid`` with the best F1 on the validation ``cache`` (each sequence
+    run as a stream, so that the threshold also acts through the prior), and the scores per threshold."""
+    rows = []
+    for thr in grid:
+        det.config = dataclasses.replace(det.config, decode=dataclasses.replace(det.config.decode, threshold=thr))
+        rows.append({"threshold": thr, **evaluate_cache(det, cache, n_frames, radius)})
+    best = max(rows, key=lambda r: r["f1"])
+    return best["threshold"], rows
+
+
+def export_weights(src: str | Path, dst: str | Path, extra: dict | None = None, calibrate=None) -> Path:
+    """Write the model part of a training checkpoint (config, weights, history) for shipping.
+
+    ``calibrate``: the validation :class:`~detector.dataset.SequenceCache`; the exported config then
+    carries the decoding threshold of :func:`calibrate_threshold` (and ``calibration`` the scores)."""
     ck = load_checkpoint(src)
-    payload = {"config": ck["config"].as_dict(), "model": {k: v.contiguous() for k, v in ck["model"].items()},
-               "epoch": ck.get("epoch"), "history": ck.get("history", []), **(extra or {})}
+    cfg = ck["config"]
+    info = {}
+    if calibrate is not None:
+        from detector.inference import detector_from_checkpoint
+
+        det = detector_from_checkpoint(ck)
+        thr, rows = calibrate_threshold(det, calibrate, cfg.train.val_frames, cfg.decode.radius)
+        cfg = dataclasses.replace(cfg, decode=dataclasses.replace(cfg.decode, threshold=thr))
+        info["calibration"] = rows
+    payload = {"config": cfg.as_dict(), "model": {k: v.contiguous() for k, v in ck["model"].items()},
+               "epoch": ck.get("epoch"), "history": ck.get("history", []), **info, **(extra or {})}
     save_checkpoint(dst, payload)
     return Path(dst)

@@ -21,8 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from detector.decode import Detections
-from detector.evaluate import Scores, stream
+from detector.evaluate import Scores, moving_only, stream
 from torchtrack.errors import TorchtrackError
 
 FIRST, LAST = 100, 105
@@ -72,8 +71,6 @@ def evaluate_wpafb(detector, path: Path | None = None, radius: float = 10.0, min
         vel = xy - truth[k - 1] if k - 1 in truth and k >= FIRST + 2 else None
         all_s.add(det, xy[present], None if vel is None else vel[present])
         if k >= FIRST + 2:
-            fast = det.velocity.norm(dim=1) >= min_speed
-            mov = Detections(det.xy[fast], det.score[fast], det.velocity[fast], det.mask[fast])
-            mov_s.add(mov, xy[present], vel[present], care=moving[present])
+            mov_s.add(moving_only(det, min_speed), xy[present], vel[present], care=moving[present])
     mov_s.seconds, mov_s.cpu_seconds = all_s.seconds, all_s.cpu_seconds
     return {"all": all_s.result(), "moving": mov_s.result()}

@@ -109,3 +109,25 @@ def test_frames_of_mismatched_sizes_are_an_error(tmp_path):
         det.detect(frame, frame, np.zeros((3, 3)))
     out = det.detect(frame, frame, np.array([[10.0, 12.0]]))    # odd sizes are padded internally
     assert out.xy.shape[-1] == 2 and len(out.score) == len(out.xy)
+
+
+def test_export_calibrates_the_threshold_on_validation(tmp_path):
+    from detector.evaluate import evaluate_cache
+    from detector.train import THRESHOLDS, export_weights
+
+    cfg = tiny_config(tmp_path)
+    torch.manual_seed(0)
+    det = Detector(cfg)
+    with torch.no_grad():
+        det.net.heads.bias[:4] = 0.0       # scores near 0.5: the threshold matters
+    save_checkpoint(tmp_path / "best.pt", {"config": cfg.as_dict(), "model": det.net.state_dict()})
+    val = build_cache(cfg, "val", 0)
+    out = export_weights(tmp_path / "best.pt", tmp_path / "w.pt", calibrate=val)
+    ck = load_checkpoint(out)
+    rows = ck["calibration"]
+    assert [r["threshold"] for r in rows] == list(THRESHOLDS)
+    thr = ck["config"].decode.threshold
+    assert thr == max(rows, key=lambda r: r["f1"])["threshold"]
+    again = detector_from_checkpoint(ck)
+    assert evaluate_cache(again, val, cfg.train.val_frames, cfg.decode.radius)["f1"] == pytest.approx(
+        max(r["f1"] for r in rows))

@@ -25,7 +25,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--epochs", type=int, default=None, help="number of epochs (overrides train.epochs)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     parser.add_argument("--export", type=Path, default=None, metavar="PT",
-                        help="after training, write the best checkpoint's weights (no optimizer) to PT")
+                        help="after training, write the best checkpoint's weights (no optimizer) to PT, with "
+                             "the decoding threshold calibrated on the validation sequences")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch intra-op threads per process (1 is fastest on a busy machine)")
@@ -56,8 +57,15 @@ def run(args) -> int:
 
     if int(os.environ.get("RANK", "0")) == 0:
         if args.export is not None:
-            export_weights(result["best"], args.export, {"seed": args.seed, "command": "torchtrack train-detector "
-                                                          f"--config {args.config} --seed {args.seed}"})
-            print(f"exported {result['best']} to {args.export}")
+            from detector.dataset import build_cache
+
+            path = export_weights(result["best"], args.export, {"seed": args.seed, "command": "torchtrack "
+                                  f"train-detector --config {args.config} --seed {args.seed}"},
+                                  calibrate=build_cache(cfg, "val", args.seed))
+            from detector.checkpoint import load_checkpoint
+
+            thr = load_checkpoint(path)["config"].decode.threshold
+            print(f"exported {result['best']} to {args.export} (decoding threshold {thr} calibrated on the "
+                  "validation sequences)")
         write_json(args.json, result)
     return 0
