@@ -97,7 +97,7 @@ class _World:
         lo, hi = cfg.vehicle_length
         length = float(np.clip(cfg.vehicle_length_median * np.exp(0.3 * rng.standard_normal()), lo, hi))
         bright = bool(rng.random() < cfg.bright_fraction)
-        tone = float(rng.uniform(100, 235) if bright else rng.uniform(10, 45))
+        tone = float(rng.uniform(*cfg.bright_tone) if bright else rng.uniform(*cfg.dark_tone))
         v = _Vehicle(self.next_id, length, max(1.8, length * rng.uniform(0.42, 0.55)), tone, bright, **kw)
         self.next_id += 1
         self.vehicles.append(v)

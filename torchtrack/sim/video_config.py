@@ -40,6 +40,8 @@ class VideoConfig:
     vehicle_length: tuple[float, float] = (3.0, 15.0)   # clip range of lengths
     vehicle_length_median: float = 5.0
     bright_fraction: float = 0.55
+    bright_tone: tuple[float, float] = (100.0, 235.0)   # grey level range of bright vehicles
+    dark_tone: tuple[float, float] = (10.0, 45.0)       # grey level range of dark vehicles
     lane_density: float = 0.007           # moving vehicles per px of lane at start
     birth_rate: float = 0.025              # entries per lane and frame
     speed_median: float = 12.0
