@@ -19,6 +19,10 @@ Update of every component against every measurement in one batched operation (eq
     detected:  w = p_D w_j g_jk / (κ(z_k) + Σ_i p_D w_i g_ik),  m = m_j + K_j (z_k − ẑ_j),  P = P_j⁺
     g_jk = N(z_k; ẑ_j, S_j), kept only inside the gate  (z_k − ẑ_j)ᵀ S_j⁻¹ (z_k − ẑ_j) ≤ γ
 
+With the detector's velocity ``v_k`` (``velocity_sigma`` set; this project's extension, not the paper's) each
+detection is ``[z_k, v_k]``, measured through ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)``, gated with the
+4-dof χ² quantile, and the clutter intensity is ``κ(z_k) κ_v``.
+
 ``S`` is factored once per component (it does not depend on the measurement); pairs outside the gate
 get weight zero and are not materialised. The measurement axis is processed in chunks so that tens
 of thousands of measurements in one frame keep memory bounded.
