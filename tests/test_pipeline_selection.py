@@ -19,14 +19,15 @@ def test_option_sets_nest_dotted_keys():
 
 @pytest.fixture(scope="module")
 def moving_pair():
-    """Two targets moving at 6 px/frame (detected exactly, with their velocity) and a static false alarm."""
+    """Two targets moving at 6 px/frame (detected exactly, with their velocity and a large frame difference)
+    and a static false alarm (no velocity, little frame difference)."""
     frames, dets = 12, []
     rows = []
     for k in range(1, frames + 1):
         truth = np.array([[20.0 + 6 * k, 40.0], [20.0 + 6 * k, 90.0]])
         pos = np.vstack([truth, [[100.0, 140.0]]])
         vel = np.array([[6.0, 0.0], [6.0, 0.0], [0.0, 0.0]])
-        dets.append(FrameDetections(k, np.eye(3), pos, vel, np.ones(3), pos, vel))
+        dets.append(FrameDetections(k, np.eye(3), pos, vel, np.ones(3), pos, vel, np.array([20.0, 20.0, 1.0])))
         rows += [(k, 1, *truth[0]), (k, 2, *truth[1])]
     r = np.array(rows)
     gt = from_points(r[:, 0].astype(np.int64), r[:, 1].astype(np.int64), r[:, 2], r[:, 3])
@@ -35,14 +36,15 @@ def moving_pair():
 
 def test_evaluate_scores_the_tracker_on_kept_detections(moving_pair):
     cfg = PipelineConfig()
-    near = evaluate("greedy", {"max_distance": 10.0, "max_age": 0}, 0.0, moving_pair, cfg)
+    near = evaluate("greedy", {"max_distance": 10.0, "max_age": 0}, (0.0, 0.0), moving_pair, cfg)
     assert near["IDS"] == 0 and near["FN"] == 0 and near["FP"] == 12  # the static false alarm, every frame
-    moving_only = evaluate("greedy", {"max_distance": 10.0, "max_age": 0}, 2.0, moving_pair, cfg)
-    assert moving_only["FP"] == 0 and moving_only["MOTA"] == pytest.approx(1.0)
+    for gate in ((2.0, 0.0), (0.0, 5.0)):
+        moving_only = evaluate("greedy", {"max_distance": 10.0, "max_age": 0}, gate, moving_pair, cfg)
+        assert moving_only["FP"] == 0 and moving_only["MOTA"] == pytest.approx(1.0)
 
 
 def test_select_finds_the_min_speed_that_drops_the_static_false_alarm(moving_pair):
-    chosen, log = select(moving_pair, PipelineConfig(tracker="greedy"), ["greedy"], [0.0, 2.0],
+    chosen, log = select(moving_pair, PipelineConfig(tracker="greedy"), ["greedy"], [(0.0, 0.0), (2.0, 0.0)],
                          {"greedy": {"max_distance": [10.0], "max_age": [0]}}, progress=False)
     assert chosen.min_speed == 2.0 and chosen.trackers == {"greedy": {"max_distance": 10.0, "max_age": 0}}
     assert len(log) == 2 and torch.tensor([r["MOTA"] for r in log]).argmax().item() == 1

@@ -203,3 +203,11 @@ def test_pipeline_tracker_options_per_name():
     assert cfg.options_for("sort") == {"max_age": 7}
     assert cfg.options_for("greedy") == {"max_distance": 5.0}
     assert cfg.options_for("gmphd") is None
+
+
+def test_motion_evidence_is_the_local_frame_difference():
+    previous = np.full((40, 40), 60, np.uint8)
+    image = previous.copy()
+    image[18:23, 28:33] = 160  # a 5 x 5 vehicle arrived; nothing else changed
+    ev = tv.motion_evidence(image, previous, np.array([[30.0, 20.0], [10.0, 10.0], [32.0, 20.0]]))
+    np.testing.assert_allclose(ev, [100.0, 0.0, 60.0])  # centred: all 25 px differ; 2 px off: 15 of 25

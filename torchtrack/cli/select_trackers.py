@@ -15,13 +15,14 @@ from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.selection import GRIDS, collect, select
 
 NAME = "select-trackers"
-HELP = "grid-search the video pipeline's min_speed and each tracker's options on validation sequences"
+HELP = "grid-search the video pipeline's moving-object gate and each tracker's options on validation sequences"
 DESCRIPTION = """\
 Run registration and the detector once on every sequence of --sequences (folders as for
 `torchtrack track --sequences`, with gt.txt and, for synthetic ones, velocity.txt), then every tracker
-with every option set of its grid (torchtrack/pipeline/selection.py: GRIDS) at every --min-speeds value,
-scored by pooled CLEAR-MOT. Each tracker keeps its best options by MOTA; min_speed is where the
-pipeline's tracker (--pipeline-config's, default gmphd) scores best. Writes --out, a pipeline config
+with every option set of its grid (torchtrack/pipeline/selection.py: GRIDS) at every combination of
+--min-speeds and --min-motions (the moving-object gate), scored by pooled CLEAR-MOT. Each tracker keeps
+its best options by MOTA; the gate is where the pipeline's tracker (--pipeline-config's, default gmphd)
+scores best, so all trackers are compared on the same detections. Writes --out, a pipeline config
 for `torchtrack demo --config` and `torchtrack track --pipeline-config`, and OUT.json with every run.
 
 Use sequences that are not the ones you report (docs/pipeline.md). Example:
@@ -37,8 +38,10 @@ def add_arguments(parser) -> None:
                         help="starting pipeline settings (default: the embedded ones)")
     parser.add_argument("--trackers", nargs="+", choices=tracker_names(), default=None,
                         help="trackers to tune (default: all)")
-    parser.add_argument("--min-speeds", nargs="+", type=float, default=[0.0, 1.0, 2.0, 3.0], metavar="V",
-                        help="min_speed values to try, px/frame (default 0 1 2 3)")
+    parser.add_argument("--min-speeds", nargs="+", type=float, default=[0.0, 2.0], metavar="V",
+                        help="min_speed values to try, px/frame (default 0 2)")
+    parser.add_argument("--min-motions", nargs="+", type=float, default=[0.0, 5.0, 8.0], metavar="G",
+                        help="min_motion values to try, grey levels (default 0 5 8)")
     parser.add_argument("--work", type=Path, default=Path("out/select-trackers"), metavar="DIR",
                         help="folder for the detection runs (default out/select-trackers)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -53,25 +56,30 @@ def config_mapping(config: PipelineConfig) -> dict:
 
 
 def run(args) -> int:
-    if any(s < 0 for s in args.min_speeds):
-        raise TorchtrackError(f"--min-speeds must be >= 0, got {args.min_speeds}")
+    for flag, values in (("--min-speeds", args.min_speeds), ("--min-motions", args.min_motions)):
+        if any(v < 0 for v in values):
+            raise TorchtrackError(f"{flag} must be >= 0, got {values}")
     config = load_pipeline_config(args.pipeline_config)
     trackers = args.trackers or tracker_names()
     data = collect(args.sequences, args.work, config, progress=not args.no_progress)
     if not data:
         raise TorchtrackError(f"{args.sequences}: no sequence with a gt.txt")
-    chosen, log = select(data, config, trackers, args.min_speeds, GRIDS, progress=not args.no_progress)
+    gates = [(s, m) for s in args.min_speeds for m in args.min_motions]
+    chosen, log = select(data, config, trackers, gates, GRIDS, progress=not args.no_progress)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     header = (f"# written by: torchtrack select-trackers --sequences {args.sequences} "
-              f"--min-speeds {' '.join(str(s) for s in args.min_speeds)}\n")
+              f"--min-speeds {' '.join(map(str, args.min_speeds))} "
+              f"--min-motions {' '.join(map(str, args.min_motions))}\n")
     args.out.write_text(header + yaml.safe_dump(config_mapping(chosen), sort_keys=False))
     args.out.with_suffix(".json").write_text(json.dumps(log, indent=1) + "\n")
-    best = {r["tracker"]: r for r in log if r["min_speed"] == chosen.min_speed
+    best = {r["tracker"]: r for r in log if (r["min_speed"], r["min_motion"]) == (chosen.min_speed, chosen.min_motion)
             and r["options"] == chosen.trackers.get(r["tracker"], {})}
     rows = [[n, best[n]["MOTA"], best[n]["IDS"], best[n]["FP"], best[n]["FN"], json.dumps(best[n]["options"])]
             for n in trackers if n in best]
-    print(f"{len(data)} sequences, {len(log)} tracker runs; min_speed {chosen.min_speed} px/frame")
+    print(f"{len(data)} sequences, {len(log)} tracker runs; min_speed {chosen.min_speed} px/frame, "
+          f"min_motion {chosen.min_motion}")
     print(format_table(["tracker", "MOTA", "IDS", "FP", "FN", "options"], rows, floatfmt=".3f"))
     print(f"wrote {args.out} and {args.out.with_suffix('.json')}")
-    write_json(args.json, {"min_speed": chosen.min_speed, "trackers": chosen.trackers, "runs": log})
+    write_json(args.json, {"min_speed": chosen.min_speed, "min_motion": chosen.min_motion,
+                           "trackers": chosen.trackers, "runs": log})
     return 0

@@ -19,9 +19,11 @@ class PipelineConfig:
     tracker / tracker_options: the tracker's name and its options (``make_tracker(name, options)``).
     trackers: options per tracker name for the trackers compared on the same detections (``demo``,
     ``track --compare``); ``tracker_options``, where given, overrides the entry of ``tracker``.
-    min_speed: detections whose predicted speed (the detector's velocity head, px/frame) is below this are
-    not given to the tracker: the paper tracks moving objects only (still recorded in ``detections.txt``
-    and used for the detector's prior heatmap). 0 passes every detection.
+    min_speed, min_motion: the paper tracks moving objects only: detections whose predicted speed (the
+    detector's velocity head, px/frame) or whose motion evidence (mean absolute difference to the registered
+    previous frame around the detection, grey levels; ``track_video.motion_evidence``) is below these are
+    not given to the tracker (they are still recorded in ``detections.txt`` and feed the detector's prior
+    heatmap). 0 passes every detection.
     detector_weights: a weights file (``None``: the shipped weights).
     prior: where the detector's prior heatmap comes from: the previous frame's ``detections`` (the
     paper's eq. 1) or its ``tracks``.
@@ -38,6 +40,7 @@ class PipelineConfig:
     tracker_options: dict = field(default_factory=dict)
     trackers: dict = field(default_factory=dict)
     min_speed: float = 0.0
+    min_motion: float = 0.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
     prior: str = "detections"
@@ -55,8 +58,9 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.prior not in ("detections", "tracks"):
             raise TorchtrackError(f"pipeline config: prior must be 'detections' or 'tracks', got {self.prior!r}")
-        if not self.min_speed >= 0:
-            raise TorchtrackError(f"pipeline config: min_speed must be >= 0 px/frame, got {self.min_speed!r}")
+        for name in ("min_speed", "min_motion"):
+            if not getattr(self, name) >= 0:
+                raise TorchtrackError(f"pipeline config: {name} must be >= 0, got {getattr(self, name)!r}")
         if not isinstance(self.trackers, dict) or not all(isinstance(v, dict) for v in self.trackers.values()):
             raise TorchtrackError("pipeline config: trackers must map tracker names to option mappings")
         if self.dtype not in ("float32", "float64"):

@@ -1,11 +1,12 @@
 """Choose the video pipeline's tracker settings on validation sequences (``torchtrack select-trackers``).
 
-The detector runs once per sequence (:func:`collect`); then, for every ``min_speed`` of the grid and every
-tracker, each option set of that tracker's grid runs on the same kept detections and is scored by pooled
-CLEAR-MOT over all sequences (:func:`evaluate`). Per ``min_speed`` each tracker keeps its best option set
-by MOTA; the ``min_speed`` is the one where the pipeline's own tracker scores best, so that every tracker is
-compared on the same detections (:func:`select`). The result is a pipeline config (``min_speed`` and
-``trackers``) for ``torchtrack demo --config`` / ``torchtrack track --pipeline-config``.
+The detector runs once per sequence (:func:`collect`); then, for every moving-object gate
+``(min_speed, min_motion)`` of the grid and every tracker, each option set of that tracker's grid runs on the
+same kept detections and is scored by pooled CLEAR-MOT over all sequences (:func:`evaluate`). Per gate each
+tracker keeps its best option set by MOTA; the gate is the one where the pipeline's own tracker scores best,
+so that every tracker is compared on the same detections (:func:`select`). The result is a pipeline config
+(``min_speed``, ``min_motion`` and ``trackers``) for ``torchtrack demo --config`` /
+``torchtrack track --pipeline-config``.
 
 Selection must use sequences that are not the ones reported: the demo and the held-out sequences are drawn
 from the detector's test split, so validate on other seeds (docs/pipeline.md).
@@ -31,11 +32,9 @@ from torchtrack.pipeline.track_video import FrameDetections, run_tracker_step, s
 from torchtrack.pipeline.truth import parked_mask
 
 GRIDS: dict[str, dict[str, list]] = {
-    "gmphd": {"fix_separation": [0.0, 4.0, 8.0], "confirm_new": [True, False],
-              "filter.velocity_sigma": [None, 1.5, 3.0], "filter.p_detection": [0.8, 0.9]},
-    "labelled-gmphd": {"filter.p_detection": [0.8, 0.9], "filter.clutter_density": [1e-4, 3e-4],
-                       "filter.q": [2.0, 5.0]},
-    "sort": {"max_distance": [10.0, 20.0, 30.0], "max_age": [1, 3], "min_hits": [1, 2, 3]},
+    "gmphd": {"fix_separation": [0.0, 4.0, 8.0], "confirm_new": [True, False], "filter.velocity_sigma": [None, 3.0]},
+    "labelled-gmphd": {"filter.p_detection": [0.8, 0.9], "filter.clutter_density": [1e-4, 3e-4]},
+    "sort": {"max_distance": [10.0, 20.0, 30.0], "max_age": [1, 3], "min_hits": [1, 3]},
     "greedy": {"max_distance": [10.0, 20.0], "max_age": [0, 2]},
     "pmb": {},
 }
@@ -80,16 +79,17 @@ def option_sets(grid: dict[str, list]) -> list[dict]:
     return sets
 
 
-def evaluate(name: str, options: dict | None, min_speed: float, data: list[SequenceDetections],
+def evaluate(name: str, options: dict | None, gate: tuple[float, float], data: list[SequenceDetections],
              config: PipelineConfig) -> dict:
-    """Pooled CLEAR-MOT of tracker ``name`` with ``options`` over ``data`` (frame coordinates)."""
+    """Pooled CLEAR-MOT of tracker ``name`` with ``options`` on the detections that pass
+    ``gate = (min_speed, min_motion)`` (:meth:`FrameDetections.moving`), over ``data``."""
     dtype = getattr(torch, config.dtype)
     parts, masks = [], []
     for seq in data:
         tracker = make_tracker(name, copy.deepcopy(options) if options else None)
         frames, ids, points = [], [], []
         for det in seq.detections:
-            i, pos, _ = run_tracker_step(tracker, det, dtype, min_speed)
+            i, pos, _ = run_tracker_step(tracker, det.moving(*gate), dtype)
             frames.append(np.full(len(i), det.index))
             ids.append(i)
             points.append(apply_homography(pos, np.linalg.inv(det.homography)))
@@ -101,22 +101,22 @@ def evaluate(name: str, options: dict | None, min_speed: float, data: list[Seque
 
 
 def select(data: list[SequenceDetections], config: PipelineConfig, trackers: list[str],
-           min_speeds: list[float], grids: dict[str, dict[str, list]] | None = None,
+           gates: list[tuple[float, float]], grids: dict[str, dict[str, list]] | None = None,
            progress: bool = True) -> tuple[PipelineConfig, list[dict]]:
-    """Grid search (module docstring); returns the chosen config and every evaluation
-    (``tracker, min_speed, options, MOTA, IDS, FP, FN``)."""
+    """Grid search (module docstring) over the ``(min_speed, min_motion)`` ``gates``; returns the chosen
+    config and every evaluation (``tracker, min_speed, min_motion, options, MOTA, IDS, FP, FN, IDF1``)."""
     grids = GRIDS if grids is None else grids
-    runs = [(s, name, o) for s in min_speeds for name in trackers for o in option_sets(grids.get(name, {}))]
+    runs = [(g, name, o) for g in gates for name in trackers for o in option_sets(grids.get(name, {}))]
     log = []
-    best: dict[tuple[float, str], dict] = {}
-    for s, name, options in tqdm(runs, desc="select-trackers", unit="run", disable=not progress):
-        m = evaluate(name, options, s, data, config)
-        row = {"tracker": name, "min_speed": s, "options": options,
+    best: dict[tuple[tuple[float, float], str], dict] = {}
+    for gate, name, options in tqdm(runs, desc="select-trackers", unit="run", disable=not progress):
+        m = evaluate(name, options, gate, data, config)
+        row = {"tracker": name, "min_speed": gate[0], "min_motion": gate[1], "options": options,
                **{k: m[k] for k in ("MOTA", "IDS", "FP", "FN", "IDF1")}}
         log.append(row)
-        if (s, name) not in best or row["MOTA"] > best[(s, name)]["MOTA"]:
-            best[(s, name)] = row
+        if (gate, name) not in best or row["MOTA"] > best[(gate, name)]["MOTA"]:
+            best[(gate, name)] = row
     main = config.tracker if config.tracker in trackers else trackers[0]
-    speed = max(min_speeds, key=lambda s: best[(s, main)]["MOTA"])
-    chosen = {name: best[(speed, name)]["options"] for name in trackers if best[(speed, name)]["options"]}
-    return config.replace(min_speed=speed, trackers=chosen, tracker_options={}), log
+    gate = max(gates, key=lambda g: best[(g, main)]["MOTA"])
+    chosen = {name: best[(gate, name)]["options"] for name in trackers if best[(gate, name)]["options"]}
+    return config.replace(min_speed=gate[0], min_motion=gate[1], trackers=chosen, tracker_options={}), log

@@ -92,7 +92,9 @@ def homography_jacobian(h: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 class FrameDetections(NamedTuple):
     """Detections of one frame: ``positions``/``velocities (K, 2)`` in reference coordinates, ``scores (K,)``,
-    ``homography (3, 3)`` frame → reference; ``image_positions``/``image_velocities`` in frame coordinates."""
+    ``homography (3, 3)`` frame → reference; ``image_positions``/``image_velocities`` in frame coordinates;
+    ``motion (K,)`` the motion evidence at each detection (:func:`motion_evidence`; ``inf`` on the first
+    frame, where there is no previous frame)."""
 
     index: int
     homography: np.ndarray
@@ -101,6 +103,30 @@ class FrameDetections(NamedTuple):
     scores: np.ndarray
     image_positions: np.ndarray
     image_velocities: np.ndarray
+    motion: np.ndarray
+
+    def moving(self, min_speed: float = 0.0, min_motion: float = 0.0) -> FrameDetections:
+        """The detections with predicted speed ``>= min_speed`` px/frame and motion evidence ``>= min_motion``."""
+        keep = (np.hypot(self.velocities[:, 0], self.velocities[:, 1]) >= min_speed) & (self.motion >= min_motion)
+        return self._replace(**{k: getattr(self, k)[keep] for k in
+                                ("positions", "velocities", "scores", "image_positions", "image_velocities",
+                                 "motion")})
+
+
+MOTION_WINDOW = 5
+"""Side (px) of the window over which :func:`motion_evidence` averages the frame difference."""
+
+
+def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Mean absolute grey-level difference between ``image`` and the ``previous`` frame registered onto it,
+    over a ``MOTION_WINDOW``-px square at each of ``points (K, 2)`` (x, y): a classical change-detection cue
+    (moving vehicles leave a difference of tens of grey levels, static structure only sensor noise and
+    parallax). ``(K,)``."""
+    diff = cv2.blur(cv2.absdiff(image, previous), (MOTION_WINDOW, MOTION_WINDOW))
+    h, w = diff.shape
+    x = np.clip(np.rint(points[:, 0]).astype(np.int64), 0, w - 1)
+    y = np.clip(np.rint(points[:, 1]).astype(np.int64), 0, h - 1)
+    return diff[y, x].astype(np.float64)
 
 
 def _numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
@@ -146,20 +172,19 @@ class Detection:
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
+            motion = np.full(len(pos), np.inf) if self.prev_image is None else motion_evidence(image, prev, pos)
         self.prev_image, self.prev_h = image, h
         self.prior_ref = pos_ref
-        return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel)
+        return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion)
 
 
-def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype,
-                     min_speed: float = 0.0) -> tuple[np.ndarray, np.ndarray, int]:
-    """One ``tracker.step`` on a frame's detections moving at ``min_speed`` px/frame or more; returns
-    ``ids (N,)``, reference ``positions (N, 2)`` and how many estimates were dropped because their identity
-    was already reported in this frame (the trackers' contract is unique identities per frame; a repeat is
-    kept out of ``tracks.txt``, which must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
-    keep = np.hypot(det.velocities[:, 0], det.velocities[:, 1]) >= min_speed
-    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions[keep], dtype=dtype),
-                                  torch.as_tensor(det.velocities[keep], dtype=dtype))
+def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, int]:
+    """One ``tracker.step`` on a frame's detections; returns ``ids (N,)``, reference ``positions (N, 2)``
+    and how many estimates were dropped because their identity was already reported in this frame
+    (the trackers' contract is unique identities per frame; a repeat is kept out of ``tracks.txt``, which
+    must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
+    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype),
+                                  torch.as_tensor(det.velocities, dtype=dtype))
     ids = _numpy(ids, ()).astype(np.int64)
     positions = _numpy(positions, (2,))
     _, first = np.unique(ids, return_index=True)
@@ -180,7 +205,7 @@ def rerun_tracker(name: str, config: PipelineConfig, detections: list[FrameDetec
     with MOTWriter(out) as writer:
         for det in detections:
             t0 = time.perf_counter()
-            ids, pos, _ = run_tracker_step(tracker, det, dtype, config.min_speed)
+            ids, pos, _ = run_tracker_step(tracker, det.moving(config.min_speed, config.min_motion), dtype)
             seconds += time.perf_counter() - t0
             img = apply_homography(pos, np.linalg.inv(det.homography))
             writer.write_frame(det.index, ids, img[:, 0], img[:, 1])
@@ -283,7 +308,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                     true_h = camera[0] @ np.linalg.inv(camera[frame.index - 1])
                     reg_errors.append(float(np.median(transfer_error(det.homography, true_h, frame.image.shape))))
                 with timer("tracking"):
-                    ids, pos_ref, dropped = run_tracker_step(tracker, det, dtype, cfg.min_speed)
+                    ids, pos_ref, dropped = run_tracker_step(tracker, det.moving(cfg.min_speed, cfg.min_motion),
+                                                             dtype)
                 duplicates += dropped
                 if cfg.prior == "tracks":
                     detection.prior_ref = pos_ref
