@@ -77,3 +77,13 @@ def test_long_sequence_memory_bounded_and_every_cap_hit_reported(caplog, name):
     for k, z in enumerate(frames[:50], start=1):
         roomy.step(k, z, torch.zeros_like(z))
     assert roomy.cap_hits == 0 and roomy.state.size < 4096
+
+
+def test_non_positive_definite_innovation_covariance_is_a_clear_error():
+    from torchtrack.filters.gmphd import GMPHD, MixtureState
+
+    phd = GMPHD()
+    state = MixtureState(torch.zeros(2), torch.zeros(2, 4), -10.0 * torch.eye(4).expand(2, 4, 4),
+                         torch.arange(2), torch.ones(2, dtype=torch.bool))
+    with pytest.raises(TorchtrackError, match="not positive definite for 2 components"):
+        phd.update(state, torch.zeros(1, 2), phd.matrices(1.0))

@@ -275,12 +275,10 @@ class GMPHD(nn.Module):
             PHt = state.cov @ H.transpose(-1, -2)                   # (J, n, m)
             S = H @ PHt + R                      # (J, m, m); Cholesky reads its lower triangle only
             z_hat = state.mean @ H.transpose(-1, -2)                # (J, m)
-        try:
-            L = torch.linalg.cholesky_ex(S, check_errors=True).L
-        except RuntimeError:
-            info = torch.linalg.cholesky_ex(S).info
+        L, info = torch.linalg.cholesky_ex(S)
+        if bool(info.any()):
             raise TorchtrackError("GMPHD update: innovation covariance S is not positive definite "
-                                  f"for {int((info != 0).sum())} components") from None
+                                  f"for {int((info != 0).sum())} components")
         S_inv = torch.cholesky_inverse(L)                                     # (J, m, m) from the factor
         # batched products called as torch.bmm directly (the kernel ``@`` dispatches to, fewer ops)
         K = torch.bmm(PHt, S_inv)                                             # (J, n, m)  K = P Hᵀ S⁻¹
@@ -321,9 +319,9 @@ class GMPHD(nn.Module):
         post = MixtureState(
             torch.cat([miss_logw, det_logw]),
             torch.cat([state.mean, det_mean]),
-            torch.cat([state.cov, P_upd[jj]]),
-            torch.cat([state.label, state.label[jj]]),
-            nn.functional.pad(state.mask, (0, jj.shape[0]), value=True),
+            torch.cat([state.cov, P_upd.index_select(0, jj)]),
+            torch.cat([state.label, state.label.index_select(0, jj)]),
+            torch.cat([state.mask, torch.ones(jj.shape[0], dtype=torch.bool, device=jj.device)]),
         )
         loglik = None
         if likelihood:
@@ -364,7 +362,8 @@ class GMPHD(nn.Module):
             return self.cap(self.merge(state, keep_label))
         # prune and sort by weight with one composed index (what prune + merge's sort select)
         order = keep[torch.argsort(state.log_weight[keep].detach(), descending=True)]
-        state = MixtureState(state.log_weight[order], state.mean[order], state.cov[order], state.label[order],
+        state = MixtureState(state.log_weight.index_select(0, order), state.mean.index_select(0, order),
+                             state.cov.index_select(0, order), state.label.index_select(0, order),
                              torch.ones(J, dtype=torch.bool, device=keep.device))
         return self.cap(_merge_sorted(state, self.merge_threshold, self.merge_rounds, keep_label))
 
