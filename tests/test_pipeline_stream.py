@@ -211,3 +211,25 @@ def test_motion_evidence_is_the_local_frame_difference():
     image[18:23, 28:33] = 160  # a 5 x 5 vehicle arrived; nothing else changed
     ev = tv.motion_evidence(image, previous, np.array([[30.0, 20.0], [10.0, 10.0], [32.0, 20.0]]))
     np.testing.assert_allclose(ev, [100.0, 0.0, 60.0])  # centred: all 25 px differ; 2 px off: 15 of 25
+
+
+class ScoredPeaks:
+    """A strong and a weak detection per frame, decoded down to ``threshold``; records the priors it gets."""
+
+    config = SimpleNamespace(decode=SimpleNamespace(threshold=0.5))
+
+    def __init__(self):
+        self.priors = []
+
+    def detect(self, frame, prev_frame, prev_points, threshold=0.5):
+        self.priors.append(np.asarray(prev_points))
+        xy, score = torch.tensor([[40.0, 40.0], [80.0, 90.0]]), torch.tensor([0.9, 0.2])
+        keep = score >= threshold
+        return SimpleNamespace(xy=xy[keep], score=score[keep], velocity=torch.zeros(int(keep.sum()), 2))
+
+
+def test_detection_threshold_feeds_the_tracker_but_not_the_prior(tmp_path, sequence, monkeypatch):
+    detector = ScoredPeaks()
+    _, tracker = _run(tmp_path, sequence, monkeypatch, detector, detection_threshold=0.1, video=False)
+    assert [len(seen) for seen in tracker.seen] == [2] * 5
+    assert [len(p) for p in detector.priors] == [0, 1, 1, 1, 1]  # only the strong peak becomes the prior

@@ -25,6 +25,8 @@ class PipelineConfig:
     not given to the tracker (they are still recorded in ``detections.txt`` and feed the detector's prior
     heatmap). 0 passes every detection.
     detector_weights: a weights file (``None``: the shipped weights).
+    detection_threshold: decode the detector's heatmap down to this score (``None``: the detector's own
+    calibrated threshold); lower values raise recall when the moving-object gate removes the false alarms.
     prior: where the detector's prior heatmap comes from: the previous frame's ``detections`` (the
     paper's eq. 1) or its ``tracks``.
     threshold: CLEAR-MOT centre-distance threshold in pixels (the paper's 10 px).
@@ -43,6 +45,7 @@ class PipelineConfig:
     min_motion: float = 0.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
+    detection_threshold: float | None = None
     prior: str = "detections"
     threshold: float = 10.0
     video: bool = True

@@ -142,13 +142,18 @@ class Detection:
 
     ``detector`` has ``detect(frame, prev_frame, prev_points)`` returning an object with ``xy (K, 2)``,
     ``score (K,)`` and ``velocity (K, 2)`` (:class:`detector.Detections`: frame pixel coordinates,
-    velocities ``x_k − x_{k-1}`` in px/frame).
+    velocities ``x_k − x_{k-1}`` in px/frame). With ``threshold`` (our :class:`detector.Detector` only) it
+    decodes down to that score; the prior heatmap of the next frame still takes only the detections at
+    or above the detector's own threshold, so that weak peaks do not feed themselves.
     """
 
-    def __init__(self, detector, registration: Registration, timer: StageTimer) -> None:
+    def __init__(self, detector, registration: Registration, timer: StageTimer,
+                 threshold: float | None = None) -> None:
         self.detector = detector
         self.registration = registration
         self.timer = timer
+        self.threshold = threshold
+        self.prior_threshold = detector.config.decode.threshold if threshold is not None else -np.inf
         self.prev_image: np.ndarray | None = None
         self.prev_h = np.eye(3)
         self.prior_ref = np.zeros((0, 2))  # prior points (reference coordinates) for the next frame
@@ -167,14 +172,15 @@ class Detection:
                                            borderMode=cv2.BORDER_REPLICATE)
             prior = apply_homography(self.prior_ref, h_inv)
         with self.timer("detection"):
-            found = self.detector.detect(image, prev, prior)
+            found = (self.detector.detect(image, prev, prior) if self.threshold is None
+                     else self.detector.detect(image, prev, prior, threshold=self.threshold))
         pos, vel, scores = _numpy(found.xy, (2,)), _numpy(found.velocity, (2,)), _numpy(found.score, ())
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
             motion = np.full(len(pos), np.inf) if self.prev_image is None else motion_evidence(image, prev, pos)
         self.prev_image, self.prev_h = image, h
-        self.prior_ref = pos_ref
+        self.prior_ref = pos_ref[scores >= self.prior_threshold]
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion)
 
 
@@ -279,7 +285,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         detector = load_detector(cfg.detector_weights)
     dtype = getattr(torch, cfg.dtype)
     timer = StageTimer()
-    detection = Detection(detector, Registration(cfg.registration), timer)
+    detection = Detection(detector, Registration(cfg.registration), timer, cfg.detection_threshold)
     tracker = make_tracker(cfg.tracker, cfg.options_for(cfg.tracker))
     truth = _truth_by_frame(gt if ignore is None or gt is None else gt.select(~ignore))
     files = {"tracks": out / "tracks.txt", "detections": out / "detections.txt"}
