@@ -288,9 +288,8 @@ class GMPHD(nn.Module):
         half_logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (J,)
         base = log_pd + live_w - half_logdet - scalar(0.5 * m_dim * LOG_2PI, live_w)   # (J,)
         gate = scalar(gate, live_w)
-        mean_t = state.mean.unsqueeze(2)                                      # (J, n, 1)
 
-        pair_j, pair_k, pair_logw, pair_mean, log_den = [], [], [], [], []
+        pair_j, pair_k, pair_logw, log_den = [], [], [], []
         M, C = z.shape[0], self.chunk
         for start in range(0, M, C):
             zc, kc = (z, log_kappa) if M <= C else (z[start:start + C], log_kappa[start:start + C])
@@ -300,20 +299,20 @@ class GMPHD(nn.Module):
             log_num = torch.where(gated, base.unsqueeze(1) - nis * half, neg_inf)
             den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
             jj, kk = gated.nonzero().unbind(1)
-            # m + K ν for every pair of the chunk at once, then the gated ones: (J, n, C)[jj, :, kk]
-            pair_mean.append(torch.baddbmm(mean_t, K, nu.transpose(1, 2))[jj, :, kk])
             pair_j.append(jj)
             pair_k.append(kk + start if start else kk)
             pair_logw.append(log_num[jj, kk] - den[kk])
             log_den.append(den)
         if len(log_den) == 1:
-            log_den_t, jj, kk, det_logw, det_mean = log_den[0], pair_j[0], pair_k[0], pair_logw[0], pair_mean[0]
+            log_den_t, jj, kk, det_logw = log_den[0], pair_j[0], pair_k[0], pair_logw[0]
         else:
             log_den_t = torch.cat(log_den) if log_den else log_kappa
             jj = torch.cat(pair_j) if pair_j else torch.empty(0, dtype=torch.long, device=z.device)
             kk = torch.cat(pair_k) if pair_k else torch.empty(0, dtype=torch.long, device=z.device)
             det_logw = torch.cat(pair_logw) if pair_logw else live_w[:0]
-            det_mean = torch.cat(pair_mean) if pair_mean else state.mean[:0]
+        nu_sel = z.index_select(0, kk) - z_hat.index_select(0, jj)          # (G, m)
+        det_mean = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K.index_select(0, jj),
+                                 nu_sel.unsqueeze(-1)).squeeze(-1)          # m + K ν per gated pair
 
         miss_logw = live_w + mats.log_p_missed
         post = MixtureState(
@@ -469,7 +468,7 @@ def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> 
     return owner
 
 
-DENSE_MERGE = 256
+DENSE_MERGE = 128
 """Up to this many components the merge tests every pair at once (one batched solve, few operations);
 above it, pairs are screened on positions first (:func:`_within_reach`, memory ``O(candidates)``)."""
 
