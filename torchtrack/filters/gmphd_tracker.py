@@ -4,13 +4,15 @@ label fix (2.3), adaptive birth with velocity map and detector-velocity initiali
 One frame ``k`` (:meth:`GMPHDTracker.advance`)::
 
     predict (eq. 3)  →  birth measurements Z_k^b (eq. 4, against the predicted components)
-    →  update with Z_k  →  prune, merge (established labels win), cap  →  extract (w > ½)
+    →  update with Z_k (and the detector's velocities, with ``velocity_sigma``)
+    →  prune, merge (established labels win), cap  →  extract (w > ½)
     →  label fix (2.3)  →  coasting  →  label hand-over  →  velocity map ← settled estimates
     →  births from Z_k^b (eq. 5–6) join the mixture for k+1
 
-Coasting, the hand-over and the merge priority are this project's extensions of the label fix (see
-``docs/gmphd.md``); each can be switched off. With ``label_fix=False``, ``handover_frames=0``,
-``coast_threshold=None``, ``use_velocity_map=False`` and ``use_detector_velocity=False`` this is the plain
+Coasting, the hand-over, the merge priority and the velocity in the update are this project's extensions
+(see ``docs/gmphd.md``); each can be switched off. With ``label_fix=False``, ``handover_frames=0``,
+``coast_threshold=None``, ``use_velocity_map=False``, ``use_detector_velocity=False`` and no
+``velocity_sigma`` (position-only update) this is the plain
 labelled GM-PHD of Panta, Clark & Vo (2009) with measurement-driven birth (the paper's baseline), which
 reports one estimate per label (the highest weight).
 """
