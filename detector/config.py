@@ -38,17 +38,17 @@ class DataConfig:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    epochs: int = 22
-    steps_per_epoch: int = 150
-    batch: int = 16                    # global batch (divided among torchrun ranks)
+    epochs: int = 16
+    steps_per_epoch: int = 130
+    batch: int = 32                    # global batch (divided among torchrun ranks)
     optimizer: str = "adam"            # adam | sgd (momentum 0.9)
     lr: float = 2e-3
     weight_decay: float = 0.0
     offset_weight: float = 1.0
     velocity_weight: float = 0.5
-    match_weight: float = 0.0          # cross-entropy of the matching logits on the true displacement
+    match_weight: float = 0.5          # cross-entropy of the matching logits on the true displacement
     out: str = "out/detector-train"
-    val_frames: int = 8                # frames of each validation sequence scored per epoch
+    val_frames: int = 12                # frames of each validation sequence scored per epoch
 
 
 @dataclass(frozen=True)
