@@ -69,19 +69,20 @@ class Scores:
 
 
 def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = None):
-    """Run ``detector.detect`` over a sequence, the prior of each frame being the previous detections;
+    """Run ``detector.detect`` over a sequence, the prior of each frame being the previous detections
+    (and their velocities, for the motion-continuity check);
     yields :class:`Detections` per frame, adding the wall-clock and process CPU seconds of the calls to
     ``scores_time.seconds`` and ``scores_time.cpu_seconds`` (CPU time per frame, summed over threads,
     is what a dedicated core would take; wall time depends on the machine's load)."""
-    prev, prev_pts = None, None
+    prev, prev_pts, prev_vel = None, None, None
     for img in frames:
         t0, c0 = time.perf_counter(), time.process_time()
-        det = detector.detect(img, prev, prev_pts)
+        det = detector.detect(img, prev, prev_pts, prev_velocity=prev_vel)
         if scores_time is not None:
             scores_time.seconds += time.perf_counter() - t0
             scores_time.cpu_seconds += time.process_time() - c0
         yield det
-        prev, prev_pts = img, det.xy
+        prev, prev_pts, prev_vel = img, det.xy, det.velocity
 
 
 def moving_only(det: Detections, min_speed: float) -> Detections:

@@ -14,7 +14,7 @@ from detector.config import DetectorConfig
 from detector.dataset import normalise
 from detector.decode import Detections, decode
 from detector.network import MULTIPLE, STRIDE, CenterTrackNet
-from detector.refine import refine_velocity
+from detector.refine import continuity_refine, refine_velocity
 from detector.targets import gaussian_heatmap
 from torchtrack.errors import TorchtrackError
 
@@ -36,7 +36,10 @@ class Detector(nn.Module):
     ``detect(frame, prev_frame=None, prev_points=None) -> Detections`` for one frame: ``frame`` and
     ``prev_frame`` grey ``(H, W)`` arrays or tensors of the same size (uint8 or float in 0..255;
     ``prev_frame=None`` uses ``frame``, as CenterTrack does on a first frame), ``prev_points`` ``(N, 2)``
-    the previous detections (x, y) px (``None``: empty prior). Returns the trimmed detections: ``xy``
+    the previous detections (x, y) px (``None``: empty prior), ``prev_velocity`` ``(N, 2)`` their
+    velocities (optional: enables the motion-continuity check of :func:`detector.refine.continuity_refine`;
+    velocities are first refined by block matching, :func:`detector.refine.refine_velocity`). Returns the
+    trimmed detections: ``xy``
     (K, 2) px, ``score`` (K,), ``velocity`` (K, 2) px/frame, ``x_k - x_{k-1}``.
     """
 
@@ -68,7 +71,8 @@ class Detector(nn.Module):
         return self.net(x)
 
     @torch.inference_mode()
-    def detect(self, frame, prev_frame=None, prev_points=None, threshold: float | None = None) -> Detections:
+    def detect(self, frame, prev_frame=None, prev_points=None, threshold: float | None = None,
+               prev_velocity=None) -> Detections:
         x, (h, w) = self.prepare(frame, prev_frame, prev_points)
         hm, off, vel = self.net(x)
         hm = hm[..., : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
@@ -80,6 +84,13 @@ class Detector(nn.Module):
         xy, vel = det.xy[0, keep], det.velocity[0, keep]
         if prev_frame is not None and d.refine_radius > 0:
             vel = refine_velocity(x[0, 0], x[0, 1], xy, vel, d.refine_patch, d.refine_radius, d.refine_pull)
+        if prev_frame is not None and prev_points is not None and prev_velocity is not None and d.continuity_reach > 0:
+            pv = torch.as_tensor(prev_velocity, dtype=torch.float32).reshape(-1, 2)
+            pts = torch.as_tensor(prev_points, dtype=torch.float32).reshape(-1, 2)
+            if pv.shape != pts.shape:
+                raise TorchtrackError(f"detector: prev_velocity {tuple(pv.shape)} does not match prev_points "
+                                      f"{tuple(pts.shape)}")
+            vel = continuity_refine(x[0, 0], x[0, 1], xy, vel, pts, pv, d.refine_patch, d.continuity_reach)
         return Detections(xy, det.score[0, keep], vel, keep[keep])
 
 

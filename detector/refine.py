@@ -31,17 +31,11 @@ def _gather_windows(img: torch.Tensor, centre: torch.Tensor, half: int) -> torch
     return img[ys[:, :, None], xs[:, None, :]]
 
 
-def refine_velocity(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity: torch.Tensor,
-                    patch: int = 3, radius: int = 5, pull: float = 0.005) -> torch.Tensor:
-    """Refined velocities ``(K, 2)`` for detections ``xy (K, 2)`` (x, y) px with coarse ``velocity (K, 2)``.
-
-    cur, prev: (H, W) float frames (normalised alike); ``patch`` = p (the patch is (2p+1)^2 px),
-    ``radius`` = R (search half-width around ``round(-velocity)``), ``pull`` = lam (per px^2 of
-    departure from the coarse estimate, in units of the frames' squared grey levels).
-    """
+def match_cost(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity: torch.Tensor,
+               patch: int = 3, radius: int = 5, pull: float = 0.005) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`refine_velocity` and the cost ``(K,)`` of each refined velocity (mean squared difference
+    of the zero-mean patches plus the pull term; ``K >= 1``)."""
     k = xy.shape[0]
-    if k == 0:
-        return velocity.clone()
     cur, prev = cur.float(), prev.float()
     r = torch.round(xy).long()
     s0 = torch.round(-velocity).long()                                       # (K, 2) as (sx, sy)
@@ -71,4 +65,44 @@ def refine_velocity(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, vel
     fx = _vertex(cost[idx, by, bx - 1], cost[idx, by, bx + 1])
     fy = _vertex(cost[idx, by - 1, bx], cost[idx, by + 1, bx])
     s = torch.stack([s0[:, 0] + d[bx] + fx, s0[:, 1] + d[by] + fy], dim=1)
-    return -s.to(velocity.dtype)
+    return -s.to(velocity.dtype), c0
+
+
+def refine_velocity(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity: torch.Tensor,
+                    patch: int = 3, radius: int = 5, pull: float = 0.005) -> torch.Tensor:
+    """Refined velocities ``(K, 2)`` for detections ``xy (K, 2)`` (x, y) px with coarse ``velocity (K, 2)``.
+
+    cur, prev: (H, W) float frames (normalised alike); ``patch`` = p (the patch is (2p+1)^2 px),
+    ``radius`` = R (search half-width around ``round(-velocity)``), ``pull`` = lam (per px^2 of
+    departure from the coarse estimate, in units of the frames' squared grey levels).
+    """
+    if xy.shape[0] == 0:
+        return velocity.clone()
+    return match_cost(cur, prev, xy, velocity, patch, radius, pull)[0]
+
+
+def continuity_refine(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity: torch.Tensor,
+                      prev_points: torch.Tensor, prev_velocity: torch.Tensor, patch: int = 3,
+                      reach: float = 12.0) -> torch.Tensor:
+    """Motion continuity: a detection near where a previous detection should be now,
+    ``p_i + v_i`` (within ``reach`` px, the nearest one), may be that vehicle; its velocity
+    ``xy - p_i`` (block-matched over +-2 px) replaces the current ``velocity`` when it explains the
+    frames at least as well (the cost of :func:`match_cost` without pull, both over +-2 px). This
+    resolves the aliasing of platoons, where a follower stands where its leader stood a frame earlier.
+
+    xy, velocity (K, 2); prev_points, prev_velocity (N, 2) (non-finite rows are ignored). Returns (K, 2).
+    """
+    keep = torch.isfinite(prev_points).all(1) & torch.isfinite(prev_velocity).all(1)
+    prev_points, prev_velocity = prev_points[keep].to(xy.dtype), prev_velocity[keep].to(xy.dtype)
+    if xy.shape[0] == 0 or prev_points.shape[0] == 0:
+        return velocity
+    dmin, k = torch.cdist(xy, prev_points + prev_velocity).min(1)
+    near = torch.nonzero(dmin <= reach)[:, 0]
+    if near.numel() == 0:
+        return velocity
+    _, c_now = match_cost(cur, prev, xy[near], velocity[near], patch, 2, 0.0)
+    v_new, c_new = match_cost(cur, prev, xy[near], xy[near] - prev_points[k[near]], patch, 2, 0.0)
+    take = c_new <= c_now
+    out = velocity.clone()
+    out[near[take]] = v_new[take]
+    return out

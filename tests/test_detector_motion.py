@@ -7,7 +7,7 @@ from scipy.ndimage import gaussian_filter, shift
 
 from detector.losses import matching_loss
 from detector.network import CenterTrackNet
-from detector.refine import refine_velocity
+from detector.refine import continuity_refine, refine_velocity
 
 
 def _texture(seed: int, size: int = 96) -> np.ndarray:
@@ -75,3 +75,23 @@ def test_matching_bins_are_the_network_displacements():
     logits[0, 3] = 30.0
     v = torch.tensor([-8.0, 16.0]).view(1, 2, 1, 1).repeat(1, 1, 8, 8)
     assert matching_loss(logits, v, torch.ones(1, 8, 8, dtype=torch.bool), 8.0).item() < 1e-6
+
+
+def test_continuity_resolves_a_platoon():
+    def frame(xs):
+        img = np.zeros((64, 80))
+        for x in xs:
+            img[29:32, x - 1:x + 2] = 1.0
+        return torch.from_numpy(gaussian_filter(img, 0.7))
+
+    prev, cur = frame([20, 30]), frame([30, 40])          # both vehicles moved +10 px: the follower now
+    xy = torch.tensor([[30.0, 30.0], [40.0, 30.0]], dtype=torch.float64)   # stands where the leader was
+    coarse = torch.tensor([[0.0, 0.0], [10.0, 0.0]], dtype=torch.float64)
+    v = refine_velocity(cur, prev, xy, coarse, patch=3, radius=2, pull=1e-3)
+    np.testing.assert_allclose(v[0].numpy(), [0.0, 0.0], atol=0.05)   # zero displacement matches as well
+    pts = torch.tensor([[20.0, 30.0], [30.0, 30.0]], dtype=torch.float64)
+    pv = torch.tensor([[10.0, 0.0], [10.0, 0.0]], dtype=torch.float64)
+    v2 = continuity_refine(cur, prev, xy, v, pts, pv, patch=3, reach=4.0)
+    np.testing.assert_allclose(v2.numpy(), [[10.0, 0.0], [10.0, 0.0]], atol=0.05)
+    far = continuity_refine(cur, prev, xy, v, pts + 20.0, pv, patch=3, reach=4.0)   # nothing predicted near
+    torch.testing.assert_close(far, v)

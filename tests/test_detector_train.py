@@ -107,6 +107,8 @@ def test_frames_of_mismatched_sizes_are_an_error(tmp_path):
         det.detect(frame, np.zeros((40, 52), np.uint8))
     with pytest.raises(TorchtrackError, match="prev_points"):
         det.detect(frame, frame, np.zeros((3, 3)))
+    with pytest.raises(TorchtrackError, match="prev_velocity"):
+        det.detect(frame, frame, np.array([[10.0, 12.0]]), prev_velocity=np.zeros((2, 2)))
     out = det.detect(frame, frame, np.array([[10.0, 12.0]]))    # odd sizes are padded internally
     assert out.xy.shape[-1] == 2 and len(out.score) == len(out.xy)
 
