@@ -85,23 +85,39 @@ def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = 
         prev, prev_pts, prev_vel = img, det.xy, det.velocity
 
 
-def moving_only(det: Detections, min_speed: float) -> Detections:
-    """The detections whose predicted speed is at least ``min_speed`` px/frame."""
-    fast = det.velocity.norm(dim=1) >= min_speed
+def moving_only(det: Detections, min_speed: float, camera: np.ndarray | None = None) -> Detections:
+    """The detections whose predicted speed is at least ``min_speed`` px/frame; with ``camera`` (K, 2),
+    the image motion a static point at each detection has (camera jitter), the speed over the ground
+    ``|v - v_camera|``."""
+    v = det.velocity if camera is None else det.velocity - torch.as_tensor(camera, dtype=det.velocity.dtype)
+    fast = v.norm(dim=1) >= min_speed
     return Detections(det.xy[fast], det.score[fast], det.velocity[fast], det.mask[fast])
+
+
+def camera_velocity(xy: np.ndarray, h_prev: np.ndarray, h_cur: np.ndarray) -> np.ndarray:
+    """Image motion ``x - H_{k-1} H_k^{-1} x`` of static ground points at ``xy`` (K, 2) between frames
+    with the reference-to-frame homographies ``h_prev``, ``h_cur``."""
+    m = h_prev @ np.linalg.inv(h_cur)
+    p = np.c_[xy, np.ones(len(xy))] @ m.T
+    return xy - p[:, :2] / p[:, 2:3]
 
 
 def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: float = 2.0) -> dict:
     """Scores on :class:`torchtrack.sim.video.VideoFrame` s of one or more sequences (a list of lists),
-    with ``"moving"``: the detections predicted to move at ``min_speed`` px/frame or more against the
-    moving truth, detections on parked vehicles being don't-care (frames after the first)."""
+    with ``"moving"``: the detections predicted to move over the ground (their velocity less the camera
+    jitter's image motion, known from the frames' homographies, as after the pipeline's registration) at
+    ``min_speed`` px/frame or more against the moving truth, detections on parked vehicles being
+    don't-care (frames after the first)."""
     scores, moving = Scores(radius), Scores(radius)
     for seq in video_frames:
+        prev_h = None
         for f, det in zip(seq, stream(detector, (f.image for f in seq), scores)):
             vel = f.velocity if f.index > 0 else None
             scores.add(det, f.xy, vel)
-            if f.index > 0:
-                moving.add(moving_only(det, min_speed), f.xy, f.velocity, care=f.moving)
+            if prev_h is not None:
+                cam = camera_velocity(det.xy.numpy().astype(np.float64), prev_h, f.homography)
+                moving.add(moving_only(det, min_speed, cam), f.xy, f.velocity, care=f.moving)
+            prev_h = f.homography
     moving.seconds, moving.cpu_seconds = scores.seconds, scores.cpu_seconds
     return {**scores.result(), "moving": moving.result()}
 

@@ -95,3 +95,17 @@ def test_continuity_resolves_a_platoon():
     np.testing.assert_allclose(v2.numpy(), [[10.0, 0.0], [10.0, 0.0]], atol=0.05)
     far = continuity_refine(cur, prev, xy, v, pts + 20.0, pv, patch=3, reach=4.0)   # nothing predicted near
     torch.testing.assert_close(far, v)
+
+
+def test_camera_velocity_is_the_motion_of_parked_vehicles():
+    from detector.evaluate import camera_velocity
+    from torchtrack.sim.video import generate_sequence
+    from torchtrack.sim.video_config import from_dict
+
+    video = from_dict({"height": 128, "width": 128, "margin": 16, "car_parks": 2, "frames": 3})
+    frames = list(generate_sequence(video, torch.Generator().manual_seed(3)))
+    for a, b in zip(frames[:-1], frames[1:]):
+        parked = ~b.moving & ~np.isnan(b.velocity).any(1)
+        assert parked.sum() > 3
+        np.testing.assert_allclose(camera_velocity(b.xy[parked], a.homography, b.homography),
+                                   b.velocity[parked], atol=1e-6)
