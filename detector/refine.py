@@ -85,8 +85,9 @@ def continuity_refine(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, v
                       prev_points: torch.Tensor, prev_velocity: torch.Tensor, patch: int = 3,
                       reach: float = 12.0) -> torch.Tensor:
     """Motion continuity: a detection near where a previous detection should be now,
-    ``p_i + v_i`` (within ``reach`` px, the nearest one), may be that vehicle; its velocity
-    ``xy - p_i`` (block-matched over +-2 px) replaces the current ``velocity`` when it explains the
+    ``p_i + v_i`` (within ``reach`` px, the nearest one), may be that vehicle; where its velocity
+    ``xy - p_i`` differs from the current one by more than 1.5 px, it is block-matched over +-2 px and
+    replaces the current ``velocity`` when it explains the
     frames at least as well (the cost of :func:`match_cost` without pull, both over +-2 px). This
     resolves the aliasing of platoons, where a follower stands where its leader stood a frame earlier.
 
@@ -97,11 +98,12 @@ def continuity_refine(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, v
     if xy.shape[0] == 0 or prev_points.shape[0] == 0:
         return velocity
     dmin, k = torch.cdist(xy, prev_points + prev_velocity).min(1)
-    near = torch.nonzero(dmin <= reach)[:, 0]
+    cand = xy - prev_points[k]
+    near = torch.nonzero((dmin <= reach) & ((cand - velocity).norm(dim=1) > 1.5))[:, 0]   # a different answer
     if near.numel() == 0:
         return velocity
     _, c_now = match_cost(cur, prev, xy[near], velocity[near], patch, 2, 0.0)
-    v_new, c_new = match_cost(cur, prev, xy[near], xy[near] - prev_points[k[near]], patch, 2, 0.0)
+    v_new, c_new = match_cost(cur, prev, xy[near], cand[near], patch, 2, 0.0)
     take = c_new <= c_now
     out = velocity.clone()
     out[near[take]] = v_new[take]
