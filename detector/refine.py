@@ -28,7 +28,7 @@ def _gather_windows(img: torch.Tensor, centre: torch.Tensor, half: int) -> torch
     u = torch.arange(-half, half + 1, device=img.device)
     ys = (centre[:, 1, None] + u).clamp(0, h - 1)
     xs = (centre[:, 0, None] + u).clamp(0, w - 1)
-    return img[ys[:, :, None], xs[:, None, :]]
+    return img.reshape(-1)[ys[:, :, None] * w + xs[:, None, :]]
 
 
 def match_cost(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity: torch.Tensor,
