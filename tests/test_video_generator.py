@@ -1,6 +1,7 @@
 """The synthetic satellite video: determinism, truth where the vehicles are drawn, files, config errors."""
 
 import json
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -99,3 +100,15 @@ def test_config_errors(tmp_path):
     bad_cam.write_text("{}")
     with pytest.raises(TorchtrackError, match="camera.json"):
         read_camera(bad_cam)
+
+
+def test_yaml_config_equals_the_defaults_and_numbers_are_numbers(tmp_path):
+    shipped = Path(__file__).resolve().parents[1] / "configs" / "video.yaml"
+    assert load_video_config(shipped) == VideoConfig()
+    path = tmp_path / "v.yaml"
+    path.write_text("video:\n  jitter_perspective: 2e-06\n  speed_median: 12\n")   # YAML 1.1: a string
+    cfg = load_video_config(path)
+    assert cfg.jitter_perspective == 2e-06 and isinstance(cfg.speed_median, float)
+    path.write_text("video:\n  speed_median: fast\n")
+    with pytest.raises(TorchtrackError, match="speed_median"):
+        load_video_config(path)

@@ -89,10 +89,23 @@ def from_dict(values: dict, source: str = "config") -> VideoConfig:
         raise TorchtrackError(f"{source}: unknown video config key(s) {unknown}; known: {sorted(names)}")
     kwargs = {}
     for key, value in values.items():
-        if isinstance(getattr(VideoConfig, key, None), tuple) or isinstance(value, list):
-            value = tuple(value)
+        default = getattr(VideoConfig, key, None)
+        if isinstance(default, tuple) or isinstance(value, list):
+            value = tuple(_number(v, d, f"{source}: {key}") for v, d in zip(value, default or value))
+        else:
+            value = _number(value, default, f"{source}: {key}")
         kwargs[key] = value
     return VideoConfig(**kwargs)
+
+
+def _number(value, default, where: str):
+    """``value`` as a float where the default is a float (YAML 1.1 reads ``2e-06`` as a string)."""
+    if isinstance(default, float) and not isinstance(value, bool):
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise TorchtrackError(f"{where}: expected a number, got {value!r}") from None
+    return value
 
 
 def load_video_config(path: str | Path | None) -> VideoConfig:
