@@ -32,6 +32,7 @@ runs on the same detections (DIR/<tracker>/...) and the paper's Table 1 is print
 Examples:
   torchtrack track --detections det.txt --tracker gmphd --gt gt.txt --out out/track
   torchtrack track --detections det.txt --gt gt.txt --compare --out out/compare
+  torchtrack track --detections det.txt --gt gt.txt --params out/tune-gmphd/params.yaml
   torchtrack track --benchmark configs/wpafb-benchmark.yaml --out out/wpafb
 """
 

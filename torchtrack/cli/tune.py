@@ -16,10 +16,12 @@ split into training and held-out sequences or windows), the loss (marginal log-l
 predictive likelihood, particle estimate, soft GOSPA) and the optimiser (adam or lbfgs, mini-batches,
 early stopping on the held-out loss). See docs/tune.md.
 
-Writes OUT/params.yaml (the fitted parameters; torchtrack.tune.load_params / load_filter read it,
-and for the multi-target filters OUT/track.yaml is a `torchtrack track --config` file) and
-OUT/loss.png (the loss curve). A non-finite loss stops training, keeps the last parameters with a
-finite loss, writes them, and exits with status 1.
+Writes OUT/params.yaml (the fitted parameters; torchtrack.tune.load_params / load_filter,
+`torchtrack track --params` (GM-PHD) and `torchtrack scenario maneuver|formation --params` (Kalman,
+IMM) read it; for the GM-PHD OUT/track.yaml is also a `torchtrack track --config` file) and
+OUT/loss.png (the loss curve). An optional `refine` section adds a line search on the task metric
+(MOTA) over the training items after the gradient fit. A non-finite loss stops training, keeps the
+last parameters with a finite loss, writes them, and exits with status 1.
 
 Examples:
   torchtrack tune --config configs/tune-kalman.yaml
