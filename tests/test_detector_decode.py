@@ -77,3 +77,29 @@ def test_focal_loss_matches_formula():
         s = np.sum((1 - p[b][pos]) ** 2 * np.log(p[b][pos]))
         s += np.sum((1 - y[b][~pos]) ** 4 * p[b][~pos] ** 2 * np.log(1 - p[b][~pos]))
         np.testing.assert_allclose(got[b].item(), -s / max(1, pos.sum()), rtol=1e-10)
+
+
+def test_decode_matches_a_dense_max_pool_reference():
+    from torch.nn import functional as F
+
+    g = torch.Generator().manual_seed(1)
+    logits = torch.randn(3, 1, 30, 34, generator=g) * 2 - 1
+    logits[1, 0, 5:8, 5:8] = 2.5                      # a plateau: every cell equals its 3x3 maximum
+    off, vel = torch.rand(3, 2, 30, 34, generator=g), torch.randn(3, 2, 30, 34, generator=g)
+    for thr, top_k in [(0.3, 1000), (0.6, 7), (0.0, 50)]:
+        det = decode(logits, off, vel, 2, threshold=thr, top_k=top_k)
+        score = torch.sigmoid(logits)
+        peak = (F.max_pool2d(score, 3, 1, 1) == score) & (score > thr)
+        for b in range(3):
+            ys, xs = torch.nonzero(peak[b, 0], as_tuple=True)
+            s = score[b, 0, ys, xs]
+            best = torch.argsort(-s)[:top_k]
+            assert int(det.mask[b].sum()) == len(best)
+            got = {(round(x, 4), round(y, 4)) for x, y in det.xy[b][det.mask[b]].tolist()}
+            want = {(round(float((xs[i] + off[b, 0, ys[i], xs[i]]) * 2), 4),
+                     round(float((ys[i] + off[b, 1, ys[i], xs[i]]) * 2), 4)) for i in best}
+            if len(best) < len(s) and torch.sort(-s).values[top_k - 1] == torch.sort(-s).values[top_k]:
+                continue                              # a tie at the cut: either peak may be kept
+            assert got == want
+            sc = det.score[b][det.mask[b]]
+            assert torch.all(sc[:-1] >= sc[1:])       # best first
