@@ -90,7 +90,7 @@ def read_mot_like(rows):
 
 
 def test_single_process_and_torchrun_agree(root, tmp_path):
-    cfg = PipelineConfig(tracker="greedy", video=False)
+    cfg = PipelineConfig(tracker="greedy", video=False, min_speed=0.0, min_motion=0.0)  # stand-in: no velocity
     with pytest.warns(UserWarning):
         single = run_sequences(root, tmp_path / "one", cfg, detector=_standin(root), progress=False,
                                compare=["greedy", "sort"])
@@ -118,7 +118,8 @@ def test_single_process_and_torchrun_agree(root, tmp_path):
         "from torchtrack.pipeline.config import PipelineConfig\n"
         "from torchtrack.pipeline.sequences import destroy, run_sequences\n"
         "warnings.simplefilter('ignore')\n"
-        f"run_sequences({str(root)!r}, {str(tmp_path / 'two')!r}, PipelineConfig(tracker='greedy', video=False),"
+        f"run_sequences({str(root)!r}, {str(tmp_path / 'two')!r}, "
+        "PipelineConfig(tracker='greedy', video=False, min_speed=0.0, min_motion=0.0),"
         " detector=PeakDetector(), progress=False)\n"
         "destroy()\n")
     env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}

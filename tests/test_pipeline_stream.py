@@ -59,6 +59,7 @@ def _run(tmp_path, sequence, monkeypatch, detector, **cfg):
     monkeypatch.setattr(tv, "make_tracker", lambda name, options: tracker)
     source = ArraySource([f.image for f in sequence])
     # ArraySource converts with np.asarray (no copy for uint8 grey), so the oracle finds its frames.
+    cfg = {"min_speed": 0.0, "min_motion": 0.0, **cfg}  # stand-in detectors give no velocity: no moving gate
     result = tv.track_video(source, tmp_path, PipelineConfig(**cfg), detector=detector, progress=False,
                             camera=np.stack([f.homography for f in sequence]))
     return result, tracker
@@ -149,7 +150,8 @@ def test_size_change_mid_run_names_the_file_and_leaves_no_complete_results(tmp_p
     (out).mkdir()
     (out / "metrics.json").write_text("{}")  # a previous run's result must not survive beside the new files
     with pytest.raises(TorchtrackError, match=r"003\.png: frame size 160x100 differs from 160x160"):
-        tv.track_video(FolderSource(frames), out, PipelineConfig(), detector=OnePoint(), progress=False)
+        tv.track_video(FolderSource(frames), out, PipelineConfig(min_speed=0.0, min_motion=0.0), detector=OnePoint(),
+                       progress=False)
     assert not (out / "metrics.json").exists() and not (out / "annotated.mp4").exists()
     assert read_mot(out / "tracks.txt").frames().tolist() == [1, 2]  # complete up to the last good frame
 
