@@ -59,7 +59,7 @@ class DecodeConfig:
     refine_radius: int = 6             # px, block-matching search around the network's velocity (0: off)
     refine_patch: int = 3              # half-size of the matched patch (7x7 px)
     refine_pull: float = 0.002         # pull towards the network's velocity (see detector.refine)
-    continuity_reach: float = 12.0     # px, motion-continuity check with the previous velocities (0: off)
+    continuity_reach: float = 20.0     # px, motion-continuity check with the previous velocities (0: off)
 
 
 @dataclass(frozen=True)
