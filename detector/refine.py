@@ -83,7 +83,7 @@ def refine_velocity(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, vel
 
 def continuity_refine(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity: torch.Tensor,
                       prev_points: torch.Tensor, prev_velocity: torch.Tensor, patch: int = 3,
-                      reach: float = 12.0) -> torch.Tensor:
+                      reach: float = 20.0) -> torch.Tensor:
     """Motion continuity: a detection near where a previous detection should be now,
     ``p_i + v_i`` (within ``reach`` px, the nearest one), may be that vehicle; where its velocity
     ``xy - p_i`` differs from the current one by more than 1.5 px, it is block-matched over +-2 px and
