@@ -26,6 +26,7 @@ holding it holds a complete run.
 
 from __future__ import annotations
 
+import inspect
 import json
 import os
 import time
@@ -142,9 +143,11 @@ class Detection:
 
     ``detector`` has ``detect(frame, prev_frame, prev_points)`` returning an object with ``xy (K, 2)``,
     ``score (K,)`` and ``velocity (K, 2)`` (:class:`detector.Detections`: frame pixel coordinates,
-    velocities ``x_k − x_{k-1}`` in px/frame). With ``threshold`` (our :class:`detector.Detector` only) it
-    decodes down to that score; the prior heatmap of the next frame still takes only the detections at
-    or above the detector's own threshold, so that weak peaks do not feed themselves.
+    velocities ``x_k − x_{k-1}`` in px/frame). A detector whose ``detect`` takes ``prev_velocity`` gets the
+    previous detections' velocities too (its motion-continuity check). With ``threshold`` (our
+    :class:`detector.Detector` only) it decodes down to that score; the prior heatmap of the next frame
+    still takes only the detections at or above the detector's own threshold, so that weak peaks do not
+    feed themselves.
     """
 
     def __init__(self, detector, registration: Registration, timer: StageTimer,
@@ -157,6 +160,8 @@ class Detection:
         self.prev_image: np.ndarray | None = None
         self.prev_h = np.eye(3)
         self.prior_ref = np.zeros((0, 2))  # prior points (reference coordinates) for the next frame
+        self.prior_velocity: np.ndarray | None = None  # their velocities (px/frame), where they are detections
+        self.takes_velocity = "prev_velocity" in inspect.signature(detector.detect).parameters
 
     def __call__(self, index: int, image: np.ndarray) -> FrameDetections:
         with self.timer("registration"):
@@ -172,15 +177,18 @@ class Detection:
                                            borderMode=cv2.BORDER_REPLICATE)
             prior = apply_homography(self.prior_ref, h_inv)
         with self.timer("detection"):
-            found = (self.detector.detect(image, prev, prior) if self.threshold is None
-                     else self.detector.detect(image, prev, prior, threshold=self.threshold))
+            extra = {} if self.threshold is None else {"threshold": self.threshold}
+            if self.takes_velocity and self.prior_velocity is not None:
+                extra["prev_velocity"] = self.prior_velocity
+            found = self.detector.detect(image, prev, prior, **extra)
         pos, vel, scores = _numpy(found.xy, (2,)), _numpy(found.velocity, (2,)), _numpy(found.score, ())
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
             motion = np.full(len(pos), np.inf) if self.prev_image is None else motion_evidence(image, prev, pos)
         self.prev_image, self.prev_h = image, h
-        self.prior_ref = pos_ref[scores >= self.prior_threshold]
+        strong = scores >= self.prior_threshold
+        self.prior_ref, self.prior_velocity = pos_ref[strong], vel[strong]
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion)
 
 
@@ -318,7 +326,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                                                              dtype)
                 duplicates += dropped
                 if cfg.prior == "tracks":
-                    detection.prior_ref = pos_ref
+                    detection.prior_ref, detection.prior_velocity = pos_ref, None
                 h_inv = np.linalg.inv(det.homography)
                 with timer("io"):
                     pos_img = apply_homography(pos_ref, h_inv)
