@@ -195,7 +195,7 @@ class TwoSpeeds:
 
 def test_min_speed_keeps_slow_detections_from_the_tracker_only(tmp_path, sequence, monkeypatch):
     result, tracker = _run(tmp_path, sequence, monkeypatch, TwoSpeeds(), min_speed=2.0, video=False)
-    assert [len(seen) for seen in tracker.seen] == [1] * 5
+    assert [len(seen) for seen in tracker.seen] == [2, 1, 1, 1, 1]  # frame 1: no previous frame, speed unknown
     assert read_mot(result.files["detections"]).size == 10  # the detector's output is recorded whole
 
 

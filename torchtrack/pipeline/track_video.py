@@ -93,9 +93,10 @@ def homography_jacobian(h: np.ndarray, points: np.ndarray) -> np.ndarray:
 
 class FrameDetections(NamedTuple):
     """Detections of one frame: ``positions``/``velocities (K, 2)`` in reference coordinates, ``scores (K,)``,
-    ``homography (3, 3)`` frame → reference; ``image_positions``/``image_velocities`` in frame coordinates;
-    ``motion (K,)`` the motion evidence at each detection (:func:`motion_evidence`; ``inf`` on the first
-    frame, where there is no previous frame)."""
+    ``homography (3, 3)`` frame → reference; ``image_positions``/``image_velocities`` in frame coordinates
+    (the detector's output); ``motion (K,)`` the motion evidence at each detection (:func:`motion_evidence`).
+    On the first frame there is no previous frame: ``velocities`` are NaN (unknown) and ``motion`` is ``inf``,
+    so that the moving-object gate passes everything and the trackers start without a velocity."""
 
     index: int
     homography: np.ndarray
@@ -107,8 +108,9 @@ class FrameDetections(NamedTuple):
     motion: np.ndarray
 
     def moving(self, min_speed: float = 0.0, min_motion: float = 0.0) -> FrameDetections:
-        """The detections with predicted speed ``>= min_speed`` px/frame and motion evidence ``>= min_motion``."""
-        keep = (np.hypot(self.velocities[:, 0], self.velocities[:, 1]) >= min_speed) & (self.motion >= min_motion)
+        """The detections with predicted speed ``>= min_speed`` px/frame (or unknown) and motion evidence
+        ``>= min_motion``."""
+        keep = ~(np.hypot(self.velocities[:, 0], self.velocities[:, 1]) < min_speed) & (self.motion >= min_motion)
         return self._replace(**{k: getattr(self, k)[keep] for k in
                                 ("positions", "velocities", "scores", "image_positions", "image_velocities",
                                  "motion")})
@@ -185,10 +187,14 @@ class Detection:
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
-            motion = np.full(len(pos), np.inf) if self.prev_image is None else motion_evidence(image, prev, pos)
+            if self.prev_image is None:
+                vel_ref, motion = np.full_like(vel_ref, np.nan), np.full(len(pos), np.inf)
+            else:
+                motion = motion_evidence(image, prev, pos)
         self.prev_image, self.prev_h = image, h
         strong = scores >= self.prior_threshold
-        self.prior_ref, self.prior_velocity = pos_ref[strong], vel[strong]
+        self.prior_ref = pos_ref[strong]
+        self.prior_velocity = None if np.isnan(vel_ref).any() else vel[strong]
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion)
 
 
@@ -197,8 +203,8 @@ def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple
     and how many estimates were dropped because their identity was already reported in this frame
     (the trackers' contract is unique identities per frame; a repeat is kept out of ``tracks.txt``, which
     must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
-    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype),
-                                  torch.as_tensor(det.velocities, dtype=dtype))
+    velocities = None if np.isnan(det.velocities).any() else torch.as_tensor(det.velocities, dtype=dtype)
+    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype), velocities)
     ids = _numpy(ids, ()).astype(np.int64)
     positions = _numpy(positions, (2,))
     _, first = np.unique(ids, return_index=True)
