@@ -13,12 +13,13 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.pipeline.registration import RegistrationConfig
 
 SELECTED_TRACKERS: dict = {
-    "gmphd": {"fix_separation": 8.0, "confirm_new": False, "filter": {"velocity_sigma": None}},
+    "gmphd": {"fix_separation": 4.0, "confirm_new": False,
+              "filter": {"velocity_sigma": None, "clutter_density": 1e-4}, "birth": {"birth_weight": 0.3}},
     "labelled-gmphd": {"filter": {"p_detection": 0.9, "clutter_density": 1e-4}},
-    "sort": {"max_distance": 30.0, "max_age": 3, "min_hits": 1},
+    "sort": {"max_distance": 20.0, "max_age": 3, "min_hits": 1},
     "greedy": {"max_distance": 20.0, "max_age": 2},
 }
-"""Per-tracker options of the embedded defaults, with ``min_speed 1`` and ``min_motion 5``: chosen by
+"""Per-tracker options of the embedded defaults, with ``min_speed 1`` and ``min_motion 8``: chosen by
 ``torchtrack select-trackers --sequences out/val --min-speeds 0 1 --min-motions 5 8`` on the detector's
 validation-split sequences (docs/pipeline.md)."""
 
@@ -53,7 +54,7 @@ class PipelineConfig:
     tracker_options: dict = field(default_factory=dict)
     trackers: dict = field(default_factory=lambda: copy.deepcopy(SELECTED_TRACKERS))
     min_speed: float = 1.0
-    min_motion: float = 5.0
+    min_motion: float = 8.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
     detection_threshold: float | None = None
