@@ -208,15 +208,20 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
         return closure
 
     held_frames = sum(tunable.item_frames(i) for i in data.held_out)
-    if data.held_out:   # the start point, so that the curve begins where training does
+
+    def evaluate_held_out(step: int) -> float:
+        """Held-out loss after ``step`` updates (inf where the filter fails), counted and recorded."""
         try:
-            held0 = evaluate_loss(tunable, module, data.held_out, loss, max(batch_size, 1))
+            held = evaluate_loss(tunable, module, data.held_out, loss, max(batch_size, 1))
         except TorchtrackError:
-            held0 = math.inf
+            held = math.inf
         result.evaluations += len(data.held_out)
         result.frames += held_frames
-        result.held_out.append((0, held0))
-        best = (held0, 0, scaled.snapshot())
+        result.held_out.append((step, held))
+        return held
+
+    if data.held_out:   # the start point, so that the curve begins where training does
+        best = (evaluate_held_out(0), 0, scaled.snapshot())
 
     from tqdm import tqdm
 
@@ -243,13 +248,7 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
             result.train_loss.append(float(value.detach()))
             postfix = {"loss": f"{result.train_loss[-1]:.4g}"}
             if data.held_out and (step % eval_every == 0 or step == steps):
-                try:
-                    held = evaluate_loss(tunable, module, data.held_out, loss, max(batch_size, 1))
-                except TorchtrackError:
-                    held = math.inf
-                result.evaluations += len(data.held_out)
-                result.frames += held_frames
-                result.held_out.append((step, held))
+                held = evaluate_held_out(step)
                 postfix["held_out"] = f"{held:.4g}"
                 if not math.isfinite(held):
                     bad_evals = patience  # treat as no improvement
