@@ -55,17 +55,22 @@ def test_single_target_pd1_no_clutter_is_the_kalman_filter():
         state = post
 
 
+def _random_mixture(g, J, scale):
+    """``J`` random 4-D components (means of size ``scale``, covariances ``A Aᵀ + I``, weights in [0.2, 1.2])."""
+    mean = torch.randn(J, 4, generator=g, dtype=F64) * scale
+    A = torch.randn(J, 4, 4, generator=g, dtype=F64)
+    cov = A @ A.transpose(-1, -2) + torch.eye(4, dtype=F64)
+    w = torch.rand(J, generator=g, dtype=F64) + 0.2
+    return MixtureState(w.log(), mean, cov, torch.arange(J), torch.ones(J, dtype=torch.bool)), mean, cov, w
+
+
 def test_update_matches_textbook_weights_brute_force():
     """Weights of the batched update equal the per-pair formula of Vo & Ma (2006, eq. 25–29)."""
     phd = make_phd(pd=0.8, kappa=2e-3, gate_probability=1.0)
     mats = phd.matrices(1.0)
     g = torch.Generator().manual_seed(0)
     J, M = 4, 5
-    mean = torch.randn(J, 4, generator=g, dtype=F64) * 3
-    A = torch.randn(J, 4, 4, generator=g, dtype=F64)
-    cov = A @ A.transpose(-1, -2) + torch.eye(4, dtype=F64)
-    w = torch.rand(J, generator=g, dtype=F64) + 0.2
-    state = MixtureState(w.log(), mean, cov, torch.arange(J), torch.ones(J, dtype=torch.bool))
+    state, mean, cov, w = _random_mixture(g, J, 3.0)
     z = torch.randn(M, 2, generator=g, dtype=F64) * 3
     post, _ = phd.update(state, z, mats)
     H, R = mats.H, mats.R.detach()
@@ -189,11 +194,7 @@ def test_velocity_update_matches_the_four_dimensional_textbook_update():
     mats = phd.matrices(1.0)
     g = torch.Generator().manual_seed(5)
     J, M = 3, 4
-    mean = torch.randn(J, 4, generator=g, dtype=F64) * 2
-    A = torch.randn(J, 4, 4, generator=g, dtype=F64)
-    cov = A @ A.transpose(-1, -2) + torch.eye(4, dtype=F64)
-    w = torch.rand(J, generator=g, dtype=F64) + 0.2
-    state = MixtureState(w.log(), mean, cov, torch.arange(J), torch.ones(J, dtype=torch.bool))
+    state, mean, cov, w = _random_mixture(g, J, 2.0)
     z = torch.randn(M, 2, generator=g, dtype=F64) * 2
     v = torch.randn(M, 2, generator=g, dtype=F64)
     post, info = phd.update(state, z, mats, velocity=v)
