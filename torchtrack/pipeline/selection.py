@@ -14,21 +14,17 @@ from the detector's test split, so validate on other seeds (docs/pipeline.md).
 
 from __future__ import annotations
 
-import copy
 import itertools
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-import torch
 from tqdm import tqdm
 
-from torchtrack.filters.multitarget import make_tracker
 from torchtrack.io.mot import MOTData, from_points, read_mot
-from torchtrack.io.video_writer import apply_homography
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.sequences import concatenate, find_sequences
-from torchtrack.pipeline.track_video import FrameDetections, run_tracker_step, score, track_video
+from torchtrack.pipeline.track_video import FrameDetections, replay_tracker, score, track_video
 from torchtrack.pipeline.truth import parked_mask
 
 GRIDS: dict[str, dict[str, list]] = {
@@ -84,18 +80,17 @@ def evaluate(name: str, options: dict | None, gate: tuple[float, float], data: l
              config: PipelineConfig) -> dict:
     """Pooled CLEAR-MOT of tracker ``name`` with ``options`` on the detections that pass
     ``gate = (min_speed, min_motion)`` (:meth:`FrameDetections.moving`), over ``data``."""
-    dtype = getattr(torch, config.dtype)
+    run = config.replace(tracker=name, tracker_options={}, trackers={name: options or {}}, min_speed=gate[0],
+                         min_motion=gate[1])
     parts, masks = [], []
     for seq in data:
-        tracker = make_tracker(name, copy.deepcopy(options) if options else None)
-        frames, ids, points = [], [], []
-        for det in seq.detections:
-            i, pos, _ = run_tracker_step(tracker, det.moving(*gate), dtype)
-            frames.append(np.full(len(i), det.index))
+        frames, ids, points = [], [], [np.zeros((0, 2))]
+        for index, i, img, _ in replay_tracker(name, run, seq.detections):
+            frames.append(np.full(len(i), index, dtype=np.int64))
             ids.append(i)
-            points.append(apply_homography(pos, np.linalg.inv(det.homography)))
-        p = np.concatenate(points) if points else np.zeros((0, 2))
-        tracks = from_points(np.concatenate(frames).astype(np.int64), np.concatenate(ids), p[:, 0], p[:, 1])
+            points.append(img)
+        p = np.concatenate(points)
+        tracks = from_points(np.concatenate(frames), np.concatenate(ids), p[:, 0], p[:, 1])
         parts.append((seq.gt, tracks))
         masks.append(seq.ignore if seq.ignore is not None else np.zeros(seq.gt.size, bool))
     return score(*concatenate(parts), config.threshold, np.concatenate(masks))

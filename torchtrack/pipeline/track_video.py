@@ -214,22 +214,30 @@ def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple
     return ids, positions, 0
 
 
-def rerun_tracker(name: str, config: PipelineConfig, detections: list[FrameDetections], out: Path
-                  ) -> tuple[Path, float]:
-    """Run tracker ``name`` (with ``config.options_for(name)``) on the kept detections of a pipeline run
-    (no registration or detection again), writing its tracks to ``out`` in frame coordinates; returns the
-    file and the seconds spent in the tracker."""
+def replay_tracker(name: str, config: PipelineConfig, detections: list[FrameDetections]
+                   ) -> Iterator[tuple[int, np.ndarray, np.ndarray, float]]:
+    """Run tracker ``name`` (with ``config.options_for(name)`` and ``config``'s moving-object gate) on the
+    kept detections of a pipeline run (no registration or detection again); yields per frame its index,
+    the ids, the positions in frame coordinates ``(N, 2)`` and the seconds spent in the tracker."""
     tracker = make_tracker(name, config.options_for(name))
     dtype = getattr(torch, config.dtype)
-    seconds = 0.0
+    for det in detections:
+        t0 = time.perf_counter()
+        ids, pos, _ = run_tracker_step(tracker, det.moving(config.min_speed, config.min_motion), dtype)
+        seconds = time.perf_counter() - t0
+        yield det.index, ids, apply_homography(pos, np.linalg.inv(det.homography)), seconds
+
+
+def rerun_tracker(name: str, config: PipelineConfig, detections: list[FrameDetections], out: Path
+                  ) -> tuple[Path, float]:
+    """:func:`replay_tracker` writing the tracks to ``out`` (MOTChallenge, frame coordinates); returns the
+    file and the seconds spent in the tracker."""
+    total = 0.0
     with MOTWriter(out) as writer:
-        for det in detections:
-            t0 = time.perf_counter()
-            ids, pos, _ = run_tracker_step(tracker, det.moving(config.min_speed, config.min_motion), dtype)
-            seconds += time.perf_counter() - t0
-            img = apply_homography(pos, np.linalg.inv(det.homography))
-            writer.write_frame(det.index, ids, img[:, 0], img[:, 1])
-    return out, seconds
+        for index, ids, img, seconds in replay_tracker(name, config, detections):
+            total += seconds
+            writer.write_frame(index, ids, img[:, 0], img[:, 1])
+    return out, total
 
 
 def _truth_by_frame(gt: MOTData | None) -> dict[int, np.ndarray]:
