@@ -17,6 +17,7 @@ class ModelConfig:
     head: int = 32
     motion: int = 16          # channels of the siamese motion encoder
     radius: int = 4           # correlation radius in stride-8 cells
+    fine: int = 0             # channels of the stride-2 branch (0: none)
 
 
 @dataclass(frozen=True)

@@ -47,7 +47,8 @@ class Detector(nn.Module):
         super().__init__()
         self.config = config or DetectorConfig()
         m = self.config.model
-        self.net = CenterTrackNet(tuple(m.widths), m.head, m.motion, m.radius).to(memory_format=torch.channels_last)
+        self.net = CenterTrackNet(tuple(m.widths), m.head, m.motion, m.radius, m.fine)
+        self.net = self.net.to(memory_format=torch.channels_last)
 
     def prepare(self, frame, prev_frame=None, prev_points=None) -> tuple[torch.Tensor, tuple[int, int]]:
         """Network input ``(1, 3, H', W')`` (padded to a multiple of 16) and the original size."""

@@ -32,13 +32,21 @@ def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 
 def correlation(a: torch.Tensor, b: torch.Tensor, radius: int) -> torch.Tensor:
     """Cost volume ``C[d](p) = <a(p), b(p + d)> / C`` for all ``d`` in ``[-radius, radius]^2`` (row-major,
-    ``dy`` outer): ``(B, C, h, w), (B, C, h, w) -> (B, (2r+1)^2, h, w)``."""
-    a = a / a.shape[1]
-    b = F.pad(b, (radius, radius, radius, radius))
+    ``dy`` outer): ``(B, C, h, w), (B, C, h, w) -> (B, (2r+1)^2, h, w)`` (contiguous NCHW).
+
+    Computed on contiguous NCHW copies (the shifted products of channels-last tensors are slower); without
+    autograd each shift's sum is written in place (no concatenation)."""
+    a = (a / a.shape[1]).contiguous()
+    b = F.pad(b.contiguous(), (radius, radius, radius, radius))
     h, w = a.shape[-2:]
     k = 2 * radius + 1
-    return torch.cat([(a * b[:, :, dy:dy + h, dx:dx + w]).sum(1, keepdim=True)
-                      for dy in range(k) for dx in range(k)], dim=1)
+    shifts = [(dy, dx) for dy in range(k) for dx in range(k)]
+    if torch.is_grad_enabled() and (a.requires_grad or b.requires_grad):
+        return torch.stack([(a * b[:, :, dy:dy + h, dx:dx + w]).sum(1) for dy, dx in shifts], dim=1)
+    out = a.new_empty(a.shape[0], k * k, h, w)
+    for i, (dy, dx) in enumerate(shifts):
+        torch.sum(a * b[:, :, dy:dy + h, dx:dx + w], 1, out=out[:, i])
+    return out
 
 
 class CenterTrackNet(nn.Module):
@@ -49,13 +57,17 @@ class CenterTrackNet(nn.Module):
     ``motion``: channels of the shared (siamese) encoder of each frame whose stride-8 features are
     correlated over displacements up to ``radius`` cells (``8 radius`` px); the cost volume joins the
     main path at stride 8 and carries the motion to the velocity head.
+    ``fine``: channels of the stride-2 branch (0: none), meant to resolve vehicles a few pixels apart:
+    a ``3x3`` stride-2 convolution of the input (frames and prior) plus a ``1x1`` projection of the
+    head features upsampled to stride 2 (the context, a U-Net skip), a ReLU, and a ``3x3`` convolution
+    whose output is added to the heatmap logits and the offset.
     """
 
     def __init__(self, widths: tuple[int, int, int] = (32, 48, 64), head: int = 32, motion: int = 16,
-                 radius: int = 4) -> None:
+                 radius: int = 4, fine: int = 0) -> None:
         super().__init__()
         c2, c3, c4 = widths
-        self.widths, self.head_channels, self.radius = tuple(widths), head, radius
+        self.widths, self.head_channels, self.radius, self.fine = tuple(widths), head, radius, fine
         k2 = (2 * radius + 1) ** 2
         # a 4x4 stride-4 convolution = space-to-depth followed by a 1x1 convolution
         self.stem = nn.Sequential(nn.Conv2d(3, c2, 4, 4), nn.ReLU(inplace=True), _conv(c2, c2), _conv(c2, c2))
@@ -73,12 +85,18 @@ class CenterTrackNet(nn.Module):
         self.up3 = _conv(c3, c2)
         self.up2 = _conv(c2, head)
         self.heads = nn.Conv2d(head, 5 * 4, 1)
+        if fine:
+            self.fine_in = nn.Conv2d(3, fine, 3, 2, 1)
+            self.fine_mix = nn.Conv2d(head, fine, 1)
+            self.fine_out = nn.Conv2d(fine, 3, 3, 1, 1)
         self.shuffle = nn.PixelShuffle(2)
         for m in self.modules():
             if isinstance(m, nn.Conv2d):
                 nn.init.kaiming_normal_(m.weight, nonlinearity="relu")
                 nn.init.zeros_(m.bias)
         nn.init.normal_(self.heads.weight, std=0.01)
+        if fine:
+            nn.init.normal_(self.fine_out.weight, std=0.01)   # residuals start at zero
         with torch.no_grad():
             self.heads.bias.zero_()
             self.heads.bias[:4] = -math.log((1 - 0.01) / 0.01)   # heatmap channel: about -4.6
@@ -96,12 +114,20 @@ class CenterTrackNet(nn.Module):
         logits = cost * self.log_temperature.exp()
         w = torch.softmax(logits, dim=1)
         flow = -torch.einsum("bkhw,ck->bchw", w, self.displacement)
-        d3 = self.fuse3(torch.cat([self.down3(d2), cost], dim=1))
+        # fuse3's 1x1 convolution of the concatenation [down3(d2), cost], as two convolutions (no copy)
+        mix, c3 = self.fuse3[0], self.widths[1]
+        d3 = self.fuse3[2](F.relu(F.conv2d(self.down3(d2), mix.weight[:, :c3])
+                                  + F.conv2d(cost, mix.weight[:, c3:], mix.bias)))
         d4 = self.down4(d3)
         u3 = self.up3(d3 + F.interpolate(self.lat4(d4), size=d3.shape[-2:], mode="nearest"))
         u2 = self.up2(d2 + F.interpolate(u3, size=d2.shape[-2:], mode="nearest"))
         out = self.shuffle(self.heads(u2))
+        hm, off = out[:, :1], out[:, 1:3]
+        if self.fine:
+            ctx = F.interpolate(self.fine_mix(u2), size=out.shape[-2:], mode="nearest")
+            res = self.fine_out(F.relu(self.fine_in(x) + ctx))
+            hm, off = hm + res[:, :1], off + res[:, 1:3]
         flow = F.interpolate(flow, size=out.shape[-2:], mode="bilinear", align_corners=False)
         if with_matching:
-            return out[:, :1], out[:, 1:3], flow + out[:, 3:5] * VELOCITY_SCALE, logits
-        return out[:, :1], out[:, 1:3], flow + out[:, 3:5] * VELOCITY_SCALE
+            return hm, off, flow + out[:, 3:5] * VELOCITY_SCALE, logits
+        return hm, off, flow + out[:, 3:5] * VELOCITY_SCALE
