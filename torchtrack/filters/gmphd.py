@@ -130,6 +130,7 @@ class Matrices(NamedTuple):
     log_p_detection: Tensor
     log_p_missed: Tensor     # log(1 − p_D)
     log_clutter: Tensor      # log κ
+    FF_t: Tensor             # (n², n²) (F ⊗ F)ᵀ: vec(F P Fᵀ) = vec(P) (F ⊗ F)ᵀ (row-major vec)
     selects_position: bool = False   # H = [I_m 0]: H x is a slice of x (a faster exact path)
     R_velocity: Tensor | None = None          # (m + 2, m + 2) blockdiag(R, σ_v² I): noise of [z, v]
     log_clutter_velocity: Tensor | None = None   # log κ_v, clutter density over velocities
@@ -223,18 +224,18 @@ class GMPHD(nn.Module):
                 raise TorchtrackError("GMPHD velocity_sigma needs H = [I 0] and a state [position, velocity]")
             R_v = torch.block_diag(R, self.velocity_sigma().pow(2) * torch.eye(2, dtype=R.dtype, device=R.device))
             log_kv = torch.log(self.velocity_clutter_density())
-        return Matrices(self.motion.transition_matrix(dt), self.motion.process_noise(dt),
-                        H, R, ps, pd, kappa,
-                        torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa), selects, R_v, log_kv)
+        F = self.motion.transition_matrix(dt)
+        return Matrices(F, self.motion.process_noise(dt), H, R, ps, pd, kappa,
+                        torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa), torch.kron(F, F).T, selects,
+                        R_v, log_kv)
 
     def predict(self, state: MixtureState, mats: Matrices) -> MixtureState:
         """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
         F, Q = mats.F, mats.Q
-        Ft = F.transpose(-1, -2)
         J, n = state.mean.shape
-        mean = torch.mm(state.mean, Ft)
-        # F P Fᵀ + Q as one batched and one folded product (the kernels ``F @ P @ Fᵀ`` dispatches to)
-        cov = torch.mm(torch.bmm(F.expand(J, n, n), state.cov).view(J * n, n), Ft).view(J, n, n) + Q
+        mean = torch.mm(state.mean, F.T)
+        # F P Fᵀ + Q for all components in one product: vec(F P Fᵀ) = vec(P) (F ⊗ F)ᵀ
+        cov = torch.addmm(Q.reshape(n * n), state.cov.reshape(J, n * n), mats.FF_t).view(J, n, n)
         log_w = state.log_weight + mats.log_p_survival
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
@@ -253,7 +254,8 @@ class GMPHD(nn.Module):
         m_dim = H.shape[0]
         if z.dim() != 2 or z.shape[1] != m_dim:
             raise TorchtrackError(f"measurements must have shape (M, {m_dim}); got {tuple(z.shape)}")
-        z = z.to(state.mean.dtype)
+        if z.dtype != state.mean.dtype:
+            z = z.to(state.mean.dtype)
         pd, log_pd = mats.p_detection, mats.log_p_detection
         log_kappa = (mats.log_clutter if clutter is None else torch.log(clutter)).expand(z.shape[0])
         gate = self.gate
@@ -360,7 +362,7 @@ class GMPHD(nn.Module):
             state = self.cap(state.select(keep), 2 * self.capacity)   # bounds the O(J²) merge
             return self.cap(self.merge(state, keep_label))
         # prune and sort by weight with one composed index (what prune + merge's sort select)
-        order = keep[torch.argsort(state.log_weight[keep].detach(), descending=True)]
+        order = keep[torch.argsort(state.log_weight[keep], descending=True)]   # indices carry no gradient
         state = MixtureState(state.log_weight.index_select(0, order), state.mean.index_select(0, order),
                              state.cov.index_select(0, order), state.label.index_select(0, order),
                              torch.ones(J, dtype=torch.bool, device=keep.device))
@@ -508,15 +510,15 @@ def _merge_sorted(state: MixtureState, threshold: float, rounds: int, keep_label
     with torch.no_grad():
         idx = torch.arange(J, device=mean.device)
         if J <= DENSE_MERGE:
-            owner = _owners_dense(_reach_matrix(mean.detach(), cov.detach(), threshold), rounds)
+            owner = _owners_dense(_reach_matrix(mean, cov, threshold), rounds)
         else:
-            owner = _owners_sparse(mean.detach(), cov.detach(), threshold, rounds)
+            owner = _owners_sparse(mean, cov, threshold, rounds)
             if owner is None:
                 return state
         is_head = owner == idx
-        group = torch.cumsum(is_head.long(), 0) - 1
-        gid = group[owner]
-        G = int(group[-1]) + 1
+        heads_up_to = torch.cumsum(is_head, 0)          # group g of a head = number of heads up to it, minus 1
+        G = int(heads_up_to[-1])
+        gid = heads_up_to[owner] - 1
     if G == J:
         return state
     w_max = log_w.max()
