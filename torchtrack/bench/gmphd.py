@@ -47,7 +47,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--steps", type=int, default=None, help="steps timed for torchtrack (default: workload's)")
     parser.add_argument("--reference-steps", type=int, default=20, help="steps timed for the NumPy reference "
                         "(default 20)")
-    parser.add_argument("--repeats", type=int, default=3, help="timed passes, best kept (default 3)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed passes of the whole sequence, the fastest kept "
+                        "(default 5; slower passes are the machine's noise)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     add_common_options(parser)
 
