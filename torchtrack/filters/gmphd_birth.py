@@ -149,21 +149,20 @@ class AdaptiveBirth(nn.Module):
 
         ``pred_pos (J, 2)`` predicted positions ``H F x_i``, ``pred_log_w (J,)`` their log-weights.
         """
-        with torch.no_grad():
-            if pred_pos.shape[0] == 0 or z.shape[0] == 0:
-                return torch.ones(z.shape[0], dtype=torch.bool, device=z.device)
-            # a component below the suppression weight is infinitely far (same minimum as dropping it)
-            far = pred_log_w <= scalar(math.log(self.suppress_weight), pred_log_w)
-            inf, reach = scalar(float("inf"), z), scalar(self.distance_threshold ** 2, z)
-            p = pred_pos.unsqueeze(0)
-            M = z.shape[0]
-            if M <= chunk:
-                return torch.where(far, inf, (z.unsqueeze(1) - p).pow(2).sum(-1)).amin(1) > reach
-            out = []
-            for start in range(0, M, chunk):
-                d2 = (z[start:start + chunk].unsqueeze(1) - p).pow(2).sum(-1)   # (C, J)
-                out.append(torch.where(far, inf, d2).amin(1) > reach)
-            return torch.cat(out)
+        if pred_pos.shape[0] == 0 or z.shape[0] == 0:
+            return torch.ones(z.shape[0], dtype=torch.bool, device=z.device)
+        # a component below the suppression weight is infinitely far (same minimum as dropping it)
+        far = pred_log_w <= scalar(math.log(self.suppress_weight), pred_log_w)
+        inf, reach = scalar(float("inf"), z), scalar(self.distance_threshold ** 2, z)
+        p = pred_pos.detach().unsqueeze(0)      # a selection: no gradient (cheaper than a no_grad block)
+        M = z.shape[0]
+        if M <= chunk:
+            return torch.where(far, inf, (z.unsqueeze(1) - p).pow(2).sum(-1)).amin(1) > reach
+        out = []
+        for start in range(0, M, chunk):
+            d2 = (z[start:start + chunk].unsqueeze(1) - p).pow(2).sum(-1)   # (C, J)
+            out.append(torch.where(far, inf, d2).amin(1) > reach)
+        return torch.cat(out)
 
     def constants(self) -> BirthConstants:
         """The constrained parameters (compute once per step; differentiable)."""

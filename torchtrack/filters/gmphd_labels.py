@@ -62,20 +62,19 @@ def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_po
     idx = estimate.nonzero(as_tuple=True)[0]
     if idx.numel() < 2:
         return state, next_label
-    with torch.no_grad():
-        lab = state.label[idx]
-        pos = state.mean[idx, :pos_dim].detach()
-        dist = distance_to_previous(lab, pos, prev_label, prev_pos)
-        by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
-        by_dist = by_weight[torch.sort(dist[by_weight], stable=True).indices]
-        o, first = _first_of_label(lab, by_dist)
-        if min_separation > 0:
-            keeper = torch.cummax(torch.where(first, torch.arange(o.numel()), torch.zeros_like(o)), 0).values
-            apart = (pos[o] - pos[o[keeper]]).norm(dim=-1) > min_separation
-            losers = idx[o[~first & apart]]
-        else:
-            losers = idx[o[~first]]
-        n = int(losers.numel())
+    lab = state.label[idx]
+    pos = state.mean[idx, :pos_dim].detach()
+    dist = distance_to_previous(lab, pos, prev_label, prev_pos)
+    by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
+    by_dist = by_weight[torch.sort(dist[by_weight], stable=True).indices]
+    o, first = _first_of_label(lab, by_dist)
+    if min_separation > 0:
+        keeper = torch.cummax(torch.where(first, torch.arange(o.numel()), torch.zeros_like(o)), 0).values
+        apart = (pos[o] - pos[o[keeper]]).norm(dim=-1) > min_separation
+        losers = idx[o[~first & apart]]
+    else:
+        losers = idx[o[~first]]
+    n = int(losers.numel())
     if n == 0:
         return state, next_label
     label = state.label.clone()

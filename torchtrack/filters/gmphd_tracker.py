@@ -20,6 +20,7 @@ reports one estimate per label (the highest weight).
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import torch
@@ -155,9 +156,9 @@ class GMPHDTracker(nn.Module):
         velocity, ``p̂_{k−1} + v̂_{k−1} dt`` (the position the label is expected at now). With
         ``likelihood=False`` the result's ``log_likelihood`` is None (not computed).
         """
-        phd = self.phd
+        phd, birth = self.phd, self.birth
         pred = phd.predict(state, mats)
-        is_birth = self.birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.chunk)
+        is_birth = birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.chunk)
         post, info = phd.update(pred, z, mats, velocity=velocity, likelihood=likelihood)
         post = phd.reduce(post, memory.prev_label if self.label_fix and self.merge_priority else None)
         est = phd.extract(post)
@@ -192,21 +193,21 @@ class GMPHDTracker(nn.Module):
                 known = known | torch.isin(ids, lost_before.label)
             if memory.tentative is not None:
                 known = known | torch.isin(ids, memory.tentative)
-            tentative = ids[~known].detach()
+            tentative = ids[~known]
             sel, ids, pos, vel = sel[known], ids[known], pos[known], vel[known]
+        pos_d, vel_d = pos.detach(), vel.detach()
         if vmap is not None:
-            with torch.no_grad():
-                cov = post.cov[sel]
-                settled = (cov[:, 2, 2] + cov[:, 3, 3]) < self.settled_velocity_var
-                vmap.update(pos[settled], vel[settled])
+            cov = post.cov.detach()[sel]
+            settled = (cov[:, 2, 2] + cov[:, 3, 3]) < self.settled_velocity_var
+            vmap.update(pos_d[settled], vel_d[settled])
         zb = z[is_birth]
         vb = velocity[is_birth] if velocity is not None else None
-        b_mean, b_std, b_logw = self.birth.forward(zb, vb, vmap, birth_consts)
+        b_mean, b_std, b_logw = birth.forward(zb, vb, vmap, birth_consts)
         B = int(zb.shape[0])
         b_label = torch.arange(next_label, next_label + B, dtype=torch.long, device=z.device)
         births = phd.gaussian_birth(b_mean, b_std, b_logw, b_label)
         new_state = phd.cap(concat(post, births))
-        new_memory = TrackerMemory(next_label + B, ids.detach(), pos.detach(), vel.detach(), lost, tentative)
+        new_memory = TrackerMemory(next_label + B, ids, pos_d, vel_d, lost, tentative)   # labels carry no gradient
         return StepResult(new_state, new_memory, ids, pos, vel, info.log_likelihood)
 
     def log_likelihood(self, measurements: list[Tensor], velocities: list[Tensor | None] | None = None,
@@ -232,16 +233,13 @@ class GMPHDTracker(nn.Module):
     # ------------------------------------------------------------------ streaming interface
     def reset(self) -> None:
         """Forget all tracks (labels restart at 1)."""
-        self._state, self._memory = self.initial()
-        self._vmap = self.birth.new_velocity_map(self.dtype)
-        self._last_frame: int | None = None
-        self._mats: dict[float, Matrices] = {}      # parameters are frozen while streaming
-        self._birth_consts: BirthConstants | None = None
+        state, memory = self.initial()
+        self._stream = _Stream(state, memory, self.birth.new_velocity_map(self.dtype))
 
     @property
     def state(self) -> MixtureState:
         """The current mixture (posterior of the last frame plus the births for the next)."""
-        return self._state
+        return self._stream.state
 
     @property
     def cap_hits(self) -> int:
@@ -253,16 +251,29 @@ class GMPHDTracker(nn.Module):
         (K, 2)`` in px/frame, or None). Returns the reported ``ids (E,)`` and ``positions (E, 2)``."""
         z = torch.as_tensor(positions, dtype=self.dtype).reshape(-1, 2)
         v = None if velocities is None else torch.as_tensor(velocities, dtype=self.dtype).reshape(-1, 2)
-        dt = 1.0 if self._last_frame is None else float(frame - self._last_frame)
+        s = self._stream
+        dt = 1.0 if s.last_frame is None else float(frame - s.last_frame)
         if dt <= 0:
-            raise TorchtrackError(f"frames must increase: frame {frame} after {self._last_frame}")
+            raise TorchtrackError(f"frames must increase: frame {frame} after {s.last_frame}")
         with torch.inference_mode():
-            mats = self._mats.get(dt)
+            mats = s.mats.get(dt)
             if mats is None:
-                mats = self._mats[dt] = self.phd.matrices(dt)
-            if self._birth_consts is None:
-                self._birth_consts = self.birth.constants()
-            res = self.advance(self._state, self._memory, z, v, mats, self._vmap, dt, self._birth_consts,
-                               likelihood=False)
-        self._state, self._memory, self._last_frame = res.state, res.memory, frame
+                mats = s.mats[dt] = self.phd.matrices(dt)
+            if s.birth_consts is None:
+                s.birth_consts = self.birth.constants()
+            res = self.advance(s.state, s.memory, z, v, mats, s.vmap, dt, s.birth_consts, likelihood=False)
+        s.state, s.memory, s.last_frame = res.state, res.memory, frame
         return res.ids, res.positions
+
+
+@dataclass
+class _Stream:
+    """What :meth:`GMPHDTracker.step` carries between frames (a plain object: an ``nn.Module`` attribute
+    costs microseconds per assignment, a noticeable part of a small frame)."""
+
+    state: MixtureState
+    memory: TrackerMemory
+    vmap: VelocityMap | None
+    last_frame: int | None = None
+    mats: dict[float, Matrices] = field(default_factory=dict)   # parameters are frozen while streaming
+    birth_consts: BirthConstants | None = None
