@@ -62,7 +62,9 @@ class Detector(nn.Module):
         if pts.dim() != 2 or pts.shape[-1] != 2:
             raise TorchtrackError(f"detector: prev_points must have shape (N, 2), got {tuple(pts.shape)}")
         prior = gaussian_heatmap(pts.reshape(-1, 2), (h, w), self.config.data.prior_sigma)
-        x = torch.stack([normalise(cur), normalise(prev), prior])[None]
+        x = torch.empty(1, h, w, 3)                       # written channels-last directly (one copy)
+        x[0, ..., 0], x[0, ..., 1], x[0, ..., 2] = normalise(cur), normalise(prev), prior
+        x = x.permute(0, 3, 1, 2)
         ph, pw = (-h) % MULTIPLE, (-w) % MULTIPLE
         if ph or pw:
             x = F.pad(x, (0, pw, 0, ph))
