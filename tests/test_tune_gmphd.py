@@ -153,3 +153,42 @@ def test_refine_line_search_uses_training_items_only_and_counts_its_evaluations(
         assert get_values(tracker)["phd.p_detection"].item() > 0.15
     with pytest.raises(TorchtrackError, match="valid names"):
         refine(tun, tracker, {"parameters": ["phd.nope"]}, data, ["phd.p_detection"], progress=False)
+
+
+def test_refine_average_returns_the_centroid_of_the_best_points_within_the_budget(tmp_path):
+    from torchtrack.tuning.refine import refine
+
+    tun, tracker, data = problem(tmp_path, frames=30, window=15, start={"pd": 0.3})
+    names = ["phd.p_detection", "phd.measurement.sigma"]
+    calls = []
+
+    def fake_evaluate(module, items):          # a smooth training metric with its optimum at p_D 0.6, sigma 1.6
+        v = get_values(module, names)
+        calls.append(get_raw(module, names))
+        pd, sigma = v["phd.p_detection"].item(), v["phd.measurement.sigma"].item()
+        return {"MOTA": -(pd - 0.6) ** 2 - (math.log(sigma) - math.log(1.6)) ** 2}
+
+    tun.evaluate = fake_evaluate
+    out = refine(tun, tracker, {"parameters": names, "step": 0.5, "sweeps": 3, "evaluations": 9, "average": 3},
+                 data, names, progress=False)
+    assert len(calls) == out["metric_evaluations"] == 9
+    # brute force: the 3 distinct searched points (all but the last call) with the highest metric, averaged in raw
+    metric = []
+    for raw in calls[:-1]:
+        set_raw(tracker, raw)
+        v = get_values(tracker, names)
+        metric.append(-(v["phd.p_detection"].item() - 0.6) ** 2
+                      - (math.log(v["phd.measurement.sigma"].item()) - math.log(1.6)) ** 2)
+    distinct = {}
+    for _, raw in sorted(zip(metric, calls[:-1]), key=lambda r: -r[0]):
+        distinct.setdefault(tuple(round(x.item(), 9) for x in raw.values()), raw)
+    top = list(distinct.values())[:3]
+    centroid = {n: sum(r[n] for r in top) / 3 for n in names}
+    for n in names:
+        torch.testing.assert_close(calls[-1][n], centroid[n])
+    set_raw(tracker, calls[-1])
+    assert out["final"] == pytest.approx(fake_evaluate(tracker, data.train)["MOTA"])
+    assert out["best"] == pytest.approx(max(metric))
+    assert out["best"] > out["start"]
+    with pytest.raises(TorchtrackError, match="average"):
+        refine(tun, tracker, {"parameters": names, "evaluations": 1, "average": 2}, data, names, progress=False)

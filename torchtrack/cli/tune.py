@@ -91,9 +91,11 @@ def run(args) -> int:
           f"{fit['filter_evaluations']} item evaluations ({fit['frames']} frames), {fit['seconds']:.1f} s")
     if "refine" in report:
         r = report["refine"]
-        print(f"refine: training {r['metric']} {r['start']:.4g} -> {r['best']:.4g} in {r['metric_evaluations']} "
-              f"evaluations ({r['filter_evaluations']} items, {r['frames']} frames), {r['seconds']:.1f} s; total "
-              f"{report['filter_evaluations']} item evaluations ({report['frames']} frames)")
+        chosen = f" (best point {r['best']:.4g}, chose the mean of the {r['average']} best)" if r["average"] > 1 else ""
+        print(f"refine: training {r['metric']} {r['start']:.4g} -> {r['final']:.4g}{chosen} in "
+              f"{r['metric_evaluations']} evaluations ({r['filter_evaluations']} items, {r['frames']} frames), "
+              f"{r['seconds']:.1f} s; total {report['filter_evaluations']} item evaluations "
+              f"({report['frames']} frames)")
     metrics = [k for k in ("MOTA", "OSPA", "IDS") if k in after]
     if "grid" in report or "refine" in report:
         rows = [["start", "-", "-", *[before.get(k, float("nan")) for k in metrics], "-"]]

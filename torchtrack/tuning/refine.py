@@ -10,6 +10,16 @@ relative change ``δ`` of a positive parameter, a change ``δ`` of a probability
 goes on to the next parameter; after a sweep over all of them ``δ`` halves. A vector or matrix
 parameter moves all its entries together. Every metric evaluation is one forward pass over all
 training items (counted in the report); held-out items are never used.
+
+The training metric is noisy at the scale of the last steps (a few ground-truth boxes in ten
+thousand decide between neighbouring points), so the single best point is partly chosen by the
+noise of this one data set. With ``average: k`` the result is instead the centroid, in ``u``, of
+the ``k`` distinct points with the highest training metric (a smoothed argmax: the middle of the
+good region),
+
+    u* = (1/k) Σ_{i ∈ top k} u_i,
+
+scored once more on the training items (that evaluation is counted within the budget).
 """
 
 from __future__ import annotations
@@ -26,16 +36,18 @@ from torchtrack.tuning.parameters import get_values, set_raw, tunable_parameters
 from torchtrack.tuning.registry import Tunable, TuneData, check_keys
 from torchtrack.tuning.trainer import step_scale
 
-REFINE_KEYS = ("metric", "maximize", "parameters", "step", "sweeps", "evaluations")
+REFINE_KEYS = ("metric", "maximize", "parameters", "step", "sweeps", "evaluations", "average")
 
 
 def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data: TuneData,
            trainable: Sequence[str], progress: bool = True) -> dict[str, Any]:
     """Line search of ``config`` (``metric`` (default ``MOTA``), ``maximize`` (default true),
     ``parameters`` (default: the trainable ones), ``step`` δ (default 0.5), ``sweeps`` (default 2),
-    ``evaluations`` (the budget of metric evaluations, default 12)) from ``module``'s current values,
-    which it leaves at the best point found. Returns the start and best training metric, the values,
-    the number of metric evaluations, items and frames filtered, and the seconds spent."""
+    ``evaluations`` (the budget of metric evaluations, default 12), ``average`` k (default 1: the best
+    point; k > 1: the centroid of the k best points, see above)) from ``module``'s current values,
+    which it leaves at the chosen point. Returns the training metric at the start, the best one
+    searched and the one at the chosen point (``final``), the values, the number of metric
+    evaluations, items and frames filtered, and the seconds spent."""
     check_keys(config, REFINE_KEYS, "refine")
     metric = str(config.get("metric", "MOTA"))
     sign = 1.0 if config.get("maximize", True) else -1.0
@@ -47,9 +59,10 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
                               f"{', '.join(sorted(params))}")
     delta = float(config.get("step", 0.5))
     sweeps, budget = int(config.get("sweeps", 2)), int(config.get("evaluations", 12))
-    if delta <= 0 or sweeps < 1 or budget < 1:
-        raise TorchtrackError(f"refine needs step > 0, sweeps >= 1 and evaluations >= 1; got {delta}, {sweeps}, "
-                              f"{budget}")
+    average = int(config.get("average", 1))
+    if delta <= 0 or sweeps < 1 or average < 1 or budget < 1 + (average > 1):
+        raise TorchtrackError(f"refine needs step > 0, sweeps >= 1, average >= 1 and evaluations >= 1 (2 with "
+                              f"average > 1); got {delta}, {sweeps}, {average}, {budget}")
     if not data.train:
         raise TorchtrackError("the training set is empty: refine has nothing to score")
     base: dict[str, Tensor] = {n: params[n].raw.detach().clone() for n in names}
@@ -57,6 +70,7 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     t0 = time.perf_counter()
     evaluations = 0
     reported: dict[str, dict] = {}
+    seen: dict[str, tuple[float, dict[str, float]]] = {}     # key -> (signed metric, point)
 
     def score(point: Mapping[str, float]) -> float:
         nonlocal evaluations
@@ -68,11 +82,14 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
                                   f"{', '.join(scores)}")
         reported[_key(point)] = scores
         value = sign * float(scores[metric])
-        return value if math.isfinite(value) else -math.inf
+        value = value if math.isfinite(value) else -math.inf
+        seen[_key(point)] = (value, dict(point))
+        return value
 
     from tqdm import tqdm
 
     bar = tqdm(total=budget, desc=f"refine {metric}", disable=not progress, leave=False)
+    search_budget = budget - (average > 1)      # keep one evaluation for the centroid
     u = {n: 0.0 for n in names}
     start = best = score(u)
     bar.update(1)
@@ -80,7 +97,7 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
         for n in names:
             for direction in (1.0, -1.0):
                 moved = False
-                while evaluations < budget:
+                while evaluations < search_budget:
                     trial = {**u, n: u[n] + direction * delta}
                     value = score(trial)
                     bar.update(1)
@@ -88,14 +105,20 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
                         u, best, moved = trial, value, True
                     else:
                         break
-                if moved or evaluations >= budget:
+                if moved or evaluations >= search_budget:
                     break
         delta /= 2
+    final = best
+    if average > 1:
+        top = [r for r in sorted(seen.values(), key=lambda r: -r[0]) if r[0] > -math.inf][:average] or [(best, u)]
+        u = {n: sum(p[n] for _, p in top) / len(top) for n in names}
+        final = seen[_key(u)][0] if _key(u) in seen else score(u)
+        bar.update(1)
     bar.close()
     set_raw(module, {n: base[n] + scale[n] * u[n] for n in names})
     train_frames = sum(tunable.item_frames(i) for i in data.train)
     return {"metric": metric, "parameters": names, "start": sign * start, "best": sign * best,
-            "train": reported[_key(u)], "moved": dict(u),
+            "final": sign * final, "average": average, "train": reported[_key(u)], "moved": dict(u),
             "values": {n: (float(v) if v.numel() == 1 else v.tolist()) for n, v in get_values(module, names).items()},
             "metric_evaluations": evaluations, "filter_evaluations": evaluations * len(data.train),
             "frames": evaluations * train_frames, "seconds": time.perf_counter() - t0}
