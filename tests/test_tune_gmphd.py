@@ -132,6 +132,9 @@ def test_contiguous_windows_are_scored_as_one_stream(tmp_path):
     _, _, whole = problem(tmp_path, frames=60, window=40)   # the same detections (same seed), one window
     assert len(data.train) == 4 and len(whole.train) == 1
     assert tun.evaluate(tracker, data.train) == tun.evaluate(tracker, whole.train)
+    full, mota = tun.evaluate(tracker, data.train), tun.score(tracker, data.train, "MOTA")   # searches skip the OSPA
+    assert "OSPA" in full and "OSPA" not in mota and mota == {k: v for k, v in full.items() if k != "OSPA"}
+    assert tun.score(tracker, data.train, "OSPA") == full
 
 
 def test_refine_line_search_uses_training_items_only_and_counts_its_evaluations(tmp_path):
@@ -162,7 +165,7 @@ def test_refine_average_returns_the_centroid_of_the_best_points_within_the_budge
     names = ["phd.p_detection", "phd.measurement.sigma"]
     calls = []
 
-    def fake_evaluate(module, items):          # a smooth training metric with its optimum at p_D 0.6, sigma 1.6
+    def fake_evaluate(module, items, ospa=True):   # a smooth training metric, optimum at p_D 0.6, sigma 1.6
         v = get_values(module, names)
         calls.append(get_raw(module, names))
         pd, sigma = v["phd.p_detection"].item(), v["phd.measurement.sigma"].item()

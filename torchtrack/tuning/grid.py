@@ -50,7 +50,7 @@ def grid_search(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], 
     for combo in tqdm(combos, desc="grid", disable=not progress, leave=False):
         point = dict(zip(names, combo))
         set_values(module, point)
-        scores = tunable.evaluate(module, data.train)
+        scores = tunable.score(module, data.train, metric)
         evaluations += len(data.train)
         if metric not in scores:
             raise TorchtrackError(f"grid.metric {metric!r} is not reported by {tunable.name}; choose from "

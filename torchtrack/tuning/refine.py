@@ -75,7 +75,7 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     def score(point: Mapping[str, float]) -> float:
         nonlocal evaluations
         set_raw(module, {n: base[n] + scale[n] * point[n] for n in names})
-        scores = tunable.evaluate(module, data.train)
+        scores = tunable.score(module, data.train, metric)
         evaluations += 1
         if metric not in scores:
             raise TorchtrackError(f"refine.metric {metric!r} is not reported by {tunable.name}; choose from "

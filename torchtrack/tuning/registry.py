@@ -64,6 +64,11 @@ class Tunable:
         """Task metrics on held-out items (e.g. MOTA, OSPA); none by default."""
         return {}
 
+    def score(self, module: nn.Module, items: Sequence, metric: str) -> dict[str, float]:
+        """Task metrics including ``metric``, for a search (grid, line search) that ranks by it; the
+        default is :meth:`evaluate`, a tunable may skip metrics that cost time and are not asked for."""
+        return self.evaluate(module, items)
+
     def truth(self, data_config: Mapping[str, Any]) -> dict[str, Any]:
         """True parameter values ``{dotted name: value}`` where the data are simulated; none by default."""
         return {}
