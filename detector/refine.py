@@ -10,7 +10,8 @@ was at ``r + s`` in frame ``k-1``). The cost is the mean squared difference of z
          = 1/n [sum c^2 - n m_c^2 + sum t^2 - n m_t^2 - 2 (sum c t - n m_c m_t)] + lam |s + v|^2,
 
 computed for all detections at once: one gather of a ``(2(p+R)+3)^2`` window of the previous frame per
-detection, and the cross term ``sum c t`` as a grouped convolution of each window with its template.
+detection, the cross term ``sum c t`` as a grouped convolution of each window with its template and the
+box means by an integral image.
 The minimum is refined to sub-pixel precision by a parabola through the costs of the neighbouring
 displacements on each axis; the refined velocity is ``-s*``.
 """
@@ -31,6 +32,14 @@ def _gather_windows(img: torch.Tensor, centre: torch.Tensor, half: int) -> torch
     return img.reshape(-1)[ys[:, :, None] * w + xs[:, None, :]]
 
 
+def _box_means(x: torch.Tensor, size: int) -> torch.Tensor:
+    """Means over every ``size x size`` window (valid positions) of ``x (..., L, L)`` by an integral
+    image: ``(..., L - size + 1, L - size + 1)``."""
+    c = F.pad(x.cumsum(-2).cumsum(-1), (1, 0, 1, 0))
+    s = c[..., size:, size:] - c[..., :-size, size:] - c[..., size:, :-size] + c[..., :-size, :-size]
+    return s / (size * size)
+
+
 def match_cost(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity: torch.Tensor,
                patch: int = 3, radius: int = 5, pull: float = 0.005) -> tuple[torch.Tensor, torch.Tensor]:
     """:func:`refine_velocity` and the cost ``(K,)`` of each refined velocity (mean squared difference
@@ -45,8 +54,7 @@ def match_cost(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity
     win = _gather_windows(prev, r + s0, patch + radius + 1)[None]           # (1, K, L, L)
     size = 2 * patch + 1
     cross = F.conv2d(win, tmpl.view(k, 1, size, size), groups=k)[0]        # (K, M, M) sum c (t - m_t)
-    box = torch.full((1, 1, size, size), 1.0 / n, dtype=win.dtype, device=win.device)
-    mc, c2 = F.conv2d(torch.cat([win, win * win], 1).transpose(0, 1), box)[:, 0].chunk(2)   # box means
+    mc, c2 = _box_means(torch.stack([win[0], win[0] * win[0]]), size)                 # (K, M, M) each
     cost = c2 - mc * mc + (tmpl * tmpl).mean(1)[:, None, None] - 2 * cross / n
     m = cost.shape[-1]                                                       # 2 R + 3
     d = torch.arange(m, device=xy.device) - (radius + 1)
