@@ -31,9 +31,9 @@ class DataConfig:
     prior_sigma: float = 1.5           # px, prior heatmap of the previous detections
     target_sigma: float = 0.8          # output cells, heatmap target
     prior_jitter: float = 1.0          # px (CenterTrack: centre jitter)
-    prior_drop: float = 0.2            # probability to drop a previous peak
-    prior_false: float = 0.1           # probability per object of a false peak near it
-    prior_clutter: float = 2.0         # mean number of false peaks anywhere per crop
+    prior_drop: float = 0.4            # probability to drop a previous peak
+    prior_false: float = 0.2           # probability per object of a false peak near it
+    prior_clutter: float = 6.0         # mean number of false peaks anywhere per crop
     same_frame: float = 0.05           # probability that the pair is (frame, frame) with an empty prior
 
 
