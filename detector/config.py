@@ -35,6 +35,7 @@ class DataConfig:
     prior_false: float = 0.2           # probability per object of a false peak near it
     prior_clutter: float = 6.0         # mean number of false peaks anywhere per crop
     same_frame: float = 0.05           # probability that the pair is (frame, frame) with an empty prior
+    register: bool = False             # previous frame warped onto the current by the true camera motion
 
 
 @dataclass(frozen=True)

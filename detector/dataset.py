@@ -5,8 +5,12 @@ The cache holds ``S`` sequences of ``T`` frames from :func:`torchtrack.sim.video
 determines it). :class:`PairDataset` item ``i`` of epoch ``e`` is a pure function of ``(seed, e, i)``:
 a random sequence and frame ``k >= 1``, a random crop and one of the 8 flips/rotations, the previous
 frame ``k-1`` and the prior heatmap of the previous truth perturbed as in CenterTrack (centre jitter,
-dropped peaks, false peaks near objects and anywhere). Being a pure function of the index is what makes
-``torchrun`` training with a ``DistributedSampler`` equal to single-process training.
+dropped peaks, false peaks near objects and anywhere). With ``data.register`` the previous frame is
+first warped onto the current one by the true camera motion, as the pipeline does after its
+registration, so that static ground cancels between the two and only what moves differs; the prior and
+the velocity targets are then in the current frame's coordinates (velocity over the ground). Being a pure
+function of the index is what makes ``torchrun`` training with a ``DistributedSampler`` equal to
+single-process training.
 """
 
 from __future__ import annotations
@@ -24,24 +28,32 @@ from detector.config import DetectorConfig
 from detector.network import STRIDE
 from detector.targets import Targets, gaussian_heatmap, make_targets
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.video_writer import apply_homography
+from torchtrack.pipeline.registration import warp_previous
 
-CACHE_VERSION = 2   # bump when the generator changes
+CACHE_VERSION = 3   # bump when the generator or the cache's content changes
 
 
 class SequenceCache(NamedTuple):
     """frames (S, T, H, W) uint8; per frame ``f = s*T + t`` the truth rows ``start[f]:start[f+1]`` of
-    ids (R,) int64, xy (R, 2) and velocity (R, 2) float32 (NaN where unknown)."""
+    ids (R,) int64, xy (R, 2) and velocity (R, 2) float32 (NaN where unknown); homography (S, T, 3, 3)
+    float64, the true camera map reference -> frame."""
 
     frames: torch.Tensor
     start: torch.Tensor
     ids: torch.Tensor
     xy: torch.Tensor
     velocity: torch.Tensor
+    homography: torch.Tensor
 
     def truth(self, s: int, t: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         f = s * self.frames.shape[1] + t
         a, b = int(self.start[f]), int(self.start[f + 1])
         return self.ids[a:b], self.xy[a:b], self.velocity[a:b]
+
+    def current_to_previous(self, s: int, t: int, tp: int) -> np.ndarray:
+        """The camera map from frame ``t`` to frame ``tp`` of sequence ``s``, ``H_tp H_t⁻¹`` (3, 3)."""
+        return (self.homography[s, tp] @ torch.linalg.inv(self.homography[s, t])).numpy()
 
 
 def normalise(frame: torch.Tensor) -> torch.Tensor:
@@ -72,22 +84,25 @@ def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = 
         except Exception as exc:  # a damaged cache is regenerated
             print(f"detector cache {path} unreadable ({exc}); regenerating")
     assert isinstance(video, VideoConfig)
-    frames, ids, xy, vel, start = [], [], [], [], [0]
+    frames, ids, xy, vel, homs, start = [], [], [], [], [], [0]
     it = range(count)
     if progress:
         from tqdm import tqdm
 
         it = tqdm(it, desc=f"generating {split} sequences", unit="seq")
     for i in it:
-        seq = []
+        seq, seq_h = [], []
         for f in generate_sequence(video, torch.Generator().manual_seed(split_seed(seed, split, i))):
             seq.append(torch.from_numpy(f.image))
+            seq_h.append(torch.from_numpy(f.homography))
             ids.append(torch.from_numpy(f.ids))
             xy.append(torch.from_numpy(f.xy).float())
             vel.append(torch.from_numpy(f.velocity).float())
             start.append(start[-1] + len(f.ids))
         frames.append(torch.stack(seq))
-    cache = SequenceCache(torch.stack(frames), torch.tensor(start), torch.cat(ids), torch.cat(xy), torch.cat(vel))
+        homs.append(torch.stack(seq_h))
+    cache = SequenceCache(torch.stack(frames), torch.tensor(start), torch.cat(ids), torch.cat(xy), torch.cat(vel),
+                          torch.stack(homs))
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_suffix(".tmp")
     torch.save(cache._asdict(), tmp)
@@ -143,14 +158,22 @@ class PairDataset(Dataset):
         c = d.crop
         y0, x0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
         cur = (cache.frames[s, t, y0:y0 + c, x0:x0 + c].float() - self.mean[s, t]) / self.std[s, t]
-        prev = (cache.frames[s, tp, y0:y0 + c, x0:x0 + c].float() - self.mean[s, tp]) / self.std[s, tp]
         _, xy, vel = cache.truth(s, t)
+        _, pxy, _ = cache.truth(s, tp)
+        if d.register and not same:
+            m = cache.current_to_previous(s, t, tp)
+            prev = torch.from_numpy(warp_previous(cache.frames[s, tp].numpy(), m, (c, c), (x0, y0)))
+            to_cur = np.linalg.inv(m)
+            pxy = torch.from_numpy(apply_homography(pxy.numpy(), to_cur)).float()
+            vel = xy - torch.from_numpy(apply_homography((xy - vel).numpy(), to_cur)).float()
+        else:
+            prev = cache.frames[s, tp, y0:y0 + c, x0:x0 + c]
+        prev = (prev.float() - self.mean[s, tp]) / self.std[s, tp]
         xy = xy - torch.tensor([x0, y0], dtype=torch.float32)
         vel = torch.zeros_like(vel) if same else vel
         if same:
             prior_xy = torch.zeros(0, 2)
         else:
-            _, pxy, _ = cache.truth(s, tp)
             pxy = pxy - torch.tensor([x0, y0], dtype=torch.float32)
             keep = torch.from_numpy(rng.random(len(pxy)) >= d.prior_drop)
             jitter = torch.from_numpy(rng.normal(0, d.prior_jitter, (len(pxy), 2))).float()

@@ -3,8 +3,9 @@ Hungarian matching per frame), and the mean velocity error of the matched detect
 
 from __future__ import annotations
 
+import itertools
 import time
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -12,6 +13,8 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from detector.decode import Detections
+from torchtrack.io.video_writer import apply_homography
+from torchtrack.pipeline.registration import warp_previous
 
 
 def match(pred: np.ndarray, truth: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -68,14 +71,21 @@ class Scores:
                 "tp": self.tp, "fp": self.fp, "fn": self.fn}
 
 
-def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = None):
+def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = None,
+           motions: Iterable[np.ndarray | None] | None = None):
     """Run ``detector.detect`` over a sequence, the prior of each frame being the previous detections
     (and their velocities, for the motion-continuity check);
     yields :class:`Detections` per frame, adding the wall-clock and process CPU seconds of the calls to
     ``scores_time.seconds`` and ``scores_time.cpu_seconds`` (CPU time per frame, summed over threads,
-    is what a dedicated core would take; wall time depends on the machine's load)."""
+    is what a dedicated core would take; wall time depends on the machine's load). With ``motions``
+    (per frame the camera map from it to the previous frame, :func:`registered_motions`) the previous
+    frame and detections are first mapped onto the current frame, as after the pipeline's registration
+    (the warp is not timed: it belongs to registration)."""
     prev, prev_pts, prev_vel = None, None, None
-    for img in frames:
+    for img, m in zip(frames, motions if motions is not None else itertools.repeat(None)):
+        if prev is not None and m is not None:
+            prev = warp_previous(np.asarray(prev), m, img.shape)
+            prev_pts = torch.from_numpy(apply_homography(prev_pts.numpy(), np.linalg.inv(m))).float()
         t0, c0 = time.perf_counter(), time.process_time()
         det = detector.detect(img, prev, prev_pts, prev_velocity=prev_vel)
         if scores_time is not None:
@@ -94,6 +104,19 @@ def moving_only(det: Detections, min_speed: float, camera: np.ndarray | None = N
     return Detections(det.xy[fast], det.score[fast], det.velocity[fast], det.mask[fast])
 
 
+def registered_motions(homographies: Sequence[np.ndarray]) -> list[np.ndarray | None]:
+    """Per frame ``k`` the camera map to frame ``k-1``, ``H_{k-1} H_k⁻¹``, from the true reference-to-frame
+    homographies (``None`` for the first frame)."""
+    return [None] + [np.asarray(a) @ np.linalg.inv(b) for a, b in zip(homographies[:-1], homographies[1:])]
+
+
+def ground_velocity(xy: np.ndarray, velocity: np.ndarray, current_to_previous: np.ndarray) -> np.ndarray:
+    """Velocity over the ground in the current frame's pixels, ``x_k − M⁻¹ x_{k−1}`` with
+    ``x_{k−1} = x_k − velocity`` (image motion), ``M`` the camera map current -> previous: what a
+    detector sees between the current frame and the previous one warped onto it."""
+    return xy - apply_homography(xy - velocity, np.linalg.inv(current_to_previous))
+
+
 def camera_velocity(xy: np.ndarray, h_prev: np.ndarray, h_cur: np.ndarray) -> np.ndarray:
     """Image motion ``x - H_{k-1} H_k^{-1} x`` of static ground points at ``xy`` (K, 2) between frames
     with the reference-to-frame homographies ``h_prev``, ``h_cur``."""
@@ -107,16 +130,23 @@ def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: flo
     with ``"moving"``: the detections predicted to move over the ground (their velocity less the camera
     jitter's image motion, known from the frames' homographies, as after the pipeline's registration) at
     ``min_speed`` px/frame or more against the moving truth, detections on parked vehicles being
-    don't-care (frames after the first)."""
+    don't-care (frames after the first). A detector trained on registered pairs
+    (``config.data.register``) sees the previous frame warped onto the current one by the true camera
+    motion, and its velocities are scored against the velocity over the ground."""
     scores, moving = Scores(radius), Scores(radius)
+    registered = _registered(detector)
     for seq in video_frames:
+        motions = registered_motions([f.homography for f in seq])
         prev_h = None
-        for f, det in zip(seq, stream(detector, (f.image for f in seq), scores)):
-            vel = f.velocity if f.index > 0 else None
+        for f, m, det in zip(seq, motions, stream(detector, (f.image for f in seq), scores,
+                                                  motions if registered else None)):
+            vel = None
+            if m is not None:
+                vel = ground_velocity(f.xy, f.velocity, m) if registered else f.velocity
             scores.add(det, f.xy, vel)
             if prev_h is not None:
-                cam = camera_velocity(det.xy.numpy().astype(np.float64), prev_h, f.homography)
-                moving.add(moving_only(det, min_speed, cam), f.xy, f.velocity, care=f.moving)
+                cam = None if registered else camera_velocity(det.xy.numpy().astype(np.float64), prev_h, f.homography)
+                moving.add(moving_only(det, min_speed, cam), f.xy, vel, care=f.moving)
             prev_h = f.homography
     moving.seconds, moving.cpu_seconds = scores.seconds, scores.cpu_seconds
     return {**scores.result(), "moving": moving.result()}
@@ -136,9 +166,19 @@ def evaluate_cache(detector, cache, n_frames: int, radius: float = 10.0) -> dict
     """Scores on the first ``n_frames`` frames of every sequence of a :class:`~detector.dataset.SequenceCache`."""
     scores = Scores(radius)
     n_frames = min(n_frames, cache.frames.shape[1])
+    registered = _registered(detector)
     for s in range(cache.frames.shape[0]):
-        imgs = [cache.frames[s, t] for t in range(n_frames)]
-        for t, det in enumerate(stream(detector, imgs, scores)):
+        imgs = [cache.frames[s, t].numpy() for t in range(n_frames)]
+        motions = [None] + [cache.current_to_previous(s, t, t - 1) for t in range(1, n_frames)]
+        for t, det in enumerate(stream(detector, imgs, scores, motions if registered else None)):
             _, xy, vel = cache.truth(s, t)
-            scores.add(det, xy.numpy().astype(np.float64), vel.numpy() if t > 0 else None)
+            xy, vel = xy.numpy().astype(np.float64), vel.numpy().astype(np.float64)
+            if t > 0 and registered:
+                vel = ground_velocity(xy, vel, motions[t])
+            scores.add(det, xy, vel if t > 0 else None)
     return scores.result()
+
+
+def _registered(detector) -> bool:
+    config = getattr(detector, "config", None)
+    return bool(config is not None and config.data.register)

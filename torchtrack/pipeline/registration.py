@@ -196,3 +196,16 @@ def transfer_error(h_est: np.ndarray, h_true: np.ndarray, shape: tuple[int, int]
         return q / (pts @ h[2, :2] + h[2, 2])[:, None]
 
     return np.linalg.norm(project(np.asarray(h_est, float)) - project(np.asarray(h_true, float)), axis=1)
+
+
+def warp_previous(previous: np.ndarray, current_to_previous: np.ndarray, size: tuple[int, int],
+                  offset: tuple[int, int] = (0, 0)) -> np.ndarray:
+    """The previous frame resampled onto the current one, ``out[y, x] = previous(M · [x + x0, y + y0, 1]ᵀ)``
+    with ``M = current_to_previous`` (3, 3): only what moves over the ground differs between ``out`` and
+    the current frame. ``size = (h, w)`` of the output, ``offset = (x0, y0)`` of its top-left corner in the
+    current frame (a crop); bilinear, borders replicated."""
+    m = np.asarray(current_to_previous, np.float64)
+    if offset != (0, 0):
+        m = m @ np.array([[1.0, 0.0, offset[0]], [0.0, 1.0, offset[1]], [0.0, 0.0, 1.0]])
+    return cv2.warpPerspective(previous, m, (size[1], size[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_REPLICATE)

@@ -51,7 +51,7 @@ from torchtrack.io.mot import MOTData, MOTWriter, from_points, read_mot
 from torchtrack.io.video_writer import AnnotatedVideoWriter, apply_homography, save_png
 from torchtrack.metrics import clear_mot
 from torchtrack.pipeline.config import PipelineConfig
-from torchtrack.pipeline.registration import Registration, transfer_error
+from torchtrack.pipeline.registration import Registration, transfer_error, warp_previous
 
 
 class StageTimer:
@@ -173,10 +173,7 @@ class Detection:
                 prev = image
             else:
                 # Previous frame resampled into the current frame: x_{k-1} = H_{k-1}^{-1} H_k x_k.
-                rel = np.linalg.inv(self.prev_h) @ h
-                prev = cv2.warpPerspective(self.prev_image, rel, image.shape[::-1],
-                                           flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                                           borderMode=cv2.BORDER_REPLICATE)
+                prev = warp_previous(self.prev_image, np.linalg.inv(self.prev_h) @ h, image.shape)
             prior = apply_homography(self.prior_ref, h_inv)
         with self.timer("detection"):
             extra = {} if self.threshold is None else {"threshold": self.threshold}

@@ -1,0 +1,56 @@
+"""Registered training pairs: the previous frame warped onto the current by the true camera motion."""
+
+import dataclasses
+
+import cv2
+import numpy as np
+from test_detector_train import tiny_config
+
+from detector.dataset import PairDataset, build_cache
+from detector.evaluate import ground_velocity, registered_motions
+from torchtrack.io.video_writer import apply_homography
+from torchtrack.pipeline.registration import warp_previous
+
+
+def _homography(rng: np.random.Generator) -> np.ndarray:
+    a = 0.01 * rng.normal(size=2)
+    return np.array([[1 + 0.004 * rng.normal(), -a[0], 3 * rng.normal()],
+                     [a[0], 1 + 0.004 * rng.normal(), 3 * rng.normal()],
+                     [1e-6 * rng.normal(), 1e-6 * rng.normal(), 1.0]])
+
+
+def test_warp_previous_undoes_a_known_camera_motion_and_crops_exactly():
+    rng = np.random.default_rng(0)
+    current = cv2.GaussianBlur(rng.uniform(0, 255, (160, 200)), (0, 0), 2.0)
+    m = _homography(rng)                                  # current -> previous
+    previous = cv2.warpPerspective(current, m, (200, 160), flags=cv2.INTER_CUBIC)   # previous(m x) = current(x)
+    back = warp_previous(previous, m, current.shape)
+    inner = (slice(20, -20), slice(20, -20))
+    assert np.abs(back - current)[inner].mean() < 0.05 * current.std()   # two bilinear/cubic resamplings
+    assert np.abs(previous - current)[inner].mean() > 0.2 * current.std()
+    crop = warp_previous(previous, m, (64, 48), (30, 40))
+    np.testing.assert_allclose(crop, back[40:104, 30:78], atol=1e-6)
+
+
+def test_ground_velocity_is_zero_for_static_ground_and_the_reference_motion_under_a_shift():
+    rng = np.random.default_rng(1)
+    h_prev, h_cur = _homography(rng), _homography(rng)   # reference -> frame
+    ref = rng.uniform(0, 500, (20, 2))
+    xy_prev, xy_cur = apply_homography(ref, h_prev), apply_homography(ref, h_cur)
+    m = registered_motions([h_prev, h_cur])[1]
+    np.testing.assert_allclose(ground_velocity(xy_cur, xy_cur - xy_prev, m), 0.0, atol=1e-9)
+    shift = np.array([[1.0, 0, 5.0], [0, 1.0, -2.0], [0, 0, 1.0]])   # camera translation only
+    moved = ref + [3.0, 4.0]
+    v = ground_velocity(apply_homography(moved, shift), apply_homography(moved, shift) - ref, np.linalg.inv(shift))
+    np.testing.assert_allclose(v, np.tile([3.0, 4.0], (20, 1)), atol=1e-9)
+
+
+def test_registered_pairs_cancel_the_static_ground(tmp_path):
+    cfg = tiny_config(tmp_path)
+    quiet = dict(prior_drop=0.0, prior_false=0.0, prior_clutter=0.0, same_frame=0.0)
+    raw = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, **quiet))
+    reg = dataclasses.replace(cfg, data=dataclasses.replace(cfg.data, register=True, **quiet))
+    cache = build_cache(cfg, "train", 0)
+    a, b = PairDataset(cache, raw, 0), PairDataset(cache, reg, 0)
+    rms = np.array([[(d[i][0][0] - d[i][0][1]).pow(2).mean().sqrt().item() for d in (a, b)] for i in range(16)])
+    assert rms[:, 1].mean() < 0.75 * rms[:, 0].mean()
