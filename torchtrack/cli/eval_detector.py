@@ -14,10 +14,13 @@ A detection is a true positive when it is matched one-to-one (Hungarian) to a tr
 --radius px (default 10). velocity_error_px: mean |v_pred - v_true| (px/frame) over matched
 detections. fps: detector calls per second (pre-processing, network, decoding) at the frames' size,
 wall clock; fps_cpu_time: the same from the process CPU time (what an unloaded machine gives).
-Held-out sequences use seeds never used in training (split 'test'); their 'moving vehicles' row
-scores the detections predicted to move over the ground (velocity less the camera jitter's image
-motion, from the true homographies, as after registration) at 2 px/frame or more against the moving
-truth (parked vehicles don't-care, frames after the first). The WPAFB part runs where
+Held-out sequences use seeds never used in training (split 'test'). A detector trained on registered
+pairs (data.register in its config, as the shipped one) sees the previous frame warped onto the
+current one by the true camera motion, as after the pipeline's registration, and its velocity is
+scored against the velocity over the ground. The 'moving vehicles' row scores the detections
+predicted to move over the ground (for an unregistered detector: its velocity less the camera
+jitter's image motion) at 2 px/frame or more against the moving truth (parked vehicles don't-care,
+frames after the first). The WPAFB part runs where
 ../shared/data/wpafb-aoi02 (or $TORCHTRACK_WPAFB) exists: all vehicles, and moving vehicles with
 detections on parked vehicles as don't-care.
 Example: torchtrack eval-detector --sequences 4 --frames 20 --json out/eval.json
