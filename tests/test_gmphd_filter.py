@@ -9,6 +9,7 @@ import pytest
 import torch
 from filterpy.kalman import KalmanFilter as FPKalman
 
+from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd import GMPHD, MixtureState, merge
 from torchtrack.filters.gmphd_birth import AdaptiveBirth
 from torchtrack.filters.gmphd_tracker import GMPHDTracker
@@ -219,6 +220,56 @@ def test_velocity_update_matches_the_four_dimensional_textbook_update():
     post2, _ = phd.update(state, z, mats)
     ref, _ = make_phd(pd=0.8, kappa=2e-3, gate_probability=1.0).update(state, z, mats._replace(R_velocity=None))
     torch.testing.assert_close(post2.log_weight, ref.log_weight)
+
+
+def test_velocity_outliers_mix_the_velocity_and_position_only_updates():
+    """With ``velocity_outlier`` ε each pair's likelihood is ``(1−ε) N([z, v]) + ε κ_v N(z)`` (gated on the
+    position); the posterior takes the update of the larger term. Checked per pair against the textbook
+    formulas, and a grossly wrong velocity still gives its target a detection at the measured position."""
+    eps, kv = 0.2, 0.01
+    phd = make_phd(pd=0.8, kappa=2e-3, gate_probability=1.0, velocity_sigma=0.7, velocity_clutter_density=kv,
+                   velocity_outlier=eps)
+    mats = phd.matrices(1.0)
+    g = torch.Generator().manual_seed(6)
+    J, M = 3, 5
+    state, mean, cov, w = _random_mixture(g, J, 2.0)
+    z = torch.randn(M, 2, generator=g, dtype=F64) * 2
+    v = torch.randn(M, 2, generator=g, dtype=F64) * 3
+    post, info = phd.update(state, z, mats, velocity=v)
+    zz = torch.cat([z, v], 1)
+    s_z, s_v = phd.measurement.sigma().detach(), phd.velocity_sigma().detach()
+    kv = phd.velocity_clutter_density().detach()                                   # float32-rounded 0.01
+    R4 = torch.diag(torch.stack([s_z, s_z, s_v, s_v]).reshape(4) ** 2)
+    g4, g2 = torch.zeros(J, M, dtype=F64), torch.zeros(J, M, dtype=F64)
+    upd = torch.zeros(J, M, 4, dtype=F64)
+    cov_upd = torch.zeros(J, M, 4, 4, dtype=F64)
+    for j in range(J):
+        S4, S2 = cov[j] + R4, cov[j][:2, :2] + R4[:2, :2]
+        g4[j] = torch.distributions.MultivariateNormal(mean[j], S4).log_prob(zz).exp()
+        g2[j] = torch.distributions.MultivariateNormal(mean[j][:2], S2).log_prob(z).exp()
+        K4, K2 = cov[j] @ torch.linalg.inv(S4), cov[j][:, :2] @ torch.linalg.inv(S2)
+        for k in range(M):
+            with_v = (1 - eps) * g4[j, k] >= eps * kv * g2[j, k]
+            upd[j, k] = mean[j] + (K4 @ (zz[k] - mean[j]) if with_v else K2 @ (z[k] - mean[j][:2]))
+            cov_upd[j, k] = cov[j] - (K4 @ S4 @ K4.T if with_v else K2 @ S2 @ K2.T)
+    pd = phd.p_detection().detach()
+    num = pd * w[:, None] * ((1 - eps) * g4 + eps * kv * g2)
+    clutter = phd.clutter_density().detach() * kv
+    torch.testing.assert_close(post.log_weight[J:].exp().detach().reshape(J, M), num / (clutter + num.sum(0)),
+                               rtol=1e-9, atol=1e-12)
+    torch.testing.assert_close(post.mean[J:].detach().reshape(J, M, 4), upd, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(post.cov[J:].detach().reshape(J, M, 4, 4), cov_upd, rtol=1e-9, atol=1e-9)
+    torch.testing.assert_close(info.log_denominator.detach(), torch.log(clutter + num.sum(0)), rtol=1e-9, atol=1e-9)
+    # one target at rest, detected where predicted but with a velocity 15 px/frame off
+    target = one([0.0, 0.0, 0.0, 0.0], np.diag([1.0, 1.0, 0.5, 0.5]))
+    z1, v1 = torch.tensor([[0.3, -0.2]], dtype=F64), torch.tensor([[15.0, 0.0]], dtype=F64)
+    plain = make_phd(pd=0.8, kappa=2e-3, velocity_sigma=0.7, velocity_clutter_density=0.01)
+    assert plain.update(target, z1, plain.matrices(1.0), velocity=v1)[0].size == 1      # gated out: missed only
+    robust, _ = phd.update(target, z1, mats, velocity=v1)
+    assert robust.size == 2 and robust.log_weight[1].exp() > 0.5
+    assert abs(float(robust.mean[1, 2])) < 1.0                                           # the velocity is ignored
+    with pytest.raises(TorchtrackError, match="velocity_outlier"):
+        make_phd(velocity_sigma=0.7, velocity_outlier=1.0)
 
 
 def test_gradients_reach_the_velocity_noise_and_velocity_clutter_density():

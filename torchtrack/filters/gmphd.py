@@ -21,7 +21,15 @@ Update of every component against every measurement in one batched operation (eq
 
 With the detector's velocity ``v_k`` (``velocity_sigma`` set; this project's extension, not the paper's) each
 detection is ``[z_k, v_k]``, measured through ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)``, gated with the
-4-dof χ² quantile, and the clutter intensity is ``κ(z_k) κ_v``.
+4-dof χ² quantile, and the clutter intensity is ``κ(z_k) κ_v``. A detector's velocities are often right to
+a fraction of a pixel but now and then grossly wrong (a vehicle matched to its neighbour in a platoon);
+with ``velocity_outlier`` ``ε > 0`` the velocity of a target's detection is an outlier with probability
+``ε``, drawn from the clutter's velocity density ``κ_v``, so each pair's likelihood is the mixture::
+
+    g_jk = (1 − ε) N([z_k, v_k]; [ẑ_j, v̂_j], S_j) + ε κ_v N(z_k; ẑ_j, S_j^pos)
+
+gated on the position alone; the pair's posterior takes the update of the larger of the two terms
+(with or without the velocity), its weight the whole mixture.
 
 ``S`` is factored once per component (it does not depend on the measurement); pairs outside the gate
 get weight zero and are not materialised. The measurement axis is processed in chunks so that tens
@@ -134,6 +142,27 @@ class Matrices(NamedTuple):
     selects_position: bool = False   # H = [I_m 0]: H x is a slice of x (a faster exact path)
     R_velocity: Tensor | None = None          # (m + 2, m + 2) blockdiag(R, σ_v² I): noise of [z, v]
     log_clutter_velocity: Tensor | None = None   # log κ_v, clutter density over velocities
+    log_velocity_outlier: Tensor | None = None   # log ε, probability that a target's velocity is an outlier
+
+
+class _PositionOnly(NamedTuple):
+    """The position-only update quantities of components whose ``[z, v]`` innovation covariance has the
+    Cholesky factor ``L``: the leading ``dim × dim`` block of ``L`` is the factor of the position block."""
+
+    dim: int
+    S_inv: Tensor        # (J, dim, dim)
+    K: Tensor            # (J, n, dim)
+    P_upd: Tensor        # (J, n, n)
+    half_logdet: Tensor  # (J,)
+
+    @staticmethod
+    def of(state: MixtureState, PHt: Tensor, L: Tensor, dim: int) -> _PositionOnly:
+        L_p, PHt_p = L[:, :dim, :dim], PHt[:, :, :dim]
+        S_inv = torch.cholesky_inverse(L_p)
+        K = torch.bmm(PHt_p, S_inv)
+        P = torch.baddbmm(state.cov, K, PHt_p.transpose(-1, -2), alpha=-1)
+        P = (P + P.transpose(-1, -2)) * 0.5
+        return _PositionOnly(dim, S_inv, K, P, torch.log(torch.diagonal(L_p, dim1=-2, dim2=-1)).sum(-1))
 
 
 class UpdateInfo(NamedTuple):
@@ -165,6 +194,8 @@ class GMPHD(nn.Module):
             ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)`` (None: velocities are not used in the update).
         velocity_clutter_density: ``κ_v`` (learnable), the density of a clutter detection's velocity; the
             clutter intensity of ``[z, v]`` is ``κ(z) κ_v`` (default 1/400: uniform over ±10 px/frame).
+        velocity_outlier: ``ε`` in [0, 1), the probability that a target's detected velocity is an outlier
+            (density ``κ_v``); 0: every velocity is Gaussian (see the module docstring).
     """
 
     def __init__(self, motion: MotionModel | None = None, measurement: MeasurementModel | None = None,
@@ -172,7 +203,7 @@ class GMPHD(nn.Module):
                  area: float | None = None, gate_probability: float = 0.999, prune_threshold: float = 1e-4,
                  merge_threshold: float = 4.0, merge_rounds: int = 3, capacity: int = 1024,
                  extract_threshold: float = 0.5, chunk: int = 4096, velocity_sigma: float | None = None,
-                 velocity_clutter_density: float = 2.5e-3):
+                 velocity_clutter_density: float = 2.5e-3, velocity_outlier: float = 0.0):
         super().__init__()
         self.motion = motion if motion is not None else ConstantVelocity(2, q=1.0)
         self.measurement = measurement if measurement is not None else LinearPosition(2, sigma=1.0)
@@ -185,6 +216,8 @@ class GMPHD(nn.Module):
             raise TorchtrackError(f"gate_probability must lie in (0, 1]; got {gate_probability}")
         if capacity < 1:
             raise TorchtrackError(f"capacity must be >= 1; got {capacity}")
+        if not 0.0 <= velocity_outlier < 1.0:
+            raise TorchtrackError(f"velocity_outlier must lie in [0, 1); got {velocity_outlier}")
         if prune_threshold <= 0 or merge_threshold < 0 or extract_threshold <= 0 or merge_rounds < 1:
             raise TorchtrackError("prune_threshold and extract_threshold must be > 0, merge_threshold >= 0, "
                                   "merge_rounds >= 1")
@@ -205,6 +238,7 @@ class GMPHD(nn.Module):
         self.velocity_sigma = None if velocity_sigma is None else Positive(velocity_sigma, "velocity_sigma")
         self.velocity_clutter_density = (None if velocity_sigma is None
                                          else Positive(velocity_clutter_density, "velocity_clutter_density"))
+        self.velocity_outlier = velocity_outlier
 
     @property
     def state_dim(self) -> int:
@@ -218,16 +252,18 @@ class GMPHD(nn.Module):
         eye = torch.eye(m, n, dtype=H.dtype, device=H.device)
         selects = bool(torch.equal(H.detach(), eye))
         R = self.measurement.noise_cov()
-        R_v = log_kv = None
+        R_v = log_kv = log_eps = None
         if self.velocity_sigma is not None:
             if not selects or n != m + 2:
                 raise TorchtrackError("GMPHD velocity_sigma needs H = [I 0] and a state [position, velocity]")
             R_v = torch.block_diag(R, self.velocity_sigma().pow(2) * torch.eye(2, dtype=R.dtype, device=R.device))
             log_kv = torch.log(self.velocity_clutter_density())
+            if self.velocity_outlier > 0:
+                log_eps = torch.tensor(math.log(self.velocity_outlier), dtype=R.dtype, device=R.device)
         F = self.motion.transition_matrix(dt)
         return Matrices(F, self.motion.process_noise(dt), H, R, ps, pd, kappa,
                         torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa), torch.kron(F, F).T, selects,
-                        R_v, log_kv)
+                        R_v, log_kv, log_eps)
 
     def predict(self, state: MixtureState, mats: Matrices) -> MixtureState:
         """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
@@ -259,13 +295,15 @@ class GMPHD(nn.Module):
         pd, log_pd = mats.p_detection, mats.log_p_detection
         log_kappa = (mats.log_clutter if clutter is None else torch.log(clutter)).expand(z.shape[0])
         gate = self.gate
+        robust = False
         if velocity is not None and mats.R_velocity is not None:
             if velocity.shape != z.shape:
                 raise TorchtrackError(f"velocities must have shape {tuple(z.shape)}; got {tuple(velocity.shape)}")
             z = torch.cat([z, velocity.to(z.dtype)], 1)
             R, m_dim = mats.R_velocity, m_dim + 2
             log_kappa = log_kappa + mats.log_clutter_velocity
-            gate = self.gate_velocity
+            robust = mats.log_velocity_outlier is not None
+            gate = self.gate if robust else self.gate_velocity
         neg_inf = scalar(NEG_INF, state.log_weight)
         live_w = torch.where(state.mask, state.log_weight, neg_inf)
 
@@ -290,6 +328,13 @@ class GMPHD(nn.Module):
         half_logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (J,)
         base = log_pd + live_w - half_logdet - scalar(0.5 * m_dim * LOG_2PI, live_w)   # (J,)
         gate = scalar(gate, live_w)
+        if robust:
+            pos = _PositionOnly.of(state, PHt, L, H.shape[0])
+            log_eps = mats.log_velocity_outlier
+            base_pos = (log_pd + live_w - pos.half_logdet - scalar(0.5 * H.shape[0] * LOG_2PI, live_w)
+                        + log_eps + mats.log_clutter_velocity)
+            base = base + torch.log1p(-log_eps.exp())
+            pair_pos = []
 
         pair_j, pair_k, pair_logw, log_den = [], [], [], []
         M, C = z.shape[0], self.chunk
@@ -297,10 +342,19 @@ class GMPHD(nn.Module):
             zc, kc = (z, log_kappa) if M <= C else (z[start:start + C], log_kappa[start:start + C])
             nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
             nis = (torch.bmm(nu, S_inv) * nu).sum(-1)                # (J, C)  νᵀ S⁻¹ ν
-            gated = (nis <= gate) & state.mask.unsqueeze(1)
-            log_num = torch.where(gated, base.unsqueeze(1) - nis * half, neg_inf)
+            if robust:
+                nu_p = nu[..., :pos.dim]
+                nis_p = (torch.bmm(nu_p, pos.S_inv) * nu_p).sum(-1)
+                gated = (nis_p <= gate) & state.mask.unsqueeze(1)
+                with_v, without_v = base.unsqueeze(1) - nis * half, base_pos.unsqueeze(1) - nis_p * half
+                log_num = torch.where(gated, torch.logaddexp(with_v, without_v), neg_inf)
+            else:
+                gated = (nis <= gate) & state.mask.unsqueeze(1)
+                log_num = torch.where(gated, base.unsqueeze(1) - nis * half, neg_inf)
             den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
             jj, kk = gated.nonzero().unbind(1)
+            if robust:
+                pair_pos.append((without_v > with_v)[jj, kk])
             pair_j.append(jj)
             pair_k.append(kk + start if start else kk)
             pair_logw.append(log_num[jj, kk] - den[kk])
@@ -315,12 +369,19 @@ class GMPHD(nn.Module):
         nu_sel = z.index_select(0, kk) - z_hat.index_select(0, jj)          # (G, m)
         det_mean = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K.index_select(0, jj),
                                  nu_sel.unsqueeze(-1)).squeeze(-1)          # m + K ν per gated pair
+        det_cov = P_upd.index_select(0, jj)
+        if robust:                                # pairs whose velocity is more likely an outlier
+            use_pos = torch.cat(pair_pos) if pair_pos else torch.zeros(0, dtype=torch.bool, device=z.device)
+            mean_pos = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), pos.K.index_select(0, jj),
+                                     nu_sel[:, :pos.dim].unsqueeze(-1)).squeeze(-1)
+            det_mean = torch.where(use_pos.unsqueeze(-1), mean_pos, det_mean)
+            det_cov = torch.where(use_pos.view(-1, 1, 1), pos.P_upd.index_select(0, jj), det_cov)
 
         miss_logw = live_w + mats.log_p_missed
         post = MixtureState(
             torch.cat([miss_logw, det_logw]),
             torch.cat([state.mean, det_mean]),
-            torch.cat([state.cov, P_upd.index_select(0, jj)]),
+            torch.cat([state.cov, det_cov]),
             torch.cat([state.label, state.label.index_select(0, jj)]),
             torch.cat([state.mask, torch.ones(jj.shape[0], dtype=torch.bool, device=jj.device)]),
         )
