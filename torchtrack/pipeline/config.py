@@ -13,8 +13,9 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.pipeline.registration import RegistrationConfig
 
 SELECTED_TRACKERS: dict = {
-    "gmphd": {"fix_separation": 8.0, "confirm_new": False,
-              "filter": {"velocity_sigma": None, "clutter_density": 1e-4}, "birth": {"birth_weight": 0.3}},
+    "gmphd": {"fix_separation": 4.0, "confirm_new": False,
+              "filter": {"velocity_sigma": 1.0, "velocity_outlier": 0.3, "clutter_density": 1e-4},
+              "birth": {"birth_weight": 0.05}},
     "labelled-gmphd": {"filter": {"p_detection": 0.9, "clutter_density": 3e-4}},
     "sort": {"max_distance": 30.0, "max_age": 3, "min_hits": 1},
     "greedy": {"max_distance": 20.0, "max_age": 2},
