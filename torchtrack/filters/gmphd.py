@@ -145,24 +145,17 @@ class Matrices(NamedTuple):
     log_velocity_outlier: Tensor | None = None   # log ε, probability that a target's velocity is an outlier
 
 
-class _PositionOnly(NamedTuple):
-    """The position-only update quantities of components whose ``[z, v]`` innovation covariance has the
-    Cholesky factor ``L``: the leading ``dim × dim`` block of ``L`` is the factor of the position block."""
-
-    dim: int
-    S_inv: Tensor        # (J, dim, dim)
-    K: Tensor            # (J, n, dim)
-    P_upd: Tensor        # (J, n, n)
-    half_logdet: Tensor  # (J,)
-
-    @staticmethod
-    def of(state: MixtureState, PHt: Tensor, L: Tensor, dim: int) -> _PositionOnly:
-        L_p, PHt_p = L[:, :dim, :dim], PHt[:, :, :dim]
-        S_inv = torch.cholesky_inverse(L_p)
-        K = torch.bmm(PHt_p, S_inv)
-        P = torch.baddbmm(state.cov, K, PHt_p.transpose(-1, -2), alpha=-1)
-        P = (P + P.transpose(-1, -2)) * 0.5
-        return _PositionOnly(dim, S_inv, K, P, torch.log(torch.diagonal(L_p, dim1=-2, dim2=-1)).sum(-1))
+def _kalman_terms(cov: Tensor, PHt: Tensor, L: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """``S⁻¹ (J, m, m)``, gain ``K = P Hᵀ S⁻¹ (J, n, m)``, symmetrised ``P − K S Kᵀ (J, n, n)`` and
+    ``½ log det S (J,)`` from ``cov = P``, ``PHt = P Hᵀ`` and the Cholesky factor ``L`` of ``S``. (The
+    leading block of ``L`` is the factor of the leading block of ``S``: the position-only terms of a
+    ``[z, v]`` update are this on ``PHt[..., :2]`` and ``L[:, :2, :2]``.)"""
+    S_inv = torch.cholesky_inverse(L)
+    # batched products called as torch.bmm directly (the kernel ``@`` dispatches to, fewer ops)
+    K = torch.bmm(PHt, S_inv)
+    P_upd = torch.baddbmm(cov, K, PHt.transpose(-1, -2), alpha=-1)
+    P_upd = (P_upd + P_upd.transpose(-1, -2)) * scalar(0.5, P_upd)
+    return S_inv, K, P_upd, torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
 
 
 class UpdateInfo(NamedTuple):
@@ -319,19 +312,15 @@ class GMPHD(nn.Module):
         if bool(info.any()):
             raise TorchtrackError("GMPHD update: innovation covariance S is not positive definite "
                                   f"for {int((info != 0).sum())} components")
-        S_inv = torch.cholesky_inverse(L)                                     # (J, m, m) from the factor
-        # batched products called as torch.bmm directly (the kernel ``@`` dispatches to, fewer ops)
-        K = torch.bmm(PHt, S_inv)                                             # (J, n, m)  K = P Hᵀ S⁻¹
-        P_upd = torch.baddbmm(state.cov, K, PHt.transpose(-1, -2), alpha=-1)  # P − K S Kᵀ
+        S_inv, K, P_upd, half_logdet = _kalman_terms(state.cov, PHt, L)
         half = scalar(0.5, P_upd)
-        P_upd = (P_upd + P_upd.transpose(-1, -2)) * half                       # symmetrised
-        half_logdet = torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)   # (J,)
         base = log_pd + live_w - half_logdet - scalar(0.5 * m_dim * LOG_2PI, live_w)   # (J,)
         gate = scalar(gate, live_w)
         if robust:
-            pos = _PositionOnly.of(state, PHt, L, H.shape[0])
+            p_dim = H.shape[0]
+            S_inv_p, K_p, P_upd_p, half_logdet_p = _kalman_terms(state.cov, PHt[:, :, :p_dim], L[:, :p_dim, :p_dim])
             log_eps = mats.log_velocity_outlier
-            base_pos = (log_pd + live_w - pos.half_logdet - scalar(0.5 * H.shape[0] * LOG_2PI, live_w)
+            base_pos = (log_pd + live_w - half_logdet_p - scalar(0.5 * p_dim * LOG_2PI, live_w)
                         + log_eps + mats.log_clutter_velocity)
             base = base + torch.log1p(-log_eps.exp())
             pair_pos = []
@@ -343,8 +332,8 @@ class GMPHD(nn.Module):
             nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
             nis = (torch.bmm(nu, S_inv) * nu).sum(-1)                # (J, C)  νᵀ S⁻¹ ν
             if robust:
-                nu_p = nu[..., :pos.dim]
-                nis_p = (torch.bmm(nu_p, pos.S_inv) * nu_p).sum(-1)
+                nu_p = nu[..., :p_dim]
+                nis_p = (torch.bmm(nu_p, S_inv_p) * nu_p).sum(-1)
                 gated = (nis_p <= gate) & state.mask.unsqueeze(1)
                 with_v, without_v = base.unsqueeze(1) - nis * half, base_pos.unsqueeze(1) - nis_p * half
                 log_num = torch.where(gated, torch.logaddexp(with_v, without_v), neg_inf)
@@ -372,10 +361,10 @@ class GMPHD(nn.Module):
         det_cov = P_upd.index_select(0, jj)
         if robust:                                # pairs whose velocity is more likely an outlier
             use_pos = torch.cat(pair_pos) if pair_pos else torch.zeros(0, dtype=torch.bool, device=z.device)
-            mean_pos = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), pos.K.index_select(0, jj),
-                                     nu_sel[:, :pos.dim].unsqueeze(-1)).squeeze(-1)
+            mean_pos = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K_p.index_select(0, jj),
+                                     nu_sel[:, :p_dim].unsqueeze(-1)).squeeze(-1)
             det_mean = torch.where(use_pos.unsqueeze(-1), mean_pos, det_mean)
-            det_cov = torch.where(use_pos.view(-1, 1, 1), pos.P_upd.index_select(0, jj), det_cov)
+            det_cov = torch.where(use_pos.view(-1, 1, 1), P_upd_p.index_select(0, jj), det_cov)
 
         miss_logw = live_w + mats.log_p_missed
         post = MixtureState(
