@@ -69,8 +69,7 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     scale: dict[str, Tensor] = {n: step_scale(params[n]) for n in names}
     t0 = time.perf_counter()
     evaluations = 0
-    reported: dict[str, dict] = {}
-    seen: dict[str, tuple[float, dict[str, float]]] = {}     # key -> (signed metric, point)
+    seen: dict[str, tuple[float, dict[str, float], dict]] = {}   # key -> (signed metric, point, all scores)
 
     def score(point: Mapping[str, float]) -> float:
         nonlocal evaluations
@@ -80,10 +79,9 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
         if metric not in scores:
             raise TorchtrackError(f"refine.metric {metric!r} is not reported by {tunable.name}; choose from "
                                   f"{', '.join(scores)}")
-        reported[_key(point)] = scores
         value = sign * float(scores[metric])
         value = value if math.isfinite(value) else -math.inf
-        seen[_key(point)] = (value, dict(point))
+        seen[_key(point)] = (value, dict(point), scores)
         return value
 
     from tqdm import tqdm
@@ -110,15 +108,15 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
         delta /= 2
     final = best
     if average > 1:
-        top = [r for r in sorted(seen.values(), key=lambda r: -r[0]) if r[0] > -math.inf][:average] or [(best, u)]
-        u = {n: sum(p[n] for _, p in top) / len(top) for n in names}
+        top = [r[1] for r in sorted(seen.values(), key=lambda r: -r[0]) if r[0] > -math.inf][:average] or [u]
+        u = {n: sum(p[n] for p in top) / len(top) for n in names}
         final = seen[_key(u)][0] if _key(u) in seen else score(u)
         bar.update(1)
     bar.close()
     set_raw(module, {n: base[n] + scale[n] * u[n] for n in names})
     train_frames = sum(tunable.item_frames(i) for i in data.train)
     return {"metric": metric, "parameters": names, "start": sign * start, "best": sign * best,
-            "final": sign * final, "average": average, "train": reported[_key(u)], "moved": dict(u),
+            "final": sign * final, "average": average, "train": seen[_key(u)][2], "moved": dict(u),
             "values": {n: (float(v) if v.numel() == 1 else v.tolist()) for n, v in get_values(module, names).items()},
             "metric_evaluations": evaluations, "filter_evaluations": evaluations * len(data.train),
             "frames": evaluations * train_frames, "seconds": time.perf_counter() - t0}
