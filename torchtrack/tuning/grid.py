@@ -18,7 +18,7 @@ from torch import nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.tuning.parameters import set_values, tunable_parameters
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys, search_scores
 
 GRID_KEYS = ("values", "metric", "maximize")
 
@@ -50,11 +50,8 @@ def grid_search(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], 
     for combo in tqdm(combos, desc="grid", disable=not progress, leave=False):
         point = dict(zip(names, combo))
         set_values(module, point)
-        scores = tunable.score(module, data.train, metric)
+        scores = search_scores(tunable, module, data.train, metric, "grid.metric")
         evaluations += len(data.train)
-        if metric not in scores:
-            raise TorchtrackError(f"grid.metric {metric!r} is not reported by {tunable.name}; choose from "
-                                  f"{', '.join(scores)}")
         if math.isfinite(scores[metric]) and sign * scores[metric] > best[0]:
             best = (sign * scores[metric], point, scores)
     seconds = time.perf_counter() - t0

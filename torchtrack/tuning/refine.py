@@ -33,7 +33,7 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.tuning.parameters import get_values, set_raw, tunable_parameters
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys, search_scores
 from torchtrack.tuning.trainer import step_scale
 
 REFINE_KEYS = ("metric", "maximize", "parameters", "step", "sweeps", "evaluations", "average")
@@ -74,11 +74,8 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     def score(point: Mapping[str, float]) -> float:
         nonlocal evaluations
         set_raw(module, {n: base[n] + scale[n] * point[n] for n in names})
-        scores = tunable.score(module, data.train, metric)
+        scores = search_scores(tunable, module, data.train, metric, "refine.metric")
         evaluations += 1
-        if metric not in scores:
-            raise TorchtrackError(f"refine.metric {metric!r} is not reported by {tunable.name}; choose from "
-                                  f"{', '.join(scores)}")
         value = sign * float(scores[metric])
         value = value if math.isfinite(value) else -math.inf
         seen[_key(point)] = (value, dict(point), scores)

@@ -83,6 +83,16 @@ class Tunable:
         return None
 
 
+def search_scores(tunable: Tunable, module: nn.Module, items: Sequence, metric: str, where: str) -> dict[str, float]:
+    """:meth:`Tunable.score` for a search ranking by ``metric``; an error naming the config key ``where``
+    (e.g. ``grid.metric``) when the tunable does not report that metric."""
+    scores = tunable.score(module, items, metric)
+    if metric not in scores:
+        raise TorchtrackError(f"{where} {metric!r} is not reported by {tunable.name}; choose from "
+                              f"{', '.join(scores)}")
+    return scores
+
+
 def register(cls: type[Tunable]) -> type[Tunable]:
     """Class decorator adding a :class:`Tunable` to the registry under ``cls.name``."""
     _REGISTRY[cls.name] = cls
