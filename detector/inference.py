@@ -77,7 +77,8 @@ class Detector(nn.Module):
     def detect(self, frame, prev_frame=None, prev_points=None, threshold: float | None = None,
                prev_velocity=None) -> Detections:
         x, (h, w) = self.prepare(frame, prev_frame, prev_points)
-        hm, off, vel = self.net(x)
+        device = next(self.net.parameters()).device       # the network may sit on a GPU (training); the rest runs here
+        hm, off, vel = (t.cpu() for t in self.net(x.to(device)))
         hm = hm[..., : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
         off = off[..., : hm.shape[-2], : hm.shape[-1]]
         vel = vel[..., : hm.shape[-2], : hm.shape[-1]]

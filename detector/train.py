@@ -55,8 +55,11 @@ def _barrier(world: int) -> None:
 
 
 def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bool = True,
-          log=print) -> dict:
+          log=print, workers: int = 0) -> dict:
     """Train (or resume) the detector of ``cfg``; returns ``{"history": [...], "best": path}``.
+
+    ``workers``: data-loading processes per training process (the samples, pure functions of their
+    index, and hence the result do not depend on it).
 
     Each history entry: epoch, mean loss parts, samples/s and the validation scores (precision,
     recall, f1, velocity_error_px) on the held-out ``val`` sequences.
@@ -103,7 +106,7 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
         sampler = DistributedSampler(data, num_replicas=world, rank=rank, shuffle=True, seed=seed, drop_last=True)
         sampler.set_epoch(epoch)
         loader = DataLoader(data, batch_size=t.batch // world, sampler=sampler, collate_fn=collate,
-                            num_workers=0, drop_last=True)
+                            num_workers=workers, drop_last=True)
         model.train()
         bar = None
         if progress and rank == 0:

@@ -133,3 +133,17 @@ def test_export_calibrates_the_threshold_on_validation(tmp_path):
     again = detector_from_checkpoint(ck)
     assert evaluate_cache(again, val, cfg.train.val_frames, cfg.decode.radius)["f1"] == pytest.approx(
         max(r["f1"] for r in rows))
+
+
+def test_data_loading_workers_do_not_change_the_result(tmp_path):
+    from detector.train import train
+
+    cfg = tiny_config(tmp_path)
+    params = []
+    for workers in (0, 2):
+        run = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, out=str(tmp_path / f"w{workers}")))
+        result = train(run, seed=0, progress=False, log=lambda *_: None, workers=workers)
+        params.append(load_checkpoint(result["last"])["model"])
+    assert params[0].keys() == params[1].keys()
+    for k in params[0]:
+        assert torch.equal(params[0][k], params[1][k]), k

@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from torchtrack.cli._common import add_common_options, write_json
+from torchtrack.errors import TorchtrackError
 
 NAME = "train-detector"
 HELP = "train the small CenterTrack-style detector on synthetic satellite video"
@@ -30,6 +31,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--threads", type=int, default=None,
                         help="torch intra-op threads per process (1 is fastest on a busy machine)")
+    parser.add_argument("--workers", type=int, default=0,
+                        help="data-loading processes per training process (default 0: in the training process); "
+                             "the result does not depend on it, since every sample is a pure function of its index")
     add_common_options(parser)
 
 
@@ -52,7 +56,9 @@ def run(args) -> int:
         changes["epochs"] = args.epochs
     if changes:
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **changes))
-    result = train(cfg, seed=args.seed, resume=args.resume, progress=not args.no_progress)
+    if args.workers < 0:
+        raise TorchtrackError(f"--workers must be >= 0, got {args.workers}")
+    result = train(cfg, seed=args.seed, resume=args.resume, progress=not args.no_progress, workers=args.workers)
     import os
 
     if int(os.environ.get("RANK", "0")) == 0:
