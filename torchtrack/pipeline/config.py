@@ -14,14 +14,14 @@ from torchtrack.pipeline.registration import RegistrationConfig
 
 SELECTED_TRACKERS: dict = {
     "gmphd": {"fix_separation": 4.0, "confirm_new": False,
-              "filter": {"velocity_sigma": 1.0, "velocity_outlier": 0.3, "clutter_density": 1e-4},
+              "filter": {"velocity_sigma": 1.0, "velocity_outlier": 0.3, "clutter_density": 1e-5},
               "birth": {"birth_weight": 0.05}},
     "labelled-gmphd": {"filter": {"p_detection": 0.9, "clutter_density": 3e-4}},
     "sort": {"max_distance": 30.0, "max_age": 3, "min_hits": 1},
     "greedy": {"max_distance": 20.0, "max_age": 2},
 }
-"""Per-tracker options of the embedded defaults, with ``min_speed 1`` and ``min_motion 8``: chosen by
-``torchtrack select-trackers --sequences out/val --min-speeds 0 1 --min-motions 5 8`` on the detector's
+"""Per-tracker options of the embedded defaults, with ``min_speed 2`` and ``min_motion 5``: chosen by
+``torchtrack select-trackers --sequences out/val --min-speeds 0 1 2 --min-motions 5 8 12`` on the detector's
 validation-split sequences (docs/pipeline.md)."""
 
 
@@ -54,8 +54,8 @@ class PipelineConfig:
     tracker: str = "gmphd"
     tracker_options: dict = field(default_factory=dict)
     trackers: dict = field(default_factory=lambda: copy.deepcopy(SELECTED_TRACKERS))
-    min_speed: float = 1.0
-    min_motion: float = 8.0
+    min_speed: float = 2.0
+    min_motion: float = 5.0
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
     detection_threshold: float | None = None
