@@ -74,7 +74,8 @@ class Scores:
 def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = None,
            motions: Iterable[np.ndarray | None] | None = None):
     """Run ``detector.detect`` over a sequence, the prior of each frame being the previous detections
-    (and their velocities, for the motion-continuity check);
+    (and their velocities, for the motion-continuity check, from the third frame on: as in the pipeline,
+    the first frame's velocities, measured without a previous frame, are not passed on);
     yields :class:`Detections` per frame, adding the wall-clock and process CPU seconds of the calls to
     ``scores_time.seconds`` and ``scores_time.cpu_seconds`` (CPU time per frame, summed over threads,
     is what a dedicated core would take; wall time depends on the machine's load). With ``motions``
@@ -92,7 +93,8 @@ def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = 
             scores_time.seconds += time.perf_counter() - t0
             scores_time.cpu_seconds += time.process_time() - c0
         yield det
-        prev, prev_pts, prev_vel = img, det.xy, det.velocity
+        # a first frame's velocities were measured without a previous frame: not a motion to continue
+        prev, prev_pts, prev_vel = img, det.xy, det.velocity if prev is not None else None
 
 
 def moving_only(det: Detections, min_speed: float, camera: np.ndarray | None = None) -> Detections:

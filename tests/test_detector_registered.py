@@ -4,6 +4,7 @@ import dataclasses
 
 import cv2
 import numpy as np
+import torch
 from test_detector_train import tiny_config
 
 from detector.dataset import PairDataset, build_cache
@@ -54,3 +55,23 @@ def test_registered_pairs_cancel_the_static_ground(tmp_path):
     a, b = PairDataset(cache, raw, 0), PairDataset(cache, reg, 0)
     rms = np.array([[(d[i][0][0] - d[i][0][1]).pow(2).mean().sqrt().item() for d in (a, b)] for i in range(16)])
     assert rms[:, 1].mean() < 0.75 * rms[:, 0].mean()
+
+
+def test_stream_passes_velocities_on_from_the_second_frame_only():
+    """As in the pipeline: a first frame's velocities were measured without a previous frame."""
+    from types import SimpleNamespace
+
+    from detector.evaluate import stream
+
+    calls = []
+
+    class Recorder:
+        def detect(self, img, prev, prev_pts, prev_velocity=None):
+            calls.append((prev is None, prev_pts is None, prev_velocity))
+            return SimpleNamespace(xy=torch.ones(1, 2) * len(calls), velocity=torch.full((1, 2), float(len(calls))))
+
+    frames = [np.zeros((8, 8), np.uint8)] * 3
+    list(stream(Recorder(), frames))
+    assert calls[0] == (True, True, None)
+    assert calls[1][:2] == (False, False) and calls[1][2] is None
+    assert calls[2][:2] == (False, False) and torch.equal(calls[2][2], torch.full((1, 2), 2.0))
