@@ -25,6 +25,7 @@ import torch
 from torch.utils.data import Dataset
 
 from detector.config import DetectorConfig
+from detector.evaluate import ground_velocity
 from detector.network import STRIDE
 from detector.targets import Targets, gaussian_heatmap, make_targets
 from torchtrack.errors import TorchtrackError
@@ -163,9 +164,8 @@ class PairDataset(Dataset):
         if d.register and not same:
             m = cache.current_to_previous(s, t, tp)
             prev = torch.from_numpy(warp_previous(cache.frames[s, tp].numpy(), m, (c, c), (x0, y0)))
-            to_cur = np.linalg.inv(m)
-            pxy = torch.from_numpy(apply_homography(pxy.numpy(), to_cur)).float()
-            vel = xy - torch.from_numpy(apply_homography((xy - vel).numpy(), to_cur)).float()
+            pxy = torch.from_numpy(apply_homography(pxy.numpy(), np.linalg.inv(m))).float()
+            vel = torch.from_numpy(ground_velocity(xy.numpy(), vel.numpy(), m)).float()
         else:
             prev = cache.frames[s, tp, y0:y0 + c, x0:x0 + c]
         prev = (prev.float() - self.mean[s, tp]) / self.std[s, tp]

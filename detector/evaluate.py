@@ -171,7 +171,7 @@ def evaluate_cache(detector, cache, n_frames: int, radius: float = 10.0) -> dict
     registered = _registered(detector)
     for s in range(cache.frames.shape[0]):
         imgs = [cache.frames[s, t].numpy() for t in range(n_frames)]
-        motions = [None] + [cache.current_to_previous(s, t, t - 1) for t in range(1, n_frames)]
+        motions = registered_motions(cache.homography[s, :n_frames].numpy())
         for t, det in enumerate(stream(detector, imgs, scores, motions if registered else None)):
             _, xy, vel = cache.truth(s, t)
             xy, vel = xy.numpy().astype(np.float64), vel.numpy().astype(np.float64)
