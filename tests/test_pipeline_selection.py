@@ -27,7 +27,8 @@ def moving_pair():
         truth = np.array([[20.0 + 6 * k, 40.0], [20.0 + 6 * k, 90.0]])
         pos = np.vstack([truth, [[100.0, 140.0]]])
         vel = np.array([[6.0, 0.0], [6.0, 0.0], [0.0, 0.0]])
-        dets.append(FrameDetections(k, np.eye(3), pos, vel, np.ones(3), pos, vel, np.array([20.0, 20.0, 1.0])))
+        dets.append(FrameDetections(k, np.eye(3), pos, vel, np.ones(3), pos, vel, np.array([20.0, 20.0, 1.0]),
+                                    np.ones(3, bool)))
         rows += [(k, 1, *truth[0]), (k, 2, *truth[1])]
     r = np.array(rows)
     gt = from_points(r[:, 0].astype(np.int64), r[:, 1].astype(np.int64), r[:, 2], r[:, 3])

@@ -98,12 +98,15 @@ def test_detector_sees_registered_previous_frame_and_prior(tmp_path, sequence, m
     assert np.median(err) < 0.5 and err.max() < 1.0
 
 
-def test_interrupted_run_leaves_consistent_tracks(tmp_path, sequence, monkeypatch):
+@pytest.mark.parametrize("lag", [0, 1, 2])
+def test_interrupted_run_leaves_consistent_tracks(tmp_path, sequence, monkeypatch, lag):
     with pytest.raises(KeyboardInterrupt):
-        _run(tmp_path, sequence, monkeypatch, OracleDetector(sequence, stop_at=4))
+        _run(tmp_path, sequence, monkeypatch, OracleDetector(sequence, stop_at=4), output_lag=lag)
+    # Frames 1-3 were completed; with an output lag L only frames 1..3-L were final.
+    final = tuple(range(1, 4 - lag))
     tracks = read_mot(tmp_path / "tracks.txt")
-    assert set(tracks.frames().tolist()) == {1, 2, 3}
-    for k, idx in zip((1, 2, 3), tracks.split((1, 2, 3))):
+    assert set(tracks.frames().tolist()) == set(final)
+    for k, idx in zip(final, tracks.split(final)):
         assert len(idx) == len(sequence[k - 1].xy)
     assert not (tmp_path / "metrics.json").exists()
     assert not (tmp_path / "annotated.mp4").exists() and (tmp_path / "annotated.partial.mp4").exists()
@@ -150,10 +153,10 @@ def test_size_change_mid_run_names_the_file_and_leaves_no_complete_results(tmp_p
     (out).mkdir()
     (out / "metrics.json").write_text("{}")  # a previous run's result must not survive beside the new files
     with pytest.raises(TorchtrackError, match=r"003\.png: frame size 160x100 differs from 160x160"):
-        tv.track_video(FolderSource(frames), out, PipelineConfig(min_speed=0.0, min_motion=0.0), detector=OnePoint(),
-                       progress=False)
+        tv.track_video(FolderSource(frames), out, PipelineConfig(min_speed=0.0, min_motion=0.0, output_lag=1),
+                       detector=OnePoint(), progress=False)
     assert not (out / "metrics.json").exists() and not (out / "annotated.mp4").exists()
-    assert read_mot(out / "tracks.txt").frames().tolist() == [1, 2]  # complete up to the last good frame
+    assert read_mot(out / "tracks.txt").frames().tolist() == [1]  # complete up to the last final frame
 
 
 def test_truth_beyond_the_frames_is_refused_before_writing(tmp_path, sequence, monkeypatch):
@@ -178,8 +181,8 @@ class RepeatingTracker(RecordingTracker):
 def test_repeated_identity_is_dropped_counted_and_warned(tmp_path, sequence, monkeypatch):
     monkeypatch.setattr(tv, "make_tracker", lambda name, options: RepeatingTracker())
     with pytest.warns(UserWarning, match="5 estimate"):
-        result = tv.track_video(ArraySource([f.image for f in sequence]), tmp_path, PipelineConfig(video=False),
-                                detector=OnePoint(), progress=False)
+        result = tv.track_video(ArraySource([f.image for f in sequence]), tmp_path,
+                                PipelineConfig(video=False, output_lag=0), detector=OnePoint(), progress=False)
     tracks = read_mot(result.files["tracks"])  # a valid file: one line per (frame, id)
     assert tracks.size == 10 and set(tracks.id.tolist()) == {5, 6}
     assert result.metrics["duplicate_identities_dropped"] == 5

@@ -40,6 +40,13 @@ class PipelineConfig:
     detector_weights: a weights file (``None``: the shipped weights).
     detection_threshold: decode the detector's heatmap down to this score (``None``: the detector's own
     calibrated threshold); lower values raise recall when the moving-object gate removes the false alarms.
+    weak_threshold, weak_distance: detections decoded between ``weak_threshold`` and the detection
+    threshold are given to the tracker only where they continue a track: their position minus their
+    velocity within ``weak_distance`` px of a track reported at the previous frame (``None``: off;
+    :mod:`torchtrack.pipeline.tracker_stream`).
+    output_lag, lag_distance: a frame's tracks are written ``output_lag`` frames later, after backfilling
+    new tracks, filling short gaps and trimming coasting tails with what those frames showed (0: online;
+    :mod:`torchtrack.pipeline.fixed_lag`).
     prior: where the detector's prior heatmap comes from: the previous frame's ``detections`` (the
     paper's eq. 1) or its ``tracks``.
     threshold: CLEAR-MOT centre-distance threshold in pixels (the paper's 10 px).
@@ -59,6 +66,10 @@ class PipelineConfig:
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
     detection_threshold: float | None = None
+    weak_threshold: float | None = 0.15
+    weak_distance: float = 2.5
+    output_lag: int = 3
+    lag_distance: float = 3.0
     prior: str = "detections"
     threshold: float = 10.0
     video: bool = True
@@ -74,9 +85,15 @@ class PipelineConfig:
     def __post_init__(self) -> None:
         if self.prior not in ("detections", "tracks"):
             raise TorchtrackError(f"pipeline config: prior must be 'detections' or 'tracks', got {self.prior!r}")
-        for name in ("min_speed", "min_motion"):
+        for name in ("min_speed", "min_motion", "output_lag"):
             if not getattr(self, name) >= 0:
                 raise TorchtrackError(f"pipeline config: {name} must be >= 0, got {getattr(self, name)!r}")
+        for name in ("weak_distance", "lag_distance"):
+            if not getattr(self, name) > 0:
+                raise TorchtrackError(f"pipeline config: {name} must be > 0, got {getattr(self, name)!r}")
+        if self.weak_threshold is not None and not 0 < self.weak_threshold < 1:
+            raise TorchtrackError(f"pipeline config: weak_threshold must be in (0, 1) or null, "
+                                  f"got {self.weak_threshold!r}")
         if not isinstance(self.trackers, dict) or not all(isinstance(v, dict) for v in self.trackers.values()):
             raise TorchtrackError("pipeline config: trackers must map tracker names to option mappings")
         if self.dtype not in ("float32", "float64"):

@@ -30,7 +30,7 @@ from torchtrack.pipeline.truth import parked_mask
 GRIDS: dict[str, dict[str, list]] = {
     "gmphd": {"fix_separation": [4.0, 8.0], "confirm_new": [True, False], "filter.velocity_sigma": [None, 1.0],
               "filter.velocity_outlier": [0.3], "filter.clutter_density": [1e-4, 1e-5],
-              "birth.birth_weight": [0.05, 0.3]},
+              "birth.birth_weight": [0.05, 0.3], "coast_threshold": [0.03, 0.1]},
     "labelled-gmphd": {"filter.p_detection": [0.8, 0.9], "filter.clutter_density": [1e-4, 3e-4]},
     "sort": {"max_distance": [10.0, 20.0, 30.0], "max_age": [1, 3], "min_hits": [1, 3]},
     "greedy": {"max_distance": [10.0, 20.0], "max_age": [0, 2]},

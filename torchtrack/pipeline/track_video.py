@@ -51,7 +51,9 @@ from torchtrack.io.mot import MOTData, MOTWriter, from_points, read_mot
 from torchtrack.io.video_writer import AnnotatedVideoWriter, apply_homography, save_png
 from torchtrack.metrics import clear_mot
 from torchtrack.pipeline.config import PipelineConfig
+from torchtrack.pipeline.fixed_lag import LaggedFrame
 from torchtrack.pipeline.registration import Registration, transfer_error, warp_previous
+from torchtrack.pipeline.tracker_stream import TrackerStream, as_numpy
 
 
 class StageTimer:
@@ -94,7 +96,9 @@ def homography_jacobian(h: np.ndarray, points: np.ndarray) -> np.ndarray:
 class FrameDetections(NamedTuple):
     """Detections of one frame: ``positions``/``velocities (K, 2)`` in reference coordinates, ``scores (K,)``,
     ``homography (3, 3)`` frame → reference; ``image_positions``/``image_velocities`` in frame coordinates
-    (the detector's output); ``motion (K,)`` the motion evidence at each detection (:func:`motion_evidence`).
+    (the detector's output); ``motion (K,)`` the motion evidence at each detection (:func:`motion_evidence`);
+    ``strong (K,)`` whether it scored at least the detection threshold (the others are weak detections,
+    decoded further down for :class:`~torchtrack.pipeline.tracker_stream.TrackerStream` to continue tracks).
     On the first frame there is no previous frame: ``velocities`` are NaN (unknown) and ``motion`` is ``inf``,
     so that the moving-object gate passes everything and the trackers start without a velocity."""
 
@@ -106,14 +110,19 @@ class FrameDetections(NamedTuple):
     image_positions: np.ndarray
     image_velocities: np.ndarray
     motion: np.ndarray
+    strong: np.ndarray
+
+    def select(self, keep: np.ndarray) -> FrameDetections:
+        """The detections where ``keep (K,)`` (a mask or indices)."""
+        return self._replace(**{k: getattr(self, k)[keep] for k in
+                                ("positions", "velocities", "scores", "image_positions", "image_velocities",
+                                 "motion", "strong")})
 
     def moving(self, min_speed: float = 0.0, min_motion: float = 0.0) -> FrameDetections:
         """The detections with predicted speed ``>= min_speed`` px/frame (or unknown) and motion evidence
         ``>= min_motion``."""
-        keep = ~(np.hypot(self.velocities[:, 0], self.velocities[:, 1]) < min_speed) & (self.motion >= min_motion)
-        return self._replace(**{k: getattr(self, k)[keep] for k in
-                                ("positions", "velocities", "scores", "image_positions", "image_velocities",
-                                 "motion")})
+        return self.select(~(np.hypot(self.velocities[:, 0], self.velocities[:, 1]) < min_speed)
+                           & (self.motion >= min_motion))
 
 
 MOTION_WINDOW = 5
@@ -132,14 +141,6 @@ def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray)
     return diff[y, x].astype(np.float64)
 
 
-def _numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
-    if x is None:
-        return np.zeros((0, *shape_tail))
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, np.float64).reshape(-1, *shape_tail)
-
-
 class Detection:
     """Registration + detection of a frame stream (steps 1–2 of the module docstring).
 
@@ -147,18 +148,26 @@ class Detection:
     ``score (K,)`` and ``velocity (K, 2)`` (:class:`detector.Detections`: frame pixel coordinates,
     velocities ``x_k − x_{k-1}`` in px/frame). A detector whose ``detect`` takes ``prev_velocity`` gets the
     previous detections' velocities too (its motion-continuity check). With ``threshold`` (our
-    :class:`detector.Detector` only) it decodes down to that score; the prior heatmap of the next frame
-    still takes only the detections at or above the detector's own threshold, so that weak peaks do not
-    feed themselves.
+    :class:`detector.Detector` only) it decodes down to that score, and with ``weak_threshold`` further
+    down still: the detections between the two are marked weak (``FrameDetections.strong`` false). The prior
+    heatmap of the next frame takes only the detections at or above the detector's own threshold, so that
+    weak peaks do not feed themselves.
     """
 
     def __init__(self, detector, registration: Registration, timer: StageTimer,
-                 threshold: float | None = None) -> None:
+                 threshold: float | None = None, weak_threshold: float | None = None) -> None:
         self.detector = detector
         self.registration = registration
         self.timer = timer
-        self.threshold = threshold
-        self.prior_threshold = detector.config.decode.threshold if threshold is not None else -np.inf
+        if "threshold" not in inspect.signature(detector.detect).parameters:
+            if threshold is not None:
+                raise TorchtrackError("detection_threshold needs a detector whose detect() takes a threshold")
+            weak_threshold = None  # a stand-in detector decodes at its own threshold only
+        given = [t for t in (threshold, weak_threshold) if t is not None]
+        self.decode_threshold = min(given) if given else None
+        own = detector.config.decode.threshold if given else -np.inf
+        self.prior_threshold = own
+        self.strong_threshold = own if threshold is None else threshold
         self.prev_image: np.ndarray | None = None
         self.prev_h = np.eye(3)
         self.prior_ref = np.zeros((0, 2))  # prior points (reference coordinates) for the next frame
@@ -176,11 +185,11 @@ class Detection:
                 prev = warp_previous(self.prev_image, np.linalg.inv(self.prev_h) @ h, image.shape)
             prior = apply_homography(self.prior_ref, h_inv)
         with self.timer("detection"):
-            extra = {} if self.threshold is None else {"threshold": self.threshold}
+            extra = {} if self.decode_threshold is None else {"threshold": self.decode_threshold}
             if self.takes_velocity and self.prior_velocity is not None:
                 extra["prev_velocity"] = self.prior_velocity
             found = self.detector.detect(image, prev, prior, **extra)
-        pos, vel, scores = _numpy(found.xy, (2,)), _numpy(found.velocity, (2,)), _numpy(found.score, ())
+        pos, vel, scores = as_numpy(found.xy, (2,)), as_numpy(found.velocity, (2,)), as_numpy(found.score, ())
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
@@ -189,40 +198,29 @@ class Detection:
             else:
                 motion = motion_evidence(image, prev, pos)
         self.prev_image, self.prev_h = image, h
-        strong = scores >= self.prior_threshold
-        self.prior_ref = pos_ref[strong]
-        self.prior_velocity = None if np.isnan(vel_ref).any() else vel[strong]
-        return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion)
-
-
-def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, int]:
-    """One ``tracker.step`` on a frame's detections; returns ``ids (N,)``, reference ``positions (N, 2)``
-    and how many estimates were dropped because their identity was already reported in this frame
-    (the trackers' contract is unique identities per frame; a repeat is kept out of ``tracks.txt``, which
-    must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
-    velocities = None if np.isnan(det.velocities).any() else torch.as_tensor(det.velocities, dtype=dtype)
-    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype), velocities)
-    ids = _numpy(ids, ()).astype(np.int64)
-    positions = _numpy(positions, (2,))
-    _, first = np.unique(ids, return_index=True)
-    if len(first) < len(ids):
-        keep = np.sort(first)
-        return ids[keep], positions[keep], len(ids) - len(keep)
-    return ids, positions, 0
+        prior = scores >= self.prior_threshold
+        self.prior_ref = pos_ref[prior]
+        self.prior_velocity = None if np.isnan(vel_ref).any() else vel[prior]
+        return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion, scores >= self.strong_threshold)
 
 
 def replay_tracker(name: str, config: PipelineConfig, detections: list[FrameDetections]
                    ) -> Iterator[tuple[int, np.ndarray, np.ndarray, float]]:
-    """Run tracker ``name`` (with ``config.options_for(name)`` and ``config``'s moving-object gate) on the
-    kept detections of a pipeline run (no registration or detection again); yields per frame its index,
-    the ids, the positions in frame coordinates ``(N, 2)`` and the seconds spent in the tracker."""
-    tracker = make_tracker(name, config.options_for(name))
-    dtype = getattr(torch, config.dtype)
-    for det in detections:
+    """Run tracker ``name`` (with ``config.options_for(name)``, ``config``'s moving-object gate, weak
+    detections and output lag: :class:`TrackerStream`) on the kept detections of a pipeline run (no
+    registration or detection again); yields per final frame its index, the ids, the positions in frame
+    coordinates ``(N, 2)`` and the seconds spent in the tracker since the previous frame yielded."""
+    stream = TrackerStream(make_tracker(name, config.options_for(name)), config)
+    homography = {det.index: det.homography for det in detections}
+    seconds = 0.0
+    for det in [*detections, None]:
         t0 = time.perf_counter()
-        ids, pos, _ = run_tracker_step(tracker, det.moving(config.min_speed, config.min_motion), dtype)
-        seconds = time.perf_counter() - t0
-        yield det.index, ids, apply_homography(pos, np.linalg.inv(det.homography)), seconds
+        final = stream.step(det)[2] if det is not None else stream.finish()
+        seconds += time.perf_counter() - t0
+        for frame in final:
+            h_inv = np.linalg.inv(homography[frame.index])
+            yield frame.index, frame.ids, apply_homography(frame.positions, h_inv), seconds
+            seconds = 0.0
 
 
 def rerun_tracker(name: str, config: PipelineConfig, detections: list[FrameDetections], out: Path
@@ -302,23 +300,41 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         check_truth_frames(gt, gt_path, n_frames)
     if detector is None:
         detector = load_detector(cfg.detector_weights)
-    dtype = getattr(torch, cfg.dtype)
     timer = StageTimer()
-    detection = Detection(detector, Registration(cfg.registration), timer, cfg.detection_threshold)
-    tracker = make_tracker(cfg.tracker, cfg.options_for(cfg.tracker))
+    detection = Detection(detector, Registration(cfg.registration), timer, cfg.detection_threshold,
+                          cfg.weak_threshold)
+    stream = TrackerStream(make_tracker(cfg.tracker, cfg.options_for(cfg.tracker)), cfg)
     truth = _truth_by_frame(gt if ignore is None or gt is None else gt.select(~ignore))
     files = {"tracks": out / "tracks.txt", "detections": out / "detections.txt"}
     video = AnnotatedVideoWriter(out / "annotated.mp4", fps=cfg.video_fps, trail=cfg.trail, box=cfg.box,
                                  scale=cfg.scale) if cfg.video else None
     kept: list[FrameDetections] = []
     reg_errors: list[float] = []
-    duplicates = 0
+    waiting: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frames whose tracks are not final: image, H_k
     frames = 0
     t_start = time.perf_counter()
     scope = ExitStack()
     scope.enter_context(torch_threads(cfg.threads))
     bar = tqdm(total=n_frames or None, desc=f"track {cfg.tracker}", unit="frame", disable=not progress,
                leave=False)
+
+    def emit(final: list[LaggedFrame], tracks_out: MOTWriter) -> None:
+        """Write and draw the frames whose tracks became final (``output_lag`` frames back)."""
+        for index, ids, pos_ref in final:
+            image, h = waiting.pop(index)
+            h_inv = np.linalg.inv(h)
+            with timer("io"):
+                pos_img = apply_homography(pos_ref, h_inv)
+                tracks_out.write_frame(index, ids, pos_img[:, 0], pos_img[:, 1])
+            if video is not None:
+                with timer("render"):
+                    t = truth.get(index)
+                    drawn = video.write(image, ids, pos_ref, homography=h_inv,
+                                        truth=None if t is None or not cfg.draw_truth else apply_homography(t, h),
+                                        label=f"{cfg.tracker}  frame {index}")
+                    if index in cfg.snapshots:
+                        save_png(out / f"frame_{index:06d}.png", drawn)
+
     try:
         with MOTWriter(files["tracks"]) as tracks_out, MOTWriter(files["detections"]) as det_out:
             it = prefetch(source)
@@ -332,32 +348,24 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                     # True frame k → frame 1 map: H_1 H_k^{-1} (the generator's H maps reference → frame).
                     true_h = camera[0] @ np.linalg.inv(camera[frame.index - 1])
                     reg_errors.append(float(np.median(transfer_error(det.homography, true_h, frame.image.shape))))
+                waiting[frame.index] = (frame.image, det.homography)
                 with timer("tracking"):
-                    ids, pos_ref, dropped = run_tracker_step(tracker, det.moving(cfg.min_speed, cfg.min_motion),
-                                                             dtype)
-                duplicates += dropped
+                    _, pos_ref, final = stream.step(det)
                 if cfg.prior == "tracks":
                     detection.prior_ref, detection.prior_velocity = pos_ref, None
-                h_inv = np.linalg.inv(det.homography)
                 with timer("io"):
-                    pos_img = apply_homography(pos_ref, h_inv)
-                    tracks_out.write_frame(frame.index, ids, pos_img[:, 0], pos_img[:, 1])
-                    det_out.write_frame(frame.index, np.full(len(det.scores), -1), det.image_positions[:, 0],
-                                        det.image_positions[:, 1], conf=det.scores,
-                                        vx=det.image_velocities[:, 0], vy=det.image_velocities[:, 1])
-                if video is not None:
-                    with timer("render"):
-                        t = truth.get(frame.index)
-                        drawn = video.write(frame.image, ids, pos_ref, homography=h_inv,
-                                            truth=None if t is None or not cfg.draw_truth
-                                            else apply_homography(t, det.homography),
-                                            label=f"{cfg.tracker}  frame {frame.index}")
-                        if frame.index in cfg.snapshots:
-                            save_png(out / f"frame_{frame.index:06d}.png", drawn)
+                    found = det.select(det.strong)
+                    det_out.write_frame(frame.index, np.full(len(found.scores), -1), found.image_positions[:, 0],
+                                        found.image_positions[:, 1], conf=found.scores,
+                                        vx=found.image_velocities[:, 0], vy=found.image_velocities[:, 1])
+                emit(final, tracks_out)
                 if keep_detections:
                     kept.append(det)
                 frames += 1
                 bar.update()
+            with timer("tracking"):
+                final = stream.finish()
+            emit(final, tracks_out)
         if video is not None:
             with timer("render"):
                 files["video"] = video.close()
@@ -378,6 +386,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         metrics["clear_mot"] = score(gt, read_mot(files["tracks"]), cfg.threshold, ignore)
         det_scores = score(gt, _detections_as_tracks(files["detections"]), cfg.threshold, ignore)
         metrics["detector"] = {k: det_scores[k] for k in ("TP", "FP", "FN", "precision", "recall", "MOTP")}
+    duplicates = stream.duplicates
     if duplicates:
         warnings.warn(f"tracker {cfg.tracker} reported {duplicates} estimate(s) under an identity already "
                       "reported in the same frame; they were left out of tracks.txt", stacklevel=2)

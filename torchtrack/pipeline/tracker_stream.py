@@ -1,0 +1,93 @@
+"""Step 3 of the pipeline for one tracker: what it is given, its step, and its fixed-lag output.
+
+Per frame (:class:`TrackerStream`):
+
+1. the **moving-object gate** (``min_speed``, ``min_motion``; :meth:`FrameDetections.moving`);
+2. **weak detections that continue a track** — detections decoded below the detector's threshold
+   (down to ``weak_threshold``) are given to the tracker only where they continue a track: their position
+   minus their velocity lies within ``weak_distance`` px of a position the tracker reported at the previous
+   frame (the two-threshold association of ByteTrack, Zhang et al., ECCV 2022, without its second
+   association pass: the tracker's own association takes them). They never start a track on their own;
+3. the tracker's ``step`` (identities unique per frame, see :func:`run_tracker_step`);
+4. the **fixed-lag output** (:class:`torchtrack.pipeline.fixed_lag.FixedLagTracks`, ``output_lag``
+   frames, ``lag_distance`` px).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import torch
+
+from torchtrack.pipeline.config import PipelineConfig
+from torchtrack.pipeline.fixed_lag import FixedLagTracks, LaggedFrame
+
+if TYPE_CHECKING:
+    from torchtrack.pipeline.track_video import FrameDetections
+
+
+def as_numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
+    """``x`` (tensor, array, sequence or None) as a float64 array of shape ``(-1, *shape_tail)``."""
+    if x is None:
+        return np.zeros((0, *shape_tail))
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, np.float64).reshape(-1, *shape_tail)
+
+
+def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, int]:
+    """One ``tracker.step`` on a frame's detections; returns ``ids (N,)``, reference ``positions (N, 2)``
+    and how many estimates were dropped because their identity was already reported in this frame
+    (the trackers' contract is unique identities per frame; a repeat is kept out of ``tracks.txt``, which
+    must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
+    velocities = None if np.isnan(det.velocities).any() else torch.as_tensor(det.velocities, dtype=dtype)
+    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype), velocities)
+    ids = as_numpy(ids, ()).astype(np.int64)
+    positions = as_numpy(positions, (2,))
+    _, first = np.unique(ids, return_index=True)
+    if len(first) < len(ids):
+        keep = np.sort(first)
+        return ids[keep], positions[keep], len(ids) - len(keep)
+    return ids, positions, 0
+
+
+class TrackerStream:
+    """A tracker fed a pipeline's :class:`FrameDetections` frame by frame (module docstring).
+
+    ``step(det)`` returns the tracker's own (online) ``ids`` and reference ``positions`` of the frame —
+    what the next frame's prior heatmap may use — and the frames whose tracks became final;
+    ``finish()`` returns the frames still pending at the end. ``duplicates`` counts the estimates dropped
+    for repeating an identity within a frame.
+    """
+
+    def __init__(self, tracker, config: PipelineConfig) -> None:
+        self.tracker = tracker
+        self.config = config
+        self.dtype = getattr(torch, config.dtype)
+        self.output = FixedLagTracks(config.output_lag, config.lag_distance)
+        self.previous = np.zeros((0, 2))
+        self.duplicates = 0
+
+    def tracker_input(self, det: FrameDetections) -> FrameDetections:
+        """The detections the tracker gets: moving, and strong or continuing a previous position."""
+        moving = det.moving(self.config.min_speed, self.config.min_motion)
+        keep = moving.strong.copy()
+        weak = np.flatnonzero(~keep & (moving.scores >= (self.config.weak_threshold or np.inf)))
+        if len(weak) and len(self.previous) and not np.isnan(moving.velocities).any():
+            start = moving.positions[weak] - moving.velocities[weak]
+            gap = np.hypot(start[:, None, 0] - self.previous[None, :, 0], start[:, None, 1] - self.previous[None, :, 1])
+            keep[weak[gap.min(axis=1) < self.config.weak_distance]] = True
+        return moving.select(keep)
+
+    def step(self, det: FrameDetections) -> tuple[np.ndarray, np.ndarray, list[LaggedFrame]]:
+        """One frame: the tracker's online ``ids (N,)``, ``positions (N, 2)`` and the frames final now."""
+        given = self.tracker_input(det)
+        ids, positions, dropped = run_tracker_step(self.tracker, given, self.dtype)
+        self.duplicates += dropped
+        self.previous = positions
+        return ids, positions, self.output.push(det.index, ids, positions, given.positions, given.velocities)
+
+    def finish(self) -> list[LaggedFrame]:
+        """The frames still pending at the end of the stream."""
+        return self.output.finish()
