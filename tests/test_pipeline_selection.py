@@ -7,7 +7,7 @@ import torch
 
 from torchtrack.io.mot import from_points
 from torchtrack.pipeline.config import PipelineConfig
-from torchtrack.pipeline.selection import SequenceDetections, evaluate, option_sets, select
+from torchtrack.pipeline.selection import SequenceDetections, choose, evaluate, option_sets, select
 from torchtrack.pipeline.track_video import FrameDetections
 
 
@@ -49,3 +49,11 @@ def test_select_finds_the_min_speed_that_drops_the_static_false_alarm(moving_pai
                          {"greedy": {"max_distance": [10.0], "max_age": [0]}}, progress=False)
     assert chosen.min_speed == 2.0 and chosen.trackers == {"greedy": {"max_distance": 10.0, "max_age": 0}}
     assert len(log) == 2 and torch.tensor([r["MOTA"] for r in log]).argmax().item() == 1
+
+
+def test_choose_prefers_identities_among_options_level_in_mota():
+    rows = [{"MOTA": 0.803, "IDF1": 0.82, "name": "a"}, {"MOTA": 0.800, "IDF1": 0.86, "name": "b"},
+            {"MOTA": 0.790, "IDF1": 0.90, "name": "c"}]
+    assert choose(rows)["name"] == "a"
+    assert choose(rows, 0.005)["name"] == "b"
+    assert choose(rows, 0.02)["name"] == "c"

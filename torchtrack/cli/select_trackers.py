@@ -21,8 +21,9 @@ Run registration and the detector once on every sequence of --sequences (folders
 `torchtrack track --sequences`, with gt.txt and, for synthetic ones, velocity.txt), then every tracker
 with every option set of its grid (torchtrack/pipeline/selection.py: GRIDS) at every combination of
 --min-speeds and --min-motions (the moving-object gate), scored by pooled CLEAR-MOT. Each tracker keeps
-its best options by MOTA; the gate is where the pipeline's tracker (--pipeline-config's, default gmphd)
-scores best, so all trackers are compared on the same detections. Writes --out, a pipeline config
+the options with the best IDF1 among those within --mota-tolerance of its best MOTA; the gate is where
+the pipeline's tracker (--pipeline-config's, default gmphd) scores best, so all trackers are compared on
+the same detections. Writes --out, a pipeline config
 for `torchtrack demo --config` and `torchtrack track --pipeline-config`, and OUT.json with every run.
 
 Use sequences that are not the ones you report (docs/pipeline.md). Example:
@@ -42,6 +43,9 @@ def add_arguments(parser) -> None:
                         help="min_speed values to try, px/frame (default 0 2)")
     parser.add_argument("--min-motions", nargs="+", type=float, default=[0.0, 5.0, 8.0], metavar="G",
                         help="min_motion values to try, grey levels (default 0 5 8)")
+    parser.add_argument("--mota-tolerance", type=float, default=0.005, metavar="T",
+                        help="per tracker, keep the options with the best IDF1 among those within T of the best "
+                             "MOTA (default 0.005; 0: the best MOTA)")
     parser.add_argument("--work", type=Path, default=Path("out/select-trackers"), metavar="DIR",
                         help="folder for the detection runs (default out/select-trackers)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -56,6 +60,8 @@ def config_mapping(config: PipelineConfig) -> dict:
 
 
 def run(args) -> int:
+    if not args.mota_tolerance >= 0:
+        raise TorchtrackError(f"--mota-tolerance must be >= 0, got {args.mota_tolerance}")
     for flag, values in (("--min-speeds", args.min_speeds), ("--min-motions", args.min_motions)):
         if any(v < 0 for v in values):
             raise TorchtrackError(f"{flag} must be >= 0, got {values}")
@@ -65,11 +71,12 @@ def run(args) -> int:
     if not data:
         raise TorchtrackError(f"{args.sequences}: no sequence with a gt.txt")
     gates = [(s, m) for s in args.min_speeds for m in args.min_motions]
-    chosen, log = select(data, config, trackers, gates, GRIDS, progress=not args.no_progress)
+    chosen, log = select(data, config, trackers, gates, GRIDS, progress=not args.no_progress,
+                         mota_tolerance=args.mota_tolerance)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     header = (f"# written by: torchtrack select-trackers --sequences {args.sequences} "
               f"--min-speeds {' '.join(map(str, args.min_speeds))} "
-              f"--min-motions {' '.join(map(str, args.min_motions))}\n")
+              f"--min-motions {' '.join(map(str, args.min_motions))} --mota-tolerance {args.mota_tolerance}\n")
     args.out.write_text(header + yaml.safe_dump(config_mapping(chosen), sort_keys=False))
     args.out.with_suffix(".json").write_text(json.dumps(log, indent=1) + "\n")
     best = {r["tracker"]: r for r in log if (r["min_speed"], r["min_motion"]) == (chosen.min_speed, chosen.min_motion)

@@ -13,16 +13,17 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.pipeline.registration import RegistrationConfig
 
 SELECTED_TRACKERS: dict = {
-    "gmphd": {"fix_separation": 4.0, "confirm_new": False,
-              "filter": {"velocity_sigma": 1.0, "velocity_outlier": 0.3, "clutter_density": 1e-5},
+    "gmphd": {"fix_separation": 4.0, "confirm_new": True, "handover_distance": 10.0, "coast_threshold": 0.03,
+              "filter": {"velocity_sigma": 1.0, "velocity_outlier": 0.3, "p_detection": 0.8, "q": 1.0,
+                         "clutter_density": 1e-5},
               "birth": {"birth_weight": 0.05}},
-    "labelled-gmphd": {"filter": {"p_detection": 0.9, "clutter_density": 3e-4}},
-    "sort": {"max_distance": 30.0, "max_age": 3, "min_hits": 1},
+    "labelled-gmphd": {"filter": {"p_detection": 0.9, "q": 1.0, "clutter_density": 3e-4}},
+    "sort": {"max_distance": 30.0, "max_age": 1, "min_hits": 3},
     "greedy": {"max_distance": 20.0, "max_age": 2},
 }
 """Per-tracker options of the embedded defaults, with ``min_speed 2`` and ``min_motion 5``: chosen by
-``torchtrack select-trackers --sequences out/val --min-speeds 0 1 2 --min-motions 5 8 12`` on the detector's
-validation-split sequences (docs/pipeline.md)."""
+``torchtrack select-trackers --sequences out/val --min-speeds 1 2 --min-motions 5 8`` on the detector's
+validation-split sequences, with the fixed-lag output and weak detections of the defaults (docs/pipeline.md)."""
 
 
 @dataclass

@@ -28,10 +28,12 @@ from torchtrack.pipeline.track_video import FrameDetections, replay_tracker, sco
 from torchtrack.pipeline.truth import parked_mask
 
 GRIDS: dict[str, dict[str, list]] = {
-    "gmphd": {"fix_separation": [4.0, 8.0], "confirm_new": [True, False], "filter.velocity_sigma": [None, 1.0],
-              "filter.velocity_outlier": [0.3], "filter.clutter_density": [1e-4, 1e-5],
-              "birth.birth_weight": [0.05, 0.3], "coast_threshold": [0.03, 0.1]},
-    "labelled-gmphd": {"filter.p_detection": [0.8, 0.9], "filter.clutter_density": [1e-4, 3e-4]},
+    "gmphd": {"fix_separation": [4.0], "confirm_new": [True, False], "filter.velocity_sigma": [1.0],
+              "filter.velocity_outlier": [0.3], "filter.p_detection": [0.8, 0.9], "filter.q": [1.0, 2.0],
+              "filter.clutter_density": [1e-4, 1e-5], "birth.birth_weight": [0.05],
+              "handover_distance": [10.0, 20.0], "coast_threshold": [0.03, 0.1]},
+    "labelled-gmphd": {"filter.p_detection": [0.8, 0.9], "filter.q": [1.0, 2.0],
+                       "filter.clutter_density": [1e-4, 3e-4]},
     "sort": {"max_distance": [10.0, 20.0, 30.0], "max_age": [1, 3], "min_hits": [1, 3]},
     "greedy": {"max_distance": [10.0, 20.0], "max_age": [0, 2]},
     "pmb": {},
@@ -97,22 +99,33 @@ def evaluate(name: str, options: dict | None, gate: tuple[float, float], data: l
     return score(*concatenate(parts), config.threshold, np.concatenate(masks))
 
 
+def choose(rows: list[dict], mota_tolerance: float = 0.0) -> dict:
+    """The row (``MOTA``, ``IDF1``, ...) with the highest IDF1 among those within ``mota_tolerance`` of the
+    highest MOTA (the first such row on ties)."""
+    top = max(r["MOTA"] for r in rows)
+    return max((r for r in rows if r["MOTA"] >= top - mota_tolerance), key=lambda r: r["IDF1"])
+
+
 def select(data: list[SequenceDetections], config: PipelineConfig, trackers: list[str],
            gates: list[tuple[float, float]], grids: dict[str, dict[str, list]] | None = None,
-           progress: bool = True) -> tuple[PipelineConfig, list[dict]]:
+           progress: bool = True, mota_tolerance: float = 0.0) -> tuple[PipelineConfig, list[dict]]:
     """Grid search (module docstring) over the ``(min_speed, min_motion)`` ``gates``; returns the chosen
-    config and every evaluation (``tracker, min_speed, min_motion, options, MOTA, IDS, FP, FN, IDF1``)."""
+    config and every evaluation (``tracker, min_speed, min_motion, options, MOTA, IDS, FP, FN, IDF1``).
+
+    Per gate and tracker the option set with the highest IDF1 among those within ``mota_tolerance`` of the
+    best MOTA is kept (0: the best MOTA): MOTA differences of a few thousandths are noise on a few
+    validation sequences, and among such options IDF1 prefers the one that keeps identities."""
     grids = GRIDS if grids is None else grids
     runs = [(g, name, o) for g in gates for name in trackers for o in option_sets(grids.get(name, {}))]
     log = []
-    best: dict[tuple[tuple[float, float], str], dict] = {}
+    rows: dict[tuple[tuple[float, float], str], list[dict]] = {}
     for gate, name, options in tqdm(runs, desc="select-trackers", unit="run", disable=not progress):
         m = evaluate(name, options, gate, data, config)
         row = {"tracker": name, "min_speed": gate[0], "min_motion": gate[1], "options": options,
                **{k: m[k] for k in ("MOTA", "IDS", "FP", "FN", "IDF1")}}
         log.append(row)
-        if (gate, name) not in best or row["MOTA"] > best[(gate, name)]["MOTA"]:
-            best[(gate, name)] = row
+        rows.setdefault((gate, name), []).append(row)
+    best = {key: choose(candidates, mota_tolerance) for key, candidates in rows.items()}
     main = config.tracker if config.tracker in trackers else trackers[0]
     gate = max(gates, key=lambda g: best[(g, main)]["MOTA"])
     chosen = {name: best[(gate, name)]["options"] for name in trackers if best[(gate, name)]["options"]}
