@@ -125,3 +125,27 @@ def test_real_wpafb_frames(tmp_path, capsys):
     assert m["clear_mot"]["GT"] > 0  # moving vehicles (frame 1 has none: nothing has a history yet)
     assert m["detector"]["TP"] > 0  # the synthetic-trained detector finds real vehicles
     assert len(_decode(out / "annotated.mp4")) == 6
+
+
+def test_weak_detections_leave_the_detector_output_and_its_prior_unchanged(sequence, tmp_path):
+    """Decoding further down for the tracker adds weak detections (flagged) but changes neither the
+    strong ones, nor detections.txt, nor the prior heatmap the next frame is detected with."""
+    from detector import load_detector
+    from torchtrack.io.frames import FolderSource
+    from torchtrack.pipeline.config import PipelineConfig
+    from torchtrack.pipeline.track_video import track_video
+
+    threshold = load_detector().config.decode.threshold
+    runs = {}
+    for weak in (None, 0.1):
+        cfg = PipelineConfig(weak_threshold=weak, video=False)
+        runs[weak] = track_video(FolderSource(sequence / "frames"), tmp_path / str(weak), cfg,
+                                 keep_detections=True, progress=False)
+    assert (tmp_path / "None" / "detections.txt").read_text() == (tmp_path / "0.1" / "detections.txt").read_text()
+    extra = 0
+    for plain, weak in zip(runs[None].detections, runs[0.1].detections):
+        assert plain.strong.all()
+        np.testing.assert_array_equal(weak.select(weak.strong).image_positions, plain.image_positions)
+        assert (weak.scores[~weak.strong] >= 0.1).all() and (weak.scores[~weak.strong] < threshold).all()
+        extra += int((~weak.strong).sum())
+    assert extra > 0
