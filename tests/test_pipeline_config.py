@@ -14,6 +14,19 @@ def test_shipped_yaml_equals_defaults():
     assert load_pipeline_config(ROOT / "configs" / "pipeline.yaml") == PipelineConfig()
 
 
+def test_online_yaml_differs_from_the_defaults_only_in_lag_gate_and_options():
+    online = load_pipeline_config(ROOT / "configs" / "pipeline-online.yaml")
+    assert online.output_lag == 0
+    assert online.replace(output_lag=3, min_speed=2.0, trackers=PipelineConfig().trackers) == PipelineConfig()
+
+
+@pytest.mark.parametrize("key, value", [("output_lag", -1), ("weak_distance", 0.0), ("lag_distance", -2.0),
+                                        ("weak_threshold", 1.5)])
+def test_bad_lag_and_weak_settings_are_named(key, value):
+    with pytest.raises(TorchtrackError, match=key):
+        PipelineConfig(**{key: value})
+
+
 def test_unknown_keys_are_named(tmp_path):
     bad = tmp_path / "p.yaml"
     bad.write_text("pipeline:\n  trakcer: sort\n")
