@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 import torch
 
+from torchtrack.errors import TorchtrackError
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.fixed_lag import FixedLagTracks
 from torchtrack.pipeline.track_video import FrameDetections
@@ -81,7 +82,7 @@ def test_coasting_tail_is_trimmed_and_coasting_through_a_miss_kept():
 
 
 def test_bad_lag_is_refused():
-    with pytest.raises(ValueError, match="lag"):
+    with pytest.raises(TorchtrackError, match="lag"):
         FixedLagTracks(lag=-1)
 
 

@@ -27,6 +27,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from torchtrack.errors import TorchtrackError
+
 
 class LaggedFrame(NamedTuple):
     """The final tracks of one frame: ``ids (N,)`` and reference ``positions (N, 2)``."""
@@ -78,7 +80,7 @@ class FixedLagTracks:
 
     def __post_init__(self) -> None:
         if self.lag < 0 or self.distance <= 0:
-            raise ValueError(f"FixedLagTracks needs lag >= 0 and distance > 0, got {self.lag}, {self.distance}")
+            raise TorchtrackError(f"FixedLagTracks needs lag >= 0 and distance > 0, got {self.lag}, {self.distance}")
 
     def push(self, index: int, ids: np.ndarray, positions: np.ndarray, detections: np.ndarray,
              velocities: np.ndarray) -> list[LaggedFrame]:

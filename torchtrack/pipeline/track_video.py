@@ -9,14 +9,16 @@ For each frame ``k`` (only the previous frame is kept, so memory does not grow w
    objects move), and the prior heatmap ``G_{k-1}`` built from the previous frame's detections (or
    tracks) mapped into the current frame;
 3. **track** — positions and detector velocities go to reference coordinates (velocities through the
-   Jacobian of ``H_k`` at each point) and into the tracker's ``step``; tracks live in reference
-   coordinates (an estimate repeating an identity already reported in the frame is dropped, counted and
-   warned about: identities must be unique per frame);
-4. **write** — the frame's tracks, mapped back into frame ``k`` by ``H_k⁻¹``, are appended to
-   ``tracks.txt`` and flushed (an interrupted run leaves a file complete up to the last frame), and the
-   detections to ``detections.txt`` (frame coordinates, with velocities);
-5. **render** — the annotated frame goes to ``annotated.mp4`` (renamed from ``.partial.mp4`` at the
-   end).
+   Jacobian of ``H_k`` at each point) and through :class:`~torchtrack.pipeline.tracker_stream.TrackerStream`
+   (moving-object gate, weak detections that continue a track, the tracker's ``step``, fixed-lag output);
+   tracks live in reference coordinates (an estimate repeating an identity already reported in the frame
+   is dropped, counted and warned about: identities must be unique per frame);
+4. **write** — each frame whose tracks became final (``output_lag`` frames later), mapped back into its
+   frame by ``H_k⁻¹``, is appended to ``tracks.txt`` and flushed (an interrupted run leaves a file
+   complete up to the last final frame), and the detections to ``detections.txt`` (frame coordinates,
+   with velocities; the strong ones: the detector's output at its threshold);
+5. **render** — the final frame goes to ``annotated.mp4`` (renamed from ``.partial.mp4`` at the end);
+   the last ``output_lag`` images wait for it.
 
 At the end, the tracks are scored against the truth (CLEAR-MOT, ``torchtrack.metrics.clear_mot``)
 where given, and ``metrics.json`` gets the scores, the per-stage timings (registration, detection,
@@ -165,9 +167,8 @@ class Detection:
             weak_threshold = None  # a stand-in detector decodes at its own threshold only
         given = [t for t in (threshold, weak_threshold) if t is not None]
         self.decode_threshold = min(given) if given else None
-        own = detector.config.decode.threshold if given else -np.inf
-        self.prior_threshold = own
-        self.strong_threshold = own if threshold is None else threshold
+        self.prior_threshold = detector.config.decode.threshold if given else -np.inf
+        self.strong_threshold = self.prior_threshold if threshold is None else threshold
         self.prev_image: np.ndarray | None = None
         self.prev_h = np.eye(3)
         self.prior_ref = np.zeros((0, 2))  # prior points (reference coordinates) for the next frame
