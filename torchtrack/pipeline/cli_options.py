@@ -38,7 +38,9 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
     # --compare and --trackers of torchtrack track also apply to --sequences: the detector runs once per
     # sequence and every tracker runs on its detections.
     g.add_argument("--pipeline-config", type=Path, metavar="YAML", default=None,
-                   help="pipeline settings (configs/pipeline.yaml); default: the embedded ones")
+                   help="pipeline settings (configs/pipeline.yaml); default: the embedded ones, which write "
+                        "tracks.txt 3 frames behind the video (fixed-lag output); configs/pipeline-online.yaml "
+                        "writes each frame at once")
     g.add_argument("--weights", type=Path, metavar="PT", default=None,
                    help="detector weights (default: the shipped ones)")
     g.add_argument("--camera", type=Path, metavar="JSON", default=None,
