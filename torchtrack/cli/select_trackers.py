@@ -23,8 +23,8 @@ with every option set of its grid (torchtrack/pipeline/selection.py: GRIDS) at e
 --min-speeds and --min-motions (the moving-object gate), scored by pooled CLEAR-MOT. Each tracker keeps
 the options with the best IDF1 among those within --mota-tolerance of its best MOTA; the gate is where
 the pipeline's tracker (--pipeline-config's, default gmphd) scores best, so all trackers are compared on
-the same detections. Writes --out, a pipeline config
-for `torchtrack demo --config` and `torchtrack track --pipeline-config`, and OUT.json with every run.
+the same detections. Writes --out, a pipeline config for `torchtrack demo --config` and
+`torchtrack track --pipeline-config`, and OUT.json with every run.
 
 Use sequences that are not the ones you report (docs/pipeline.md). Example:
   for i in 1 2 3; do torchtrack simulate-video --seed $((10000000 + i)) --out out/val/seq$i; done

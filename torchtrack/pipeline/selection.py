@@ -3,8 +3,9 @@
 The detector runs once per sequence (:func:`collect`); then, for every moving-object gate
 ``(min_speed, min_motion)`` of the grid and every tracker, each option set of that tracker's grid runs on the
 same kept detections and is scored by pooled CLEAR-MOT over all sequences (:func:`evaluate`). Per gate each
-tracker keeps its best option set by MOTA; the gate is the one where the pipeline's own tracker scores best,
-so that every tracker is compared on the same detections (:func:`select`). The result is a pipeline config
+tracker keeps its best option set (:func:`choose`: the best IDF1 among the sets level in MOTA); the gate is
+the one where the pipeline's own tracker scores best, so that every tracker is compared on the same
+detections (:func:`select`). The result is a pipeline config
 (``min_speed``, ``min_motion`` and ``trackers``) for ``torchtrack demo --config`` /
 ``torchtrack track --pipeline-config``.
 
