@@ -89,6 +89,9 @@ class PipelineConfig:
         for name in ("min_speed", "min_motion", "output_lag"):
             if not getattr(self, name) >= 0:
                 raise TorchtrackError(f"pipeline config: {name} must be >= 0, got {getattr(self, name)!r}")
+        if isinstance(self.output_lag, bool) or not isinstance(self.output_lag, int):
+            raise TorchtrackError(f"pipeline config: output_lag must be a whole number of frames, "
+                                  f"got {self.output_lag!r}")
         for name in ("weak_distance", "lag_distance"):
             if not getattr(self, name) > 0:
                 raise TorchtrackError(f"pipeline config: {name} must be > 0, got {getattr(self, name)!r}")
