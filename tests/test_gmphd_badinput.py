@@ -58,6 +58,11 @@ def test_bad_input_is_a_clear_error():
         make_tracker("gmphd", {"filter": {"p_detection": 0.9, "nonsense": 1}})
     with pytest.raises(TorchtrackError, match="p_detection"):
         make_tracker("gmphd", {"filter": {"p_detection": 1.5}})
+    for bad in (0, 2.5, "3"):
+        with pytest.raises(TorchtrackError, match="confirm_new"):
+            make_tracker("gmphd", {"confirm_new": bad})
+    with pytest.raises(TorchtrackError, match="confirm_misses"):
+        make_tracker("gmphd", {"confirm_misses": -1})
 
 
 @pytest.mark.parametrize("name", ["gmphd", "labelled-gmphd"])

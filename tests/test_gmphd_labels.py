@@ -2,15 +2,18 @@
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from torchtrack.filters.gmphd import MixtureState
 from torchtrack.filters.gmphd_labels import (
     LostLabels,
     best_per_label,
+    confirm_labels,
     label_fix,
     label_handover,
     no_lost_labels,
+    no_tentative_labels,
     relabel,
 )
 from torchtrack.filters.multitarget import make_tracker
@@ -105,3 +108,64 @@ def test_without_label_fix_the_split_tracks_share_one_label():
     rep = _split_scene("labelled-gmphd")
     tail = rep[-8:]
     assert all(len(ids) == 1 for ids, _ in tail)              # duplicates of one label: only one reported
+
+
+def _first_report(extracted: list[bool], frames: int, misses: int) -> int | None:
+    """Brute force for one new label: the frame it is first reported, given per frame whether it is extracted
+    (it stays in the mixture throughout)."""
+    count = gap = 0
+    for k, e in enumerate(extracted):
+        if e:
+            count = count + 1 if gap <= misses else 1
+            gap = 0
+            if count >= frames:
+                return k
+        else:
+            gap += 1
+            if gap > misses:
+                count = 0
+    return None
+
+
+@pytest.mark.parametrize("frames,misses", [(2, 0), (3, 0), (3, 1), (3, 2), (4, 1)])
+def test_confirmation_reports_a_new_label_from_its_nth_extraction(frames, misses):
+    patterns = [[bool(b) for b in f"{n:08b}"] for n in range(256)]     # every 8-frame extraction pattern
+    for pattern in patterns:
+        tentative, reported_at = no_tentative_labels(), None
+        for k, extracted in enumerate(pattern):
+            label = torch.tensor([9] if extracted else [], dtype=torch.long)
+            report, tentative = confirm_labels(label, torch.zeros_like(label, dtype=torch.bool), tentative,
+                                               torch.tensor([9]), frames, misses)
+            if bool(report.any()):
+                reported_at = k
+                break
+        assert reported_at == _first_report(pattern, frames, misses), pattern
+
+
+def test_confirmation_reports_known_labels_at_once_and_forgets_labels_gone_from_the_mixture():
+    label = torch.tensor([4, 9])
+    report, tentative = confirm_labels(label, torch.tensor([True, False]), no_tentative_labels(),
+                                       torch.tensor([4, 9]), 3, 2)
+    assert report.tolist() == [True, False] and tentative.label.tolist() == [9]
+    _, tentative = confirm_labels(torch.tensor([4]), torch.tensor([True]), tentative, torch.tensor([4]), 3, 2)
+    assert tentative.label.numel() == 0                      # label 9 was pruned from the mixture
+
+
+def _first_reported_frame(options: dict, missed: frozenset = frozenset()) -> int | None:
+    tracker = make_tracker("gmphd", {"dtype": "float64", **options})
+    for k in range(1, 12):
+        z = torch.empty(0, 2, dtype=F64) if k in missed else torch.tensor([[100.0 + 2.0 * k, 50.0]], dtype=F64)
+        ids, _ = tracker.step(k, z, torch.tensor([[2.0, 0.0]], dtype=F64).expand(z.shape[0], 2))
+        if ids.numel():
+            return k
+    return None
+
+
+def test_tracker_reports_a_new_vehicle_after_confirm_new_extractions():
+    at_once = _first_reported_frame({"confirm_new": False})
+    assert at_once is not None
+    assert [_first_reported_frame({"confirm_new": n}) for n in (True, 3, 4)] == [at_once + 1, at_once + 2, at_once + 3]
+    # a missed detection between the extractions: the count restarts, unless confirm_misses lets it wait
+    missed = frozenset({at_once + 1})
+    assert _first_reported_frame({"confirm_new": 3}, missed) == at_once + 4
+    assert _first_reported_frame({"confirm_new": 3, "confirm_misses": 1}, missed) == at_once + 3

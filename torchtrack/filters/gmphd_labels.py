@@ -169,3 +169,40 @@ def update_lost(lost: LostLabels, prev_label: Tensor, prev_pos: Tensor, prev_vel
                       torch.cat([lost.pos[keep], prev_pos[gone].to(lost.pos.dtype)]),
                       torch.cat([lost.vel[keep], prev_vel[gone].to(lost.vel.dtype)]),
                       torch.cat([lost.age[keep] + 1, torch.ones_like(prev_label[gone])]))
+
+
+class TentativeLabels(NamedTuple):
+    """New labels extracted but not yet reported (the confirmation of :class:`GMPHDTracker`): ``label (T,)``,
+    ``count (T,)`` frames it has been extracted, ``misses (T,)`` frames since it was last extracted."""
+
+    label: Tensor
+    count: Tensor
+    misses: Tensor
+
+
+def no_tentative_labels(device=None) -> TentativeLabels:
+    empty = torch.empty(0, dtype=torch.long, device=device)
+    return TentativeLabels(empty, empty, empty)
+
+
+def confirm_labels(label: Tensor, known: Tensor, tentative: TentativeLabels, alive: Tensor, frames: int,
+                   max_misses: int = 0) -> tuple[Tensor, TentativeLabels]:
+    """Which of this frame's estimates to report: a label that is ``known (E,)`` (reported before) at once,
+    a new one from the ``frames``-th frame it is extracted. A tentative label not extracted now keeps its
+    count for up to ``max_misses`` frames while it is still among the mixture's labels ``alive``, so that a
+    missed detection delays its confirmation instead of restarting it.
+
+    Returns the bool mask ``(E,)`` of estimates to report and the tentative labels after this frame.
+    """
+    count = torch.ones_like(label)
+    if tentative.label.numel():
+        order = torch.argsort(tentative.label)
+        sorted_label = tentative.label[order]
+        loc = torch.searchsorted(sorted_label, label).clamp(max=sorted_label.numel() - 1)
+        count = torch.where(sorted_label[loc] == label, tentative.count[order][loc] + 1, count)
+    report = known | (count >= frames)
+    wait = ~torch.isin(tentative.label, label) & (tentative.misses < max_misses) & torch.isin(tentative.label, alive)
+    new = ~report
+    return report, TentativeLabels(torch.cat([label[new], tentative.label[wait]]),
+                                   torch.cat([count[new], tentative.count[wait]]),
+                                   torch.cat([torch.zeros_like(label[new]), tentative.misses[wait] + 1]))

@@ -31,10 +31,13 @@ from torchtrack.filters.gmphd import GMPHD, Matrices, MixtureState, concat, empt
 from torchtrack.filters.gmphd_birth import AdaptiveBirth, BirthConstants, VelocityMap
 from torchtrack.filters.gmphd_labels import (
     LostLabels,
+    TentativeLabels,
     best_per_label,
+    confirm_labels,
     label_fix,
     label_handover,
     no_lost_labels,
+    no_tentative_labels,
     relabel,
     update_lost,
 )
@@ -54,7 +57,7 @@ class TrackerMemory(NamedTuple):
     prev_pos: Tensor      # (E, 2) their positions
     prev_vel: Tensor      # (E, 2) their velocities
     lost: LostLabels      # labels reported recently but not at the previous frame
-    tentative: Tensor | None = None   # (T,) new labels extracted at the previous frame but not yet reported
+    tentative: TentativeLabels        # new labels extracted but not yet reported
 
 
 class StepResult(NamedTuple):
@@ -83,14 +86,17 @@ class GMPHDTracker(nn.Module):
         fix_separation: label-fix duplicates closer than this (px) to the label's keeper keep the label
             and are not reported.
         merge_priority: with the label fix, a merged group keeps a label reported at the previous frame.
-        confirm_new: a new label is reported only from the second consecutive frame it is extracted.
+        confirm_new: a new label is reported from the ``confirm_new``-th frame it is extracted (True: the
+            second; False or 1: at once).
+        confirm_misses: a new label not yet reported keeps its count through up to this many frames in which
+            it is not extracted (while it is still in the mixture); 0: the frames must be consecutive.
         dtype: floating dtype of the streaming state (float32 is fast, float64 accurate).
     """
 
     def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = True,
                  settled_velocity_var: float = 4.0, handover_frames: int = 8, handover_distance: float = 20.0,
                  coast_threshold: float | None = 0.03, fix_separation: float = 12.0, merge_priority: bool = True,
-                 confirm_new: bool = True,
+                 confirm_new: bool | int = True, confirm_misses: int = 0,
                  dtype: torch.dtype = torch.float32):
         super().__init__()
         self.phd = phd if phd is not None else GMPHD()
@@ -102,7 +108,14 @@ class GMPHDTracker(nn.Module):
         self.coast_threshold = coast_threshold
         self.fix_separation = fix_separation
         self.merge_priority = merge_priority
-        self.confirm_new = confirm_new
+        frames = 2 if confirm_new is True else 1 if confirm_new is False else confirm_new
+        if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
+            raise TorchtrackError("confirm_new must be true, false or a whole number of frames >= 1; "
+                                  f"got {confirm_new!r}")
+        if isinstance(confirm_misses, bool) or not isinstance(confirm_misses, int) or confirm_misses < 0:
+            raise TorchtrackError(f"confirm_misses must be a whole number of frames >= 0; got {confirm_misses!r}")
+        self.confirm_frames = frames
+        self.confirm_misses = confirm_misses
         self.to(dtype)
         self.dtype = dtype
         self.reset()
@@ -115,7 +128,7 @@ class GMPHDTracker(nn.Module):
         cfg = dict(config or {})
         cfg.update(overrides)
         known = {"filter", "birth", "label_fix", "settled_velocity_var", "handover_frames", "handover_distance",
-                 "coast_threshold", "fix_separation", "merge_priority", "confirm_new", "dtype"}
+                 "coast_threshold", "fix_separation", "merge_priority", "confirm_new", "confirm_misses", "dtype"}
         unknown = set(cfg) - known
         if unknown:
             raise TorchtrackError(f"unknown GM-PHD tracker option(s) {sorted(unknown)}; known: {sorted(known)}")
@@ -137,7 +150,8 @@ class GMPHDTracker(nn.Module):
                    coast_threshold=cfg.get("coast_threshold", 0.03),
                    fix_separation=float(cfg.get("fix_separation", 12.0)),
                    merge_priority=bool(cfg.get("merge_priority", True)),
-                   confirm_new=bool(cfg.get("confirm_new", True)), dtype=dtype)
+                   confirm_new=cfg.get("confirm_new", True), confirm_misses=cfg.get("confirm_misses", 0),
+                   dtype=dtype)
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
@@ -145,7 +159,7 @@ class GMPHDTracker(nn.Module):
         empty = torch.empty(0, dtype=torch.long)
         e2 = torch.empty(0, 2, dtype=self.dtype)
         return (empty_mixture(self.phd.state_dim, self.dtype),
-                TrackerMemory(1, empty, e2, e2, no_lost_labels(self.dtype)))
+                TrackerMemory(1, empty, e2, e2, no_lost_labels(self.dtype), no_tentative_labels()))
 
     def advance(self, state: MixtureState, memory: TrackerMemory, z: Tensor, velocity: Tensor | None,
                 mats: Matrices, vmap: VelocityMap | None = None, dt: float = 1.0,
@@ -186,15 +200,14 @@ class GMPHDTracker(nn.Module):
             ids = handed
             lost_before = lost
             lost = update_lost(lost, memory.prev_label, memory.prev_pos, memory.prev_vel, ids, self.handover_frames)
-        tentative = None
-        if self.confirm_new:
+        tentative = memory.tentative
+        if self.confirm_frames > 1:
             known = torch.isin(ids, memory.prev_label)
             if self.handover_frames > 0:
                 known = known | torch.isin(ids, lost_before.label)
-            if memory.tentative is not None:
-                known = known | torch.isin(ids, memory.tentative)
-            tentative = ids[~known]
-            sel, ids, pos, vel = sel[known], ids[known], pos[known], vel[known]
+            report, tentative = confirm_labels(ids, known, tentative, post.label, self.confirm_frames,
+                                               self.confirm_misses)
+            sel, ids, pos, vel = sel[report], ids[report], pos[report], vel[report]
         pos_d, vel_d = pos.detach(), vel.detach()
         if vmap is not None:
             cov = post.cov.detach()[sel]
