@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import from_points
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.selection import SequenceDetections, choose, evaluate, option_sets, select
@@ -57,3 +58,36 @@ def test_choose_prefers_identities_among_options_level_in_mota():
     assert choose(rows)["name"] == "a"
     assert choose(rows, 0.005)["name"] == "b"
     assert choose(rows, 0.02)["name"] == "c"
+    assert choose(rows, 0.02, max_ids=None)["name"] == "c"
+    rows = [{**r, "IDS": ids} for r, ids in zip(rows, (40, 30, 20))]
+    assert choose(rows, 0.005, max_ids=35)["name"] == "b"     # "a" has too many switches
+    assert choose(rows, 0.0, max_ids=25)["name"] == "c"
+    assert choose(rows, 0.005, max_ids=10)["name"] == "b"     # none has so few: the limit is ignored
+
+
+def test_select_with_an_identity_switch_limit_relative_to_a_reference(monkeypatch, moving_pair):
+    # scripted scores: option x trades MOTA for identity switches; the reference has 50 switches
+    table = {("gmphd", 1): (0.82, 40), ("gmphd", 2): (0.80, 25), ("sort", 1): (0.70, 50)}
+
+    def scripted(name, options, gate, data, config):
+        mota, ids = table[(name, options["x"])]
+        return {"MOTA": mota, "IDS": ids, "FP": 0, "FN": 0, "IDF1": 0.5}
+
+    monkeypatch.setattr("torchtrack.pipeline.selection.evaluate", scripted)
+    grids = {"gmphd": {"x": [1, 2]}, "sort": {"x": [1]}}
+    free, _ = select(moving_pair, PipelineConfig(), ["gmphd", "sort"], [(2.0, 5.0)], grids, progress=False)
+    assert free.trackers["gmphd"] == {"x": 1}
+    limited, _ = select(moving_pair, PipelineConfig(), ["gmphd", "sort"], [(2.0, 5.0)], grids, progress=False,
+                        ids_limit=("sort", 0.6))
+    assert limited.trackers == {"gmphd": {"x": 2}, "sort": {"x": 1}}       # 25 <= 0.6 x 50 < 40
+    with pytest.raises(TorchtrackError, match="reference"):
+        select(moving_pair, PipelineConfig(), ["gmphd"], [(2.0, 5.0)], grids, progress=False, ids_limit=("sort", 0.6))
+
+
+def test_select_trackers_refuses_a_non_positive_identity_switch_ratio(tmp_path, capsys):
+    from torchtrack.cli import main
+
+    code = main(["select-trackers", "--sequences", str(tmp_path), "--out", str(tmp_path / "s.yaml"),
+                 "--max-ids-ratio", "0"])
+    assert code == 2 and "--max-ids-ratio must be > 0" in capsys.readouterr().err
+    assert not (tmp_path / "s.yaml").exists()

@@ -21,7 +21,9 @@ Run registration and the detector once on every sequence of --sequences (folders
 `torchtrack track --sequences`, with gt.txt and, for synthetic ones, velocity.txt), then every tracker
 with every option set of its grid (torchtrack/pipeline/selection.py: GRIDS) at every combination of
 --min-speeds and --min-motions (the moving-object gate), scored by pooled CLEAR-MOT. Each tracker keeps
-the options with the best IDF1 among those within --mota-tolerance of its best MOTA; the gate is where
+the options with the best IDF1 among those within --mota-tolerance of its best MOTA (with --max-ids-ratio
+R, the pipeline's tracker only among the option sets with at most R times the identity switches of
+--ids-reference's chosen options: fewer switches for some MOTA); the gate is where
 the pipeline's tracker (--pipeline-config's, default gmphd) scores best, so all trackers are compared on
 the same detections. Writes --out, a pipeline config for `torchtrack demo --config` and
 `torchtrack track --pipeline-config`, and OUT.json with every run.
@@ -46,6 +48,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--mota-tolerance", type=float, default=0.005, metavar="T",
                         help="per tracker, keep the options with the best IDF1 among those within T of the best "
                              "MOTA (default 0.005; 0: the best MOTA)")
+    parser.add_argument("--max-ids-ratio", type=float, default=None, metavar="R",
+                        help="the pipeline's tracker chooses only among option sets with at most R times the "
+                             "identity switches of --ids-reference's chosen options (default: no limit)")
+    parser.add_argument("--ids-reference", choices=tracker_names(), default="labelled-gmphd",
+                        help="tracker whose identity switches --max-ids-ratio refers to (default labelled-gmphd)")
     parser.add_argument("--work", type=Path, default=Path("out/select-trackers"), metavar="DIR",
                         help="folder for the detection runs (default out/select-trackers)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
@@ -65,18 +72,23 @@ def run(args) -> int:
     for flag, values in (("--min-speeds", args.min_speeds), ("--min-motions", args.min_motions)):
         if any(v < 0 for v in values):
             raise TorchtrackError(f"{flag} must be >= 0, got {values}")
+    if args.max_ids_ratio is not None and not args.max_ids_ratio > 0:
+        raise TorchtrackError(f"--max-ids-ratio must be > 0, got {args.max_ids_ratio}")
     config = load_pipeline_config(args.pipeline_config)
     trackers = args.trackers or tracker_names()
     data = collect(args.sequences, args.work, config, progress=not args.no_progress)
     if not data:
         raise TorchtrackError(f"{args.sequences}: no sequence with a gt.txt")
     gates = [(s, m) for s in args.min_speeds for m in args.min_motions]
+    ids_limit = None if args.max_ids_ratio is None else (args.ids_reference, args.max_ids_ratio)
     chosen, log = select(data, config, trackers, gates, GRIDS, progress=not args.no_progress,
-                         mota_tolerance=args.mota_tolerance)
+                         mota_tolerance=args.mota_tolerance, ids_limit=ids_limit)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     header = (f"# written by: torchtrack select-trackers --sequences {args.sequences} "
               f"--min-speeds {' '.join(map(str, args.min_speeds))} "
-              f"--min-motions {' '.join(map(str, args.min_motions))} --mota-tolerance {args.mota_tolerance}\n")
+              f"--min-motions {' '.join(map(str, args.min_motions))} --mota-tolerance {args.mota_tolerance}"
+              + ("" if ids_limit is None else f" --max-ids-ratio {args.max_ids_ratio} --ids-reference "
+                 f"{args.ids_reference}") + "\n")
     args.out.write_text(header + yaml.safe_dump(config_mapping(chosen), sort_keys=False))
     args.out.with_suffix(".json").write_text(json.dumps(log, indent=1) + "\n")
     best = {r["tracker"]: r for r in log if (r["min_speed"], r["min_motion"]) == (chosen.min_speed, chosen.min_motion)

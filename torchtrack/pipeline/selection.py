@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 from tqdm import tqdm
 
+from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData, from_points, read_mot
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.sequences import concatenate, find_sequences
@@ -29,10 +30,11 @@ from torchtrack.pipeline.track_video import FrameDetections, replay_tracker, sco
 from torchtrack.pipeline.truth import parked_mask
 
 GRIDS: dict[str, dict[str, list]] = {
-    "gmphd": {"fix_separation": [4.0], "confirm_new": [True, False], "filter.velocity_sigma": [1.0],
-              "filter.velocity_outlier": [0.3], "filter.p_detection": [0.8, 0.9], "filter.q": [1.0, 2.0],
+    "gmphd": {"fix_separation": [4.0], "confirm_new": [True, False, 3], "confirm_misses": [3],
+              "filter.velocity_sigma": [1.0], "filter.velocity_outlier": [0.3], "filter.p_detection": [0.8, 0.9],
+              "filter.q": [0.5, 1.0, 2.0],
               "filter.clutter_density": [1e-4, 1e-5], "birth.birth_weight": [0.05],
-              "handover_distance": [10.0, 20.0], "coast_threshold": [0.03, 0.1]},
+              "handover_distance": [10.0], "coast_threshold": [0.03, 0.1]},
     "labelled-gmphd": {"filter.p_detection": [0.8, 0.9], "filter.q": [1.0, 2.0],
                        "filter.clutter_density": [1e-4, 3e-4]},
     "sort": {"max_distance": [10.0, 20.0, 30.0], "max_age": [1, 3], "min_hits": [1, 3]},
@@ -100,22 +102,27 @@ def evaluate(name: str, options: dict | None, gate: tuple[float, float], data: l
     return score(*concatenate(parts), config.threshold, np.concatenate(masks))
 
 
-def choose(rows: list[dict], mota_tolerance: float = 0.0) -> dict:
+def choose(rows: list[dict], mota_tolerance: float = 0.0, max_ids: float | None = None) -> dict:
     """The row (``MOTA``, ``IDF1``, ...) with the highest IDF1 among those within ``mota_tolerance`` of the
-    highest MOTA (the first such row on ties)."""
+    highest MOTA (the first such row on ties). With ``max_ids``, only the rows with at most that many
+    identity switches compete (all rows when none has so few)."""
+    rows = [r for r in rows if max_ids is None or r["IDS"] <= max_ids] or rows
     top = max(r["MOTA"] for r in rows)
     return max((r for r in rows if r["MOTA"] >= top - mota_tolerance), key=lambda r: r["IDF1"])
 
 
 def select(data: list[SequenceDetections], config: PipelineConfig, trackers: list[str],
            gates: list[tuple[float, float]], grids: dict[str, dict[str, list]] | None = None,
-           progress: bool = True, mota_tolerance: float = 0.0) -> tuple[PipelineConfig, list[dict]]:
+           progress: bool = True, mota_tolerance: float = 0.0,
+           ids_limit: tuple[str, float] | None = None) -> tuple[PipelineConfig, list[dict]]:
     """Grid search (module docstring) over the ``(min_speed, min_motion)`` ``gates``; returns the chosen
     config and every evaluation (``tracker, min_speed, min_motion, options, MOTA, IDS, FP, FN, IDF1``).
 
     Per gate and tracker the option set with the highest IDF1 among those within ``mota_tolerance`` of the
     best MOTA is kept (0: the best MOTA): MOTA differences of a few thousandths are noise on a few
-    validation sequences, and among such options IDF1 prefers the one that keeps identities."""
+    validation sequences, and among such options IDF1 prefers the one that keeps identities. With
+    ``ids_limit = (reference, ratio)`` the pipeline's tracker chooses only among the option sets with at most
+    ``ratio`` times the identity switches of ``reference``'s chosen options at the same gate."""
     grids = GRIDS if grids is None else grids
     runs = [(g, name, o) for g in gates for name in trackers for o in option_sets(grids.get(name, {}))]
     log = []
@@ -128,6 +135,13 @@ def select(data: list[SequenceDetections], config: PipelineConfig, trackers: lis
         rows.setdefault((gate, name), []).append(row)
     best = {key: choose(candidates, mota_tolerance) for key, candidates in rows.items()}
     main = config.tracker if config.tracker in trackers else trackers[0]
+    if ids_limit is not None:
+        reference, ratio = ids_limit
+        if reference not in trackers or reference == main:
+            raise TorchtrackError(f"the identity-switch reference {reference!r} must be another of the trackers "
+                                  f"selected ({', '.join(trackers)})")
+        for gate in gates:
+            best[(gate, main)] = choose(rows[(gate, main)], mota_tolerance, ratio * best[(gate, reference)]["IDS"])
     gate = max(gates, key=lambda g: best[(g, main)]["MOTA"])
     chosen = {name: best[(gate, name)]["options"] for name in trackers if best[(gate, name)]["options"]}
     return config.replace(min_speed=gate[0], min_motion=gate[1], trackers=chosen, tracker_options={}), log
