@@ -115,6 +115,40 @@ def test_weak_detections_only_continue_tracks(weak_threshold):
     np.testing.assert_allclose(tracker.seen[1].reshape(-1, 2), expected)
 
 
+class Pending(Recording):
+    """Reports nothing; holds its input's positions as new tracks waiting for confirmation."""
+
+    def step(self, frame, positions, velocities):
+        super().step(frame, positions, velocities)
+        self.pending_positions = positions
+        return torch.zeros(0, dtype=torch.long), positions[:0]
+
+
+@pytest.mark.parametrize("continues_pending", [False, True])
+def test_weak_detections_continue_pending_tracks_only_when_asked(continues_pending):
+    tracker = Pending()
+    stream = TrackerStream(tracker, PipelineConfig(output_lag=0, min_speed=0.0, min_motion=0.0,
+                                                   weak_continues_pending=continues_pending))
+    stream.step(frame(1, [car(1)], [0.9], [True]))
+    stream.step(frame(2, [car(2), [200.0, 200.0]], [0.2, 0.2], [False, False]))
+    np.testing.assert_allclose(tracker.seen[1].reshape(-1, 2), [car(2)] if continues_pending else np.zeros((0, 2)))
+
+
+def test_gmphd_tracker_exposes_new_labels_waiting_for_confirmation():
+    from torchtrack.filters.multitarget import make_tracker
+
+    tracker = make_tracker("gmphd", {"dtype": "float64", "confirm_new": 3})
+    pending = []
+    for k in range(1, 7):
+        z = torch.tensor([[100.0 + 5.0 * k, 50.0]], dtype=torch.float64)
+        ids, pos = tracker.step(k, z, torch.tensor([[5.0, 0.0]], dtype=torch.float64))
+        pending.append((len(ids), tracker.pending_positions.shape[0]))
+        if tracker.pending_positions.shape[0]:
+            np.testing.assert_allclose(tracker.pending_positions.numpy(), z.numpy(), atol=1.0)
+    first = next(k for k, (_, p) in enumerate(pending) if p)
+    assert pending[first:first + 3] == [(0, 1), (0, 1), (1, 0)]     # extracted twice unreported, then reported
+
+
 def test_tracker_stream_output_is_that_of_fixed_lag_tracks():
     tracker = SimpleNamespace(step=lambda k, p, v: (torch.full((len(p),), 4), p))
     stream = TrackerStream(tracker, PipelineConfig(output_lag=2, min_speed=0.0, min_motion=0.0))

@@ -84,11 +84,14 @@ def run(args) -> int:
     chosen, log = select(data, config, trackers, gates, GRIDS, progress=not args.no_progress,
                          mota_tolerance=args.mota_tolerance, ids_limit=ids_limit)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    header = (f"# written by: torchtrack select-trackers --sequences {args.sequences} "
-              f"--min-speeds {' '.join(map(str, args.min_speeds))} "
-              f"--min-motions {' '.join(map(str, args.min_motions))} --mota-tolerance {args.mota_tolerance}"
-              + ("" if ids_limit is None else f" --max-ids-ratio {args.max_ids_ratio} --ids-reference "
-                 f"{args.ids_reference}") + "\n")
+    flags = [f"--sequences {args.sequences}"]
+    if args.pipeline_config is not None:
+        flags.append(f"--pipeline-config {args.pipeline_config}")
+    flags += [f"--min-speeds {' '.join(map(str, args.min_speeds))}",
+              f"--min-motions {' '.join(map(str, args.min_motions))}", f"--mota-tolerance {args.mota_tolerance}"]
+    if ids_limit is not None:
+        flags.append(f"--max-ids-ratio {args.max_ids_ratio} --ids-reference {args.ids_reference}")
+    header = f"# written by: torchtrack select-trackers {' '.join(flags)}\n"
     args.out.write_text(header + yaml.safe_dump(config_mapping(chosen), sort_keys=False))
     args.out.with_suffix(".json").write_text(json.dumps(log, indent=1) + "\n")
     best = {r["tracker"]: r for r in log if (r["min_speed"], r["min_motion"]) == (chosen.min_speed, chosen.min_motion)

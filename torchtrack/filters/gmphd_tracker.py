@@ -67,6 +67,7 @@ class StepResult(NamedTuple):
     positions: Tensor     # (E, 2)
     velocities: Tensor    # (E, 2)
     log_likelihood: Tensor | None  # () PHD predictive log-likelihood of the frame's measurements (None: not asked)
+    pending: Tensor       # (T, 2) positions of new labels extracted now but not yet reported (confirm_new)
 
 
 class GMPHDTracker(nn.Module):
@@ -201,12 +202,14 @@ class GMPHDTracker(nn.Module):
             lost_before = lost
             lost = update_lost(lost, memory.prev_label, memory.prev_pos, memory.prev_vel, ids, self.handover_frames)
         tentative = memory.tentative
+        pending = pos[:0].detach()
         if self.confirm_frames > 1:
             known = torch.isin(ids, memory.prev_label)
             if self.handover_frames > 0:
                 known = known | torch.isin(ids, lost_before.label)
             report, tentative = confirm_labels(ids, known, tentative, post.label, self.confirm_frames,
                                                self.confirm_misses)
+            pending = pos[~report].detach()
             sel, ids, pos, vel = sel[report], ids[report], pos[report], vel[report]
         pos_d, vel_d = pos.detach(), vel.detach()
         if vmap is not None:
@@ -221,7 +224,7 @@ class GMPHDTracker(nn.Module):
         births = phd.gaussian_birth(b_mean, b_std, b_logw, b_label)
         new_state = phd.cap(concat(post, births))
         new_memory = TrackerMemory(next_label + B, ids, pos_d, vel_d, lost, tentative)   # labels carry no gradient
-        return StepResult(new_state, new_memory, ids, pos, vel, info.log_likelihood)
+        return StepResult(new_state, new_memory, ids, pos, vel, info.log_likelihood, pending)
 
     def log_likelihood(self, measurements: list[Tensor], velocities: list[Tensor | None] | None = None,
                        dt: float = 1.0) -> Tensor:
@@ -255,6 +258,12 @@ class GMPHDTracker(nn.Module):
         return self._stream.state
 
     @property
+    def pending_positions(self) -> Tensor:
+        """``(T, 2)`` positions of the new labels extracted at the last frame but not yet reported (waiting for
+        their confirmation, ``confirm_new``)."""
+        return self._stream.pending
+
+    @property
     def cap_hits(self) -> int:
         """How many times the component cap was hit (each also logged as a warning)."""
         return self.phd.cap_hits
@@ -275,7 +284,7 @@ class GMPHDTracker(nn.Module):
             if s.birth_consts is None:
                 s.birth_consts = self.birth.constants()
             res = self.advance(s.state, s.memory, z, v, mats, s.vmap, dt, s.birth_consts, likelihood=False)
-        s.state, s.memory, s.last_frame = res.state, res.memory, frame
+        s.state, s.memory, s.last_frame, s.pending = res.state, res.memory, frame, res.pending
         return res.ids, res.positions
 
 
@@ -290,3 +299,4 @@ class _Stream:
     last_frame: int | None = None
     mats: dict[float, Matrices] = field(default_factory=dict)   # parameters are frozen while streaming
     birth_consts: BirthConstants | None = None
+    pending: Tensor = field(default_factory=lambda: torch.empty(0, 2))

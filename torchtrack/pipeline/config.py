@@ -45,6 +45,8 @@ class PipelineConfig:
     threshold are given to the tracker only where they continue a track: their position minus their
     velocity within ``weak_distance`` px of a track reported at the previous frame (``None``: off;
     :mod:`torchtrack.pipeline.tracker_stream`).
+    weak_continues_pending: weak detections may also continue a new track the tracker extracted at the
+    previous frame but has not reported yet (a GM-PHD label waiting for ``confirm_new``).
     output_lag, lag_distance: a frame's tracks are written ``output_lag`` frames later, after backfilling
     new tracks, filling short gaps and trimming coasting tails with what those frames showed (0: online;
     :mod:`torchtrack.pipeline.fixed_lag`).
@@ -69,6 +71,7 @@ class PipelineConfig:
     detection_threshold: float | None = None
     weak_threshold: float | None = 0.15
     weak_distance: float = 2.5
+    weak_continues_pending: bool = False
     output_lag: int = 3
     lag_distance: float = 3.0
     prior: str = "detections"

@@ -7,7 +7,8 @@ Per frame (:class:`TrackerStream`):
    (down to ``weak_threshold``) are given to the tracker only where they continue a track: their position
    minus their velocity lies within ``weak_distance`` px of a position the tracker reported at the previous
    frame (the two-threshold association of ByteTrack, Zhang et al., ECCV 2022, without its second
-   association pass: the tracker's own association takes them). They never start a track on their own;
+   association pass: the tracker's own association takes them) — with ``weak_continues_pending``, also of a
+   new track extracted but not yet reported (``pending_positions``). They never start a track on their own;
 3. the tracker's ``step`` (identities unique per frame, see :func:`run_tracker_step`);
 4. the **fixed-lag output** (:class:`torchtrack.pipeline.fixed_lag.FixedLagTracks`, ``output_lag``
    frames, ``lag_distance`` px).
@@ -86,6 +87,8 @@ class TrackerStream:
         ids, positions, dropped = run_tracker_step(self.tracker, given, self.dtype)
         self.duplicates += dropped
         self.previous = positions
+        if self.config.weak_continues_pending and hasattr(self.tracker, "pending_positions"):
+            self.previous = np.concatenate([positions, as_numpy(self.tracker.pending_positions, (2,))])
         return ids, positions, self.output.push(det.index, ids, positions, given.positions, given.velocities)
 
     def finish(self) -> list[LaggedFrame]:
