@@ -30,7 +30,7 @@ from torchtrack.pipeline.track_video import FrameDetections, replay_tracker, sco
 from torchtrack.pipeline.truth import parked_mask
 
 GRIDS: dict[str, dict[str, list]] = {
-    "gmphd": {"fix_separation": [4.0], "confirm_new": [True, False, 3], "confirm_misses": [3],
+    "gmphd": {"fix_separation": [4.0, 5.0], "confirm_new": [True, False, 3], "confirm_misses": [3],
               "filter.velocity_sigma": [1.0], "filter.velocity_outlier": [0.3], "filter.p_detection": [0.8, 0.9],
               "filter.q": [0.5, 1.0, 2.0],
               "filter.clutter_density": [1e-4, 1e-5], "birth.birth_weight": [0.05],
