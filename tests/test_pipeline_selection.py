@@ -91,3 +91,13 @@ def test_select_trackers_refuses_a_non_positive_identity_switch_ratio(tmp_path, 
                  "--max-ids-ratio", "0"])
     assert code == 2 and "--max-ids-ratio must be > 0" in capsys.readouterr().err
     assert not (tmp_path / "s.yaml").exists()
+
+
+def test_select_trackers_refuses_an_identity_switch_reference_before_running_anything(tmp_path, capsys):
+    from torchtrack.cli import main
+
+    code = main(["select-trackers", "--sequences", str(tmp_path / "missing"), "--out", str(tmp_path / "s.yaml"),
+                 "--trackers", "gmphd", "sort", "--max-ids-ratio", "0.6", "--ids-reference", "gmphd"])
+    err = capsys.readouterr().err
+    assert code == 2 and "identity-switch reference 'gmphd'" in err and "missing" not in err
+    assert not (tmp_path / "s.yaml").exists()

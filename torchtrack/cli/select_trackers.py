@@ -12,7 +12,7 @@ from torchtrack.cli._common import add_common_options, format_table, write_json
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
-from torchtrack.pipeline.selection import GRIDS, collect, select
+from torchtrack.pipeline.selection import GRIDS, check_ids_reference, collect, select
 
 NAME = "select-trackers"
 HELP = "grid-search the video pipeline's moving-object gate and each tracker's options on validation sequences"
@@ -76,6 +76,8 @@ def run(args) -> int:
         raise TorchtrackError(f"--max-ids-ratio must be > 0, got {args.max_ids_ratio}")
     config = load_pipeline_config(args.pipeline_config)
     trackers = args.trackers or tracker_names()
+    if args.max_ids_ratio is not None:
+        check_ids_reference(args.ids_reference, config, trackers)
     data = collect(args.sequences, args.work, config, progress=not args.no_progress)
     if not data:
         raise TorchtrackError(f"{args.sequences}: no sequence with a gt.txt")

@@ -111,6 +111,15 @@ def choose(rows: list[dict], mota_tolerance: float = 0.0, max_ids: float | None 
     return max((r for r in rows if r["MOTA"] >= top - mota_tolerance), key=lambda r: r["IDF1"])
 
 
+def check_ids_reference(reference: str, config: PipelineConfig, trackers: list[str]) -> None:
+    """Raise unless ``reference`` is one of ``trackers`` other than the pipeline's own (the tracker whose
+    identity switches :func:`select`'s ``ids_limit`` refers to)."""
+    main = config.tracker if config.tracker in trackers else trackers[0]
+    if reference not in trackers or reference == main:
+        raise TorchtrackError(f"the identity-switch reference {reference!r} must be one of the trackers selected "
+                              f"({', '.join(trackers)}) other than the pipeline's own ({main!r})")
+
+
 def select(data: list[SequenceDetections], config: PipelineConfig, trackers: list[str],
            gates: list[tuple[float, float]], grids: dict[str, dict[str, list]] | None = None,
            progress: bool = True, mota_tolerance: float = 0.0,
@@ -124,6 +133,8 @@ def select(data: list[SequenceDetections], config: PipelineConfig, trackers: lis
     ``ids_limit = (reference, ratio)`` the pipeline's tracker chooses only among the option sets with at most
     ``ratio`` times the identity switches of ``reference``'s chosen options at the same gate."""
     grids = GRIDS if grids is None else grids
+    if ids_limit is not None:
+        check_ids_reference(ids_limit[0], config, trackers)
     runs = [(g, name, o) for g in gates for name in trackers for o in option_sets(grids.get(name, {}))]
     log = []
     rows: dict[tuple[tuple[float, float], str], list[dict]] = {}
@@ -137,9 +148,6 @@ def select(data: list[SequenceDetections], config: PipelineConfig, trackers: lis
     main = config.tracker if config.tracker in trackers else trackers[0]
     if ids_limit is not None:
         reference, ratio = ids_limit
-        if reference not in trackers or reference == main:
-            raise TorchtrackError(f"the identity-switch reference {reference!r} must be another of the trackers "
-                                  f"selected ({', '.join(trackers)})")
         for gate in gates:
             best[(gate, main)] = choose(rows[(gate, main)], mota_tolerance, ratio * best[(gate, reference)]["IDS"])
     gate = max(gates, key=lambda g: best[(g, main)]["MOTA"])
