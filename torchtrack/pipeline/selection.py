@@ -111,10 +111,15 @@ def choose(rows: list[dict], mota_tolerance: float = 0.0, max_ids: float | None 
     return max((r for r in rows if r["MOTA"] >= top - mota_tolerance), key=lambda r: r["IDF1"])
 
 
+def pipeline_tracker(config: PipelineConfig, trackers: list[str]) -> str:
+    """The tracker whose score picks the gate: the pipeline's own if it is among ``trackers``, else the first."""
+    return config.tracker if config.tracker in trackers else trackers[0]
+
+
 def check_ids_reference(reference: str, config: PipelineConfig, trackers: list[str]) -> None:
     """Raise unless ``reference`` is one of ``trackers`` other than the pipeline's own (the tracker whose
     identity switches :func:`select`'s ``ids_limit`` refers to)."""
-    main = config.tracker if config.tracker in trackers else trackers[0]
+    main = pipeline_tracker(config, trackers)
     if reference not in trackers or reference == main:
         raise TorchtrackError(f"the identity-switch reference {reference!r} must be one of the trackers selected "
                               f"({', '.join(trackers)}) other than the pipeline's own ({main!r})")
@@ -145,7 +150,7 @@ def select(data: list[SequenceDetections], config: PipelineConfig, trackers: lis
         log.append(row)
         rows.setdefault((gate, name), []).append(row)
     best = {key: choose(candidates, mota_tolerance) for key, candidates in rows.items()}
-    main = config.tracker if config.tracker in trackers else trackers[0]
+    main = pipeline_tracker(config, trackers)
     if ids_limit is not None:
         reference, ratio = ids_limit
         for gate in gates:
