@@ -195,3 +195,75 @@ def test_refine_average_returns_the_centroid_of_the_best_points_within_the_budge
     assert out["best"] > out["start"]
     with pytest.raises(TorchtrackError, match="average"):
         refine(tun, tracker, {"parameters": names, "evaluations": 1, "average": 2}, data, names, progress=False)
+
+
+def draws_config(tmp_path, seeds):
+    model = {"tracker": "labelled-gmphd", "dtype": "float64",
+             "filter": {"p_detection": 0.5, "clutter_density": 8.0 / AREA, "area": AREA, "sigma": 1.0, "q": 0.1},
+             "birth": {"birth_weight": 0.1}}
+    data = {"truth": str(truth_file(tmp_path, frames=40)),
+            "detections": {"pd": 0.8, "sigma": 1.0, "clutter": 8.0, "image_size": [300, 300]},
+            "train_frames": [1, 20], "held_out_frames": [21, 40], "window": 20, "burn_in": 3,
+            "held_out_draws": seeds}
+    return {"filter": "gmphd", "model": model, "trainable": ["phd.p_detection"], "data": data, "loss": "phd",
+            "optimizer": {"name": "adam", "lr": 0.1, "steps": 2, "batch_size": 1},
+            "grid": {"values": {"phd.p_detection": [0.3, 0.9]}}, "output": {"dir": str(tmp_path / "out")}}
+
+
+def test_held_out_draws_simulate_the_held_out_frames_anew_per_seed(tmp_path):
+    cfg = draws_config(tmp_path, [5, 6])
+    tun = get_tunable("gmphd", cfg["model"])
+    data = tun.load_data(cfg["data"], torch.Generator().manual_seed(1))
+    again = tun.load_data(cfg["data"], torch.Generator().manual_seed(2))
+    assert list(data.draws) == [5, 6]
+    (held,) = data.held_out
+    for seed, (item,) in data.draws.items():
+        assert item.frames == held.frames and np.array_equal(item.truth.centers(), held.truth.centers())
+        assert not all(torch.equal(a, b) for a, b in zip(item.z, held.z))        # a new draw ...
+        assert all(torch.equal(a, b) for a, b in zip(item.z, again.draws[seed][0].z))   # ... fixed by its seed
+    assert not all(torch.equal(a, b) for a, b in zip(data.draws[5][0].z, data.draws[6][0].z))
+
+
+def test_tune_scores_the_tuned_filter_and_the_grid_on_every_draw(tmp_path):
+    from torchtrack.tune import load_filter, tune
+
+    cfg = draws_config(tmp_path, [5, 6])
+    report = tune(cfg, progress=False)
+    draws = report["held_out_draws"]
+    assert draws["seeds"] == [5, 6] and set(draws) == {"seeds", "tuned", "grid"}
+    tun = get_tunable("gmphd", cfg["model"])
+    data = tun.load_data(cfg["data"], torch.Generator().manual_seed(0))
+    fitted, grid = load_filter(report["output"]["params"]), tun.build()
+    set_values(grid, report["grid"]["best"])
+    for name, module in (("tuned", fitted), ("grid", grid)):
+        expected = [tun.evaluate(module, data.draws[s])["MOTA"] for s in (5, 6)]
+        assert [d["MOTA"] for d in draws[name]["per_draw"]] == pytest.approx(expected, abs=1e-12)
+        assert draws[name]["MOTA"] == pytest.approx(sum(expected) / 2, abs=1e-12)
+
+
+@pytest.mark.parametrize("seeds, data_change, message", [
+    ("1000", {}, "non-empty list of integer seeds"),
+    ([], {}, "non-empty list of integer seeds"),
+    ([1, 2.5], {}, "non-empty list of integer seeds"),
+    ([1], {"held_out_frames": None}, "needs simulated 'detections' and 'held_out_frames'"),
+])
+def test_held_out_draws_bad_values_are_refused(tmp_path, seeds, data_change, message):
+    cfg = draws_config(tmp_path, seeds)
+    cfg["data"].update(data_change)
+    tun = get_tunable("gmphd", cfg["model"])
+    with pytest.raises(TorchtrackError, match=message):
+        tun.load_data(cfg["data"], torch.Generator().manual_seed(0))
+
+
+def test_tune_command_prints_the_draws_table(tmp_path, capsys):
+    import yaml
+
+    from torchtrack.cli import main
+
+    path = tmp_path / "tune.yaml"
+    path.write_text(yaml.safe_dump(draws_config(tmp_path, [5, 6])))
+    assert main(["tune", "--config", str(path), "--no-progress", "--json", str(tmp_path / "r.json")]) == 0
+    out = capsys.readouterr().out
+    assert "2 further detection draws (seeds 5, 6), mean:" in out
+    assert any(line.split()[:1] == ["tuned"] for line in out.splitlines())
+    assert any(line.split()[:1] == ["grid"] for line in out.splitlines())

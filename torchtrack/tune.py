@@ -63,6 +63,14 @@ def _relative_errors(fitted: Mapping[str, Any], truth: Mapping[str, Any]) -> dic
     return out
 
 
+def _score_draws(tunable: Tunable, module: nn.Module, draws: Mapping[int, list]) -> dict[str, Any]:
+    """The held-out metrics on each further draw (``per_draw``, in seed order) and their means."""
+    per_draw = [tunable.evaluate(module, items) for items in draws.values()]
+    out: dict[str, Any] = {k: sum(d[k] for d in per_draw) / len(per_draw) for k in per_draw[0]}
+    out["per_draw"] = per_draw
+    return out
+
+
 def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike | None = None,
          seed: int | None = None, progress: bool = True) -> dict[str, Any]:
     """Run a tune config (a path or an already-read mapping); returns the report (also what the CLI
@@ -139,10 +147,15 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
         report["frames"] += refined["frames"]
         report["training_passes"] = report["filter_evaluations"] / max(len(data.train), 1)
         report["seconds"] += refined["seconds"]
+    if data.draws:
+        report["held_out_draws"] = {"seeds": list(data.draws), "tuned": _score_draws(tunable, module, data.draws)}
     if cfg.get("grid"):
         from torchtrack.tuning.grid import grid_search
 
-        report["grid"] = grid_search(tunable, tunable.build(), cfg["grid"], data, progress)
+        grid_module = tunable.build()
+        report["grid"] = grid_search(tunable, grid_module, cfg["grid"], data, progress)
+        if data.draws:
+            report["held_out_draws"]["grid"] = _score_draws(tunable, grid_module, data.draws)
     save_params(module, params_path, tunable.name, tunable.options)
     exported = tunable.export(module)
     if exported is not None:

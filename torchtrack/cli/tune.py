@@ -110,6 +110,13 @@ def run(args) -> int:
                          *[g["held_out"].get(k, float("nan")) for k in metrics], f"{g['seconds']:.1f}"])
         print()
         print(format_table(["held-out", "item evaluations", "frames", *metrics, "seconds"], rows, floatfmt=".4g"))
+    if "held_out_draws" in report:
+        draws = report["held_out_draws"]
+        seeds = draws["seeds"]
+        print(f"\nheld-out frames, {len(seeds)} further detection draws (seeds {', '.join(map(str, seeds))}), mean:")
+        rows = [[name, *[draws[key].get(k, float("nan")) for k in metrics]]
+                for name, key in (("tuned", "tuned"), ("grid", "grid")) if key in draws]
+        print(format_table(["held-out draws", *metrics], rows, floatfmt=".4g"))
     for key, path in report["output"].items():
         print(f"{key}: {path}")
     write_json(args.json, report)

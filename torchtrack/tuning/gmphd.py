@@ -39,7 +39,7 @@ from torchtrack.tuning.losses import sinkhorn_gospa
 from torchtrack.tuning.registry import Tunable, TuneData, check_keys, register
 
 DATA_KEYS = ("wpafb", "truth", "simulate_truth", "detections", "detections_file", "train_frames",
-             "held_out_frames", "window", "burn_in", "threshold", "ospa_c", "gospa_c")
+             "held_out_frames", "held_out_draws", "window", "burn_in", "threshold", "ospa_c", "gospa_c")
 DET_KEYS = ("pd", "sigma", "clutter", "velocity_sigma", "image_size")
 TRUTH_KEYS = ("targets", "frames", "q", "speed", "image_size")
 WPAFB_ENV = "TORCHTRACK_WPAFB"
@@ -169,7 +169,21 @@ class GMPHDTunable(Tunable):
         held = config.get("held_out_frames")
         # held-out frames form one window each range (scored by streaming the tracker through it)
         held_out = self._windows(det, truth, held, None, "held_out_frames") if held else []
-        return TuneData(train, held_out)
+        return TuneData(train, held_out, self._draws(config, truth))
+
+    def _draws(self, config: Mapping[str, Any], truth) -> dict[int, list[FrameWindow]]:
+        """``held_out_draws: [seed, ...]``: the held-out frames with detections simulated anew from each
+        seed (the same settings, the same truth), so that a held-out score is not one draw's luck."""
+        seeds = config.get("held_out_draws")
+        if seeds is None:
+            return {}
+        if not (isinstance(seeds, list) and seeds and all(isinstance(s, int) and not isinstance(s, bool)
+                                                          for s in seeds)):
+            raise TorchtrackError(f"data.held_out_draws must be a non-empty list of integer seeds; got {seeds!r}")
+        if "detections" not in config or not config.get("held_out_frames"):
+            raise TorchtrackError("data.held_out_draws needs simulated 'detections' and 'held_out_frames'")
+        return {s: self._windows(self._simulate(truth, config["detections"] or {}, torch.Generator().manual_seed(s)),
+                                 truth, config["held_out_frames"], None, "held_out_frames") for s in seeds}
 
     def _simulate(self, truth, cfg: Mapping[str, Any], generator: torch.Generator):
         from torchtrack.sim.detections import default_image_size, simulate_detections

@@ -27,10 +27,12 @@ _REGISTRY: dict[str, type[Tunable]] = {}
 
 
 class TuneData(NamedTuple):
-    """Training and held-out items (sequences or windows; the item type belongs to the tunable)."""
+    """Training and held-out items (sequences or windows; the item type belongs to the tunable), and
+    ``draws``: further draws of the held-out items' simulated measurements, by seed (scored only)."""
 
     train: list
     held_out: list
+    draws: dict[int, list] = {}
 
 
 class Tunable:
