@@ -242,9 +242,10 @@ def test_tune_scores_the_tuned_filter_and_the_grid_on_every_draw(tmp_path):
 
 
 @pytest.mark.parametrize("seeds, data_change, message", [
-    ("1000", {}, "non-empty list of integer seeds"),
-    ([], {}, "non-empty list of integer seeds"),
-    ([1, 2.5], {}, "non-empty list of integer seeds"),
+    ("1000", {}, "non-empty list of distinct integer seeds"),
+    ([], {}, "non-empty list of distinct integer seeds"),
+    ([1, 2.5], {}, "non-empty list of distinct integer seeds"),
+    ([1, 1], {}, "non-empty list of distinct integer seeds"),
     ([1], {"held_out_frames": None}, "needs simulated 'detections' and 'held_out_frames'"),
 ])
 def test_held_out_draws_bad_values_are_refused(tmp_path, seeds, data_change, message):

@@ -114,8 +114,8 @@ def run(args) -> int:
         draws = report["held_out_draws"]
         seeds = draws["seeds"]
         print(f"\nheld-out frames, {len(seeds)} further detection draws (seeds {', '.join(map(str, seeds))}), mean:")
-        rows = [[name, *[draws[key].get(k, float("nan")) for k in metrics]]
-                for name, key in (("tuned", "tuned"), ("grid", "grid")) if key in draws]
+        rows = [[name, *[draws[name].get(k, float("nan")) for k in metrics]]
+                for name in ("tuned", "grid") if name in draws]
         print(format_table(["held-out draws", *metrics], rows, floatfmt=".4g"))
     for key, path in report["output"].items():
         print(f"{key}: {path}")

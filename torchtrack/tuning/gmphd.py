@@ -177,9 +177,10 @@ class GMPHDTunable(Tunable):
         seeds = config.get("held_out_draws")
         if seeds is None:
             return {}
-        if not (isinstance(seeds, list) and seeds and all(isinstance(s, int) and not isinstance(s, bool)
-                                                          for s in seeds)):
-            raise TorchtrackError(f"data.held_out_draws must be a non-empty list of integer seeds; got {seeds!r}")
+        if not (isinstance(seeds, list) and seeds and len(set(seeds)) == len(seeds)
+                and all(isinstance(s, int) and not isinstance(s, bool) for s in seeds)):
+            raise TorchtrackError(f"data.held_out_draws must be a non-empty list of distinct integer seeds; got "
+                                  f"{seeds!r}")
         if "detections" not in config or not config.get("held_out_frames"):
             raise TorchtrackError("data.held_out_draws needs simulated 'detections' and 'held_out_frames'")
         return {s: self._windows(self._simulate(truth, config["detections"] or {}, torch.Generator().manual_seed(s)),
