@@ -269,7 +269,8 @@ class GMPHD(nn.Module):
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
     def update(self, state: MixtureState, z: Tensor, mats: Matrices, clutter: Tensor | None = None,
-               velocity: Tensor | None = None, likelihood: bool = True) -> tuple[MixtureState, UpdateInfo]:
+               velocity: Tensor | None = None, likelihood: bool = True,
+               pair_loglik: Tensor | None = None) -> tuple[MixtureState, UpdateInfo]:
         """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
 
         ``clutter`` optionally gives ``κ(z_k)`` per measurement ``(M,)``; by default the uniform
@@ -278,6 +279,9 @@ class GMPHD(nn.Module):
         ``velocity_sigma``, ignored otherwise. Returns the posterior (missed-detection components first,
         then the gated detection components, ``J + G`` in all) and :class:`UpdateInfo` (its
         ``log_likelihood`` is None with ``likelihood=False``, which saves its operations when streaming).
+        ``pair_loglik (J, M)``: a further log-likelihood ratio per (component, detection) pair, added to each
+        gated pair's weight — an attribute of the detection measured against the component's, over that
+        attribute's density under clutter (e.g. :mod:`torchtrack.filters.gmphd_tone`); None: none.
         """
         H, R = mats.H, mats.R
         m_dim = H.shape[0]
@@ -340,6 +344,8 @@ class GMPHD(nn.Module):
             else:
                 gated = (nis <= gate) & state.mask.unsqueeze(1)
                 log_num = torch.where(gated, base.unsqueeze(1) - nis * half, neg_inf)
+            if pair_loglik is not None:
+                log_num = log_num + (pair_loglik if M <= C else pair_loglik[:, start:start + C])
             den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
             jj, kk = gated.nonzero().unbind(1)
             if robust:

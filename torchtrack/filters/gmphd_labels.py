@@ -7,6 +7,7 @@ only the integer ``label`` of a :class:`~torchtrack.filters.gmphd.MixtureState`.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
@@ -123,7 +124,8 @@ def no_lost_labels(dtype: torch.dtype = torch.float32, device=None) -> LostLabel
 
 
 def label_handover(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Tensor, prev_vel: Tensor,
-                   lost: LostLabels, max_distance: float, dt: float = 1.0) -> Tensor:
+                   lost: LostLabels, max_distance: float, dt: float = 1.0,
+                   tone_of: Callable[[Tensor], Tensor] | None = None, max_tone_gap: float = float("inf")) -> Tensor:
     """Hand a lost label back to the estimate that continues its trajectory (extension of the label fix).
 
     ``label (E,)``, ``pos (E, 2)``: this frame's estimates; ``prev_label, prev_pos, prev_vel``: last
@@ -131,6 +133,8 @@ def label_handover(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Ten
     whose label is neither last frame's nor in ``lost`` is *new*; a new estimate within ``max_distance`` of
     the path a lost label was expected to travel since it was last seen, the segment from ``p`` to
     ``p + v (age + 1) dt`` (a target may have slowed down), takes that label (greedy, closest first).
+    With ``tone_of`` (labels → their tones, NaN: unknown), a lost label is not handed to an estimate whose
+    label's tone differs from its own by more than ``max_tone_gap``.
     Returns ``(E,)`` the label each estimate should carry.
     """
     if label.numel() == 0:
@@ -152,7 +156,11 @@ def label_handover(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Ten
     rel = pos[ni].detach().unsqueeze(1) - start.unsqueeze(0)                         # (N, L, 2)
     t = ((rel * travel).sum(-1) / travel.pow(2).sum(-1).clamp_min(1e-9)).clamp(0.0, 1.0)
     dist = (rel - t.unsqueeze(-1) * travel).norm(dim=-1)
-    rows, cols = greedy(dist, dist <= max_distance)
+    allowed = dist <= max_distance
+    if tone_of is not None:
+        gap = (tone_of(label[ni]).unsqueeze(1) - tone_of(pool_label).unsqueeze(0)).abs()
+        allowed &= ~(gap > max_tone_gap)
+    rows, cols = greedy(dist, allowed)
     out = label.clone()
     out[ni[rows]] = pool_label[cols]
     return out

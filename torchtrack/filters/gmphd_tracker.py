@@ -9,7 +9,11 @@ One frame ``k`` (:meth:`GMPHDTracker.advance`)::
     →  label fix (2.3)  →  coasting  →  label hand-over  →  velocity map ← settled estimates
     →  births from Z_k^b (eq. 5–6) join the mixture for k+1
 
-Coasting, the hand-over, the merge priority and the velocity in the update are this project's extensions
+With the detections' grey levels and ``tone_sigma``, the update weighs each (component, detection) pair by
+how well the detection's tone matches the component's label's, and the hand-over by the same
+(:mod:`torchtrack.filters.gmphd_tone`).
+
+Coasting, the hand-over, the merge priority, the velocity and the tone in the update are this project's extensions
 (see ``docs/gmphd.md``); each can be switched off. With ``label_fix=False``, ``handover_frames=0``,
 ``coast_threshold=None``, ``use_velocity_map=False``, ``use_detector_velocity=False`` and no
 ``velocity_sigma`` (position-only update) this is the plain
@@ -41,6 +45,15 @@ from torchtrack.filters.gmphd_labels import (
     relabel,
     update_lost,
 )
+from torchtrack.filters.gmphd_tone import (
+    TONE_MATCH_DISTANCE,
+    LabelTones,
+    add_births,
+    lookup,
+    no_label_tones,
+    tone_log_ratio,
+    update_tones,
+)
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 FILTER_DEFAULTS = dict(q=2.0, sigma=1.0, p_detection=0.9, clutter_density=1e-4, prune_threshold=5e-3,
@@ -58,6 +71,7 @@ class TrackerMemory(NamedTuple):
     prev_vel: Tensor      # (E, 2) their velocities
     lost: LostLabels      # labels reported recently but not at the previous frame
     tentative: TentativeLabels        # new labels extracted but not yet reported
+    tones: LabelTones                 # grey level of each label's vehicle (``tone_sigma``)
 
 
 class StepResult(NamedTuple):
@@ -91,13 +105,23 @@ class GMPHDTracker(nn.Module):
             second; False or 1: at once).
         confirm_misses: a new label not yet reported keeps its count through up to this many frames in which
             it is not extracted (while it is still in the mixture); 0: the frames must be consecutive.
+        tone_sigma: with detections' grey levels given, the spread σ_t (grey levels) of a vehicle's tone
+            about its label's estimate in the update (:mod:`torchtrack.filters.gmphd_tone`); None: tones
+            are not used.
+        tone_outlier: probability ε that a detection's tone is unrelated to its vehicle's (two vehicles in
+            one detection, a shadow).
+        tone_rate: how far a label's tone moves towards each new detection's tone (after the first
+            ``1/tone_rate`` detections, whose mean it is).
+        tone_handover_gap: the hand-over does not give a lost label to an estimate whose label's tone differs
+            from the lost label's by more than this many ``tone_sigma``.
         dtype: floating dtype of the streaming state (float32 is fast, float64 accurate).
     """
 
     def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = True,
                  settled_velocity_var: float = 4.0, handover_frames: int = 8, handover_distance: float = 20.0,
                  coast_threshold: float | None = 0.03, fix_separation: float = 12.0, merge_priority: bool = True,
-                 confirm_new: bool | int = True, confirm_misses: int = 0,
+                 confirm_new: bool | int = True, confirm_misses: int = 0, tone_sigma: float | None = None,
+                 tone_outlier: float = 0.1, tone_rate: float = 0.1, tone_handover_gap: float = 6.0,
                  dtype: torch.dtype = torch.float32):
         super().__init__()
         self.phd = phd if phd is not None else GMPHD()
@@ -117,6 +141,15 @@ class GMPHDTracker(nn.Module):
             raise TorchtrackError(f"confirm_misses must be a whole number of frames >= 0; got {confirm_misses!r}")
         self.confirm_frames = frames
         self.confirm_misses = confirm_misses
+        if tone_sigma is not None and not tone_sigma > 0:
+            raise TorchtrackError(f"tone_sigma must be positive or null; got {tone_sigma!r}")
+        if not 0.0 < tone_outlier < 1.0 or not 0.0 < tone_rate <= 1.0 or not tone_handover_gap > 0:
+            raise TorchtrackError("tone_outlier must lie in (0, 1), tone_rate in (0, 1] and tone_handover_gap be "
+                                  f"positive; got {tone_outlier!r}, {tone_rate!r}, {tone_handover_gap!r}")
+        self.tone_sigma = tone_sigma
+        self.tone_outlier = tone_outlier
+        self.tone_rate = tone_rate
+        self.tone_handover_gap = tone_handover_gap
         self.to(dtype)
         self.dtype = dtype
         self.reset()
@@ -129,7 +162,8 @@ class GMPHDTracker(nn.Module):
         cfg = dict(config or {})
         cfg.update(overrides)
         known = {"filter", "birth", "label_fix", "settled_velocity_var", "handover_frames", "handover_distance",
-                 "coast_threshold", "fix_separation", "merge_priority", "confirm_new", "confirm_misses", "dtype"}
+                 "coast_threshold", "fix_separation", "merge_priority", "confirm_new", "confirm_misses", "tone_sigma",
+                 "tone_outlier", "tone_rate", "tone_handover_gap", "dtype"}
         unknown = set(cfg) - known
         if unknown:
             raise TorchtrackError(f"unknown GM-PHD tracker option(s) {sorted(unknown)}; known: {sorted(known)}")
@@ -152,7 +186,9 @@ class GMPHDTracker(nn.Module):
                    fix_separation=float(cfg.get("fix_separation", 12.0)),
                    merge_priority=bool(cfg.get("merge_priority", True)),
                    confirm_new=cfg.get("confirm_new", True), confirm_misses=cfg.get("confirm_misses", 0),
-                   dtype=dtype)
+                   tone_sigma=cfg.get("tone_sigma"), tone_outlier=float(cfg.get("tone_outlier", 0.1)),
+                   tone_rate=float(cfg.get("tone_rate", 0.1)),
+                   tone_handover_gap=float(cfg.get("tone_handover_gap", 6.0)), dtype=dtype)
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
@@ -160,12 +196,15 @@ class GMPHDTracker(nn.Module):
         empty = torch.empty(0, dtype=torch.long)
         e2 = torch.empty(0, 2, dtype=self.dtype)
         return (empty_mixture(self.phd.state_dim, self.dtype),
-                TrackerMemory(1, empty, e2, e2, no_lost_labels(self.dtype), no_tentative_labels()))
+                TrackerMemory(1, empty, e2, e2, no_lost_labels(self.dtype), no_tentative_labels(),
+                              no_label_tones(self.dtype)))
 
     def advance(self, state: MixtureState, memory: TrackerMemory, z: Tensor, velocity: Tensor | None,
                 mats: Matrices, vmap: VelocityMap | None = None, dt: float = 1.0,
-                birth_consts: BirthConstants | None = None, likelihood: bool = True) -> StepResult:
-        """One frame of the tracker (see the module docstring); ``z (M, 2)``, ``velocity (M, 2)`` or None.
+                birth_consts: BirthConstants | None = None, likelihood: bool = True,
+                tone: Tensor | None = None) -> StepResult:
+        """One frame of the tracker (see the module docstring); ``z (M, 2)``, ``velocity (M, 2)`` or None,
+        ``tone (M,)`` the detections' grey levels or None (used with ``tone_sigma``).
 
         The label fix compares each hypothesis with its label's previous estimate moved on by its own
         velocity, ``p̂_{k−1} + v̂_{k−1} dt`` (the position the label is expected at now). With
@@ -173,8 +212,11 @@ class GMPHDTracker(nn.Module):
         """
         phd, birth = self.phd, self.birth
         pred = phd.predict(state, mats)
+        use_tone = tone is not None and self.tone_sigma is not None
         is_birth = birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.chunk)
-        post, info = phd.update(pred, z, mats, velocity=velocity, likelihood=likelihood)
+        pair = (tone_log_ratio(lookup(memory.tones, pred.label), tone.to(z.dtype), self.tone_sigma, self.tone_outlier)
+                if use_tone else None)
+        post, info = phd.update(pred, z, mats, velocity=velocity, likelihood=likelihood, pair_loglik=pair)
         post = phd.reduce(post, memory.prev_label if self.label_fix and self.merge_priority else None)
         est = phd.extract(post)
         next_label = memory.next_label
@@ -195,12 +237,18 @@ class GMPHDTracker(nn.Module):
         vel = mean[:, 2:4]
         lost = memory.lost
         if self.handover_frames > 0:
+            tone_of = (lambda lab: lookup(memory.tones, lab)) if use_tone else None
             handed = label_handover(ids, pos.detach(), memory.prev_label, memory.prev_pos, memory.prev_vel, lost,
-                                    self.handover_distance, dt)
+                                    self.handover_distance, dt, tone_of,
+                                    self.tone_handover_gap * self.tone_sigma if use_tone else float("inf"))
             post = relabel(post, ids, handed)
             ids = handed
             lost_before = lost
             lost = update_lost(lost, memory.prev_label, memory.prev_pos, memory.prev_vel, ids, self.handover_frames)
+        tones = memory.tones
+        if use_tone:
+            tones = update_tones(tones, ids, pos.detach(), z, tone, self.tone_rate, TONE_MATCH_DISTANCE,
+                                 torch.cat([post.label, lost.label]))
         tentative = memory.tentative
         pending = pos[:0].detach()
         if self.confirm_frames > 1:
@@ -222,8 +270,11 @@ class GMPHDTracker(nn.Module):
         B = int(zb.shape[0])
         b_label = torch.arange(next_label, next_label + B, dtype=torch.long, device=z.device)
         births = phd.gaussian_birth(b_mean, b_std, b_logw, b_label)
+        if use_tone and B:
+            tones = add_births(tones, b_label, tone[is_birth])
         new_state = phd.cap(concat(post, births))
-        new_memory = TrackerMemory(next_label + B, ids, pos_d, vel_d, lost, tentative)   # labels carry no gradient
+        # labels carry no gradient
+        new_memory = TrackerMemory(next_label + B, ids, pos_d, vel_d, lost, tentative, tones)
         return StepResult(new_state, new_memory, ids, pos, vel, info.log_likelihood, pending)
 
     def log_likelihood(self, measurements: list[Tensor], velocities: list[Tensor | None] | None = None,
@@ -268,11 +319,14 @@ class GMPHDTracker(nn.Module):
         """How many times the component cap was hit (each also logged as a warning)."""
         return self.phd.cap_hits
 
-    def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None,
+             tones: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Process frame ``frame`` with detections ``positions (K, 2)`` (and the detector's ``velocities
-        (K, 2)`` in px/frame, or None). Returns the reported ``ids (E,)`` and ``positions (E, 2)``."""
+        (K, 2)`` in px/frame, or None; their grey levels ``tones (K,)``, or None). Returns the reported
+        ``ids (E,)`` and ``positions (E, 2)``."""
         z = torch.as_tensor(positions, dtype=self.dtype).reshape(-1, 2)
         v = None if velocities is None else torch.as_tensor(velocities, dtype=self.dtype).reshape(-1, 2)
+        t = None if tones is None else torch.as_tensor(tones, dtype=self.dtype).reshape(-1)
         s = self._stream
         dt = 1.0 if s.last_frame is None else float(frame - s.last_frame)
         if dt <= 0:
@@ -283,7 +337,7 @@ class GMPHDTracker(nn.Module):
                 mats = s.mats[dt] = self.phd.matrices(dt)
             if s.birth_consts is None:
                 s.birth_consts = self.birth.constants()
-            res = self.advance(s.state, s.memory, z, v, mats, s.vmap, dt, s.birth_consts, likelihood=False)
+            res = self.advance(s.state, s.memory, z, v, mats, s.vmap, dt, s.birth_consts, likelihood=False, tone=t)
         s.state, s.memory, s.last_frame, s.pending = res.state, res.memory, frame, res.pending
         return res.ids, res.positions
 

@@ -100,7 +100,8 @@ class FrameDetections(NamedTuple):
     ``homography (3, 3)`` frame → reference; ``image_positions``/``image_velocities`` in frame coordinates
     (the detector's output); ``motion (K,)`` the motion evidence at each detection (:func:`motion_evidence`);
     ``strong (K,)`` whether it scored at least the detection threshold (the others are weak detections,
-    decoded further down for :class:`~torchtrack.pipeline.tracker_stream.TrackerStream` to continue tracks).
+    decoded further down for :class:`~torchtrack.pipeline.tracker_stream.TrackerStream` to continue tracks);
+    ``tones (K,)`` the grey level at each detection (:func:`grey_level`; None where not measured).
     On the first frame there is no previous frame: ``velocities`` are NaN (unknown) and ``motion`` is ``inf``,
     so that the moving-object gate passes everything and the trackers start without a velocity."""
 
@@ -113,12 +114,14 @@ class FrameDetections(NamedTuple):
     image_velocities: np.ndarray
     motion: np.ndarray
     strong: np.ndarray
+    tones: np.ndarray | None = None
 
     def select(self, keep: np.ndarray) -> FrameDetections:
         """The detections where ``keep (K,)`` (a mask or indices)."""
-        return self._replace(**{k: getattr(self, k)[keep] for k in
-                                ("positions", "velocities", "scores", "image_positions", "image_velocities",
-                                 "motion", "strong")})
+        fields = ("positions", "velocities", "scores", "image_positions", "image_velocities", "motion", "strong")
+        if self.tones is not None:
+            fields += ("tones",)
+        return self._replace(**{k: getattr(self, k)[keep] for k in fields})
 
     def moving(self, min_speed: float = 0.0, min_motion: float = 0.0) -> FrameDetections:
         """The detections with predicted speed ``>= min_speed`` px/frame (or unknown) and motion evidence
@@ -141,6 +144,21 @@ def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray)
     x = np.clip(np.rint(points[:, 0]).astype(np.int64), 0, w - 1)
     y = np.clip(np.rint(points[:, 1]).astype(np.int64), 0, h - 1)
     return diff[y, x].astype(np.float64)
+
+
+TONE_WINDOW = 3
+"""Side (px) of the window over which :func:`grey_level` averages the frame."""
+
+
+def grey_level(image: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Mean grey level of ``image`` over a ``TONE_WINDOW``-px square at each of ``points (K, 2)`` (x, y): the
+    tone of the vehicle detected there, the attribute the GM-PHD's ``tone_sigma`` compares between frames.
+    ``(K,)``."""
+    mean = cv2.blur(image, (TONE_WINDOW, TONE_WINDOW))
+    h, w = mean.shape
+    x = np.clip(np.rint(points[:, 0]).astype(np.int64), 0, w - 1)
+    y = np.clip(np.rint(points[:, 1]).astype(np.int64), 0, h - 1)
+    return mean[y, x].astype(np.float64)
 
 
 class Detection:
@@ -202,7 +220,8 @@ class Detection:
         prior = scores >= self.prior_threshold
         self.prior_ref = pos_ref[prior]
         self.prior_velocity = None if np.isnan(vel_ref).any() else vel[prior]
-        return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion, scores >= self.strong_threshold)
+        return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion, scores >= self.strong_threshold,
+                               grey_level(image, pos))
 
 
 def replay_tracker(name: str, config: PipelineConfig, detections: list[FrameDetections]

@@ -43,7 +43,10 @@ def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple
     (the trackers' contract is unique identities per frame; a repeat is kept out of ``tracks.txt``, which
     must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
     velocities = None if np.isnan(det.velocities).any() else torch.as_tensor(det.velocities, dtype=dtype)
-    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype), velocities)
+    extra = {}
+    if det.tones is not None and getattr(tracker, "tone_sigma", None) is not None:
+        extra["tones"] = torch.as_tensor(det.tones, dtype=dtype)
+    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype), velocities, **extra)
     ids = as_numpy(ids, ()).astype(np.int64)
     positions = as_numpy(positions, (2,))
     _, first = np.unique(ids, return_index=True)
