@@ -16,6 +16,7 @@ from torchtrack.filters.gmphd_tone import LabelTones, add_births, lookup, no_lab
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.models import ConstantVelocity, LinearPosition
 from torchtrack.pipeline.track_video import FrameDetections, grey_level
+from torchtrack.pipeline.tracker_stream import run_tracker_step
 
 F64 = torch.float64
 
@@ -124,3 +125,26 @@ def test_grey_level_is_the_window_mean_and_selection_keeps_it():
                           np.array([1.0, 2.0, 3.0]))
     assert det.select(np.array([True, False, True])).tones.tolist() == [1.0, 3.0]
     assert det._replace(tones=None).select(np.array([0])).tones is None
+
+
+class _Recorder:
+    def __init__(self, tone_sigma):
+        self.tone_sigma = tone_sigma
+        self.calls = []
+
+    def step(self, frame, positions, velocities, **extra):
+        self.calls.append(extra)
+        return torch.arange(positions.shape[0]), positions
+
+
+def test_the_pipeline_gives_grey_levels_only_to_a_tracker_that_uses_them():
+    pos = np.array([[1.0, 2.0], [3.0, 4.0]])
+    det = FrameDetections(2, np.eye(3), pos, pos, np.ones(2), pos, pos, np.ones(2), np.ones(2, bool),
+                          np.array([40.0, 200.0]))
+    with_tones, without = _Recorder(4.0), _Recorder(None)
+    run_tracker_step(with_tones, det, F64)
+    run_tracker_step(without, det, F64)
+    assert with_tones.calls[0]["tones"].tolist() == [40.0, 200.0]
+    assert without.calls == [{}]
+    run_tracker_step(with_tones, det._replace(tones=None), F64)
+    assert with_tones.calls[1] == {}
