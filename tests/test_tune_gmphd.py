@@ -51,7 +51,7 @@ def test_gmphd_parameter_names(tmp_path):
             "birth.birth_weight"} <= names
 
 
-@pytest.mark.parametrize("loss", ["phd", "gospa"])
+@pytest.mark.parametrize("loss", ["phd", "bernoulli", "gospa"])
 def test_gmphd_loss_gradients_match_finite_differences(tmp_path, loss):
     tun, tracker, data = problem(tmp_path, frames=30, window=8)
     names = ["phd.p_detection", "phd.clutter_density", "phd.measurement.sigma", "phd.motion.q", "birth.birth_weight"]
@@ -69,6 +69,18 @@ def test_gmphd_loss_gradients_match_finite_differences(tmp_path, loss):
         set_raw(tracker, base)
         fd = (vals[0] - vals[1]) / (2 * h)
         assert params[name].raw.grad.item() == pytest.approx(fd, rel=1e-4, abs=1e-7), name
+
+
+def test_the_bernoulli_likelihood_peaks_at_the_true_pd_where_the_phd_likelihood_does_not(tmp_path):
+    tun, tracker, data = problem(tmp_path, pd=0.9, clutter=2.0, frames=100, window=40)
+    losses = {}
+    for loss in ("phd", "bernoulli"):
+        for pd in (0.6, 0.75, 0.9, 0.97):
+            set_values(tracker, {"phd.p_detection": pd})
+            with torch.no_grad():
+                losses[loss, pd] = tun.loss(tracker, data.train, loss).item()
+    best = {loss: min((0.6, 0.75, 0.9, 0.97), key=lambda pd: losses[loss, pd]) for loss in ("phd", "bernoulli")}
+    assert best == {"phd": 0.75, "bernoulli": 0.9}       # the PHD mass of a persistent target is 1/p_D
 
 
 def test_gmphd_fit_recovers_pd_and_clutter_rate_from_3x_off(tmp_path):

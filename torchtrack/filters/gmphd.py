@@ -164,6 +164,7 @@ class UpdateInfo(NamedTuple):
     log_likelihood: Tensor | None   # () PHD predictive log-likelihood of the measurement set (None: not asked)
     log_denominator: Tensor  # (M,) log(κ(z_k) + p_D Σ_j w_j g_jk)
     gated_pairs: int         # number of (component, measurement) pairs inside the gate
+    label_support: Tensor | None = None  # (L,) Σ_k Σ_{j ∈ ℓ} p_D w_j g_jk / κ(z_k) per label (``label_index``)
 
 
 class GMPHD(nn.Module):
@@ -270,7 +271,8 @@ class GMPHD(nn.Module):
 
     def update(self, state: MixtureState, z: Tensor, mats: Matrices, clutter: Tensor | None = None,
                velocity: Tensor | None = None, likelihood: bool = True,
-               pair_loglik: Tensor | None = None) -> tuple[MixtureState, UpdateInfo]:
+               pair_loglik: Tensor | None = None,
+               label_index: tuple[Tensor, int] | None = None) -> tuple[MixtureState, UpdateInfo]:
         """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
 
         ``clutter`` optionally gives ``κ(z_k)`` per measurement ``(M,)``; by default the uniform
@@ -282,6 +284,9 @@ class GMPHD(nn.Module):
         ``pair_loglik (J, M)``: a further log-likelihood ratio per (component, detection) pair, added to each
         gated pair's weight — an attribute of the detection measured against the component's, over that
         attribute's density under clutter (e.g. :mod:`torchtrack.filters.gmphd_tone`); None: none.
+        ``label_index = (index (J,), L)``: each component's label as an index in ``0 … L−1``; the result's
+        ``label_support (L,)`` sums ``p_D w_j g_jk / κ(z_k)`` over each label's components and all detections
+        (what a Bernoulli per label needs, :mod:`torchtrack.filters.gmphd_existence`).
         """
         H, R = mats.H, mats.R
         m_dim = H.shape[0]
@@ -330,6 +335,9 @@ class GMPHD(nn.Module):
             pair_pos = []
 
         pair_j, pair_k, pair_logw, log_den = [], [], [], []
+        support = None
+        if label_index is not None:
+            support = torch.zeros(label_index[1], dtype=live_w.dtype, device=live_w.device)
         M, C = z.shape[0], self.chunk
         for start in range(0, M, C):
             zc, kc = (z, log_kappa) if M <= C else (z[start:start + C], log_kappa[start:start + C])
@@ -347,6 +355,8 @@ class GMPHD(nn.Module):
             if pair_loglik is not None:
                 log_num = log_num + (pair_loglik if M <= C else pair_loglik[:, start:start + C])
             den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
+            if support is not None and state.size:
+                support = support.index_add(0, label_index[0], (log_num - kc.unsqueeze(0)).exp().sum(1))
             jj, kk = gated.nonzero().unbind(1)
             if robust:
                 pair_pos.append((without_v > with_v)[jj, kk])
@@ -385,7 +395,7 @@ class GMPHD(nn.Module):
             loglik = log_den_t.sum() - pd * live_w.exp().sum()
             if self.area is not None:
                 loglik = loglik - mats.clutter_density * self.area
-        return post, UpdateInfo(loglik, log_den_t, int(jj.shape[0]))
+        return post, UpdateInfo(loglik, log_den_t, int(jj.shape[0]), support)
 
     def prune(self, state: MixtureState) -> MixtureState:
         """Drop empty slots and components with weight below ``prune_threshold``."""

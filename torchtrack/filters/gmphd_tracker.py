@@ -33,6 +33,7 @@ from torch import Tensor, nn
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd import GMPHD, Matrices, MixtureState, concat, empty_mixture
 from torchtrack.filters.gmphd_birth import AdaptiveBirth, BirthConstants, VelocityMap
+from torchtrack.filters.gmphd_existence import LabelExistence, bernoulli_log_likelihood, label_groups, no_existence
 from torchtrack.filters.gmphd_labels import (
     LostLabels,
     TentativeLabels,
@@ -72,6 +73,7 @@ class TrackerMemory(NamedTuple):
     lost: LostLabels      # labels reported recently but not at the previous frame
     tentative: TentativeLabels        # new labels extracted but not yet reported
     tones: LabelTones                 # grey level of each label's vehicle (``tone_sigma``)
+    existence: LabelExistence         # Bernoulli existence per label (the ``bernoulli`` likelihood)
 
 
 class StepResult(NamedTuple):
@@ -197,14 +199,16 @@ class GMPHDTracker(nn.Module):
         e2 = torch.empty(0, 2, dtype=self.dtype)
         return (empty_mixture(self.phd.state_dim, self.dtype),
                 TrackerMemory(1, empty, e2, e2, no_lost_labels(self.dtype), no_tentative_labels(),
-                              no_label_tones(self.dtype)))
+                              no_label_tones(self.dtype), no_existence(self.dtype)))
 
     def advance(self, state: MixtureState, memory: TrackerMemory, z: Tensor, velocity: Tensor | None,
                 mats: Matrices, vmap: VelocityMap | None = None, dt: float = 1.0,
                 birth_consts: BirthConstants | None = None, likelihood: bool = True,
-                tone: Tensor | None = None) -> StepResult:
+                tone: Tensor | None = None, bernoulli: bool = False) -> StepResult:
         """One frame of the tracker (see the module docstring); ``z (M, 2)``, ``velocity (M, 2)`` or None,
-        ``tone (M,)`` the detections' grey levels or None (used with ``tone_sigma``).
+        ``tone (M,)`` the detections' grey levels or None (used with ``tone_sigma``). With ``bernoulli``
+        the frame's log-likelihood is the Bernoulli-per-label one (:mod:`torchtrack.filters.gmphd_existence`)
+        instead of the PHD's.
 
         The label fix compares each hypothesis with its label's previous estimate moved on by its own
         velocity, ``p̂_{k−1} + v̂_{k−1} dt`` (the position the label is expected at now). With
@@ -216,7 +220,14 @@ class GMPHDTracker(nn.Module):
         is_birth = birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.chunk)
         pair = (tone_log_ratio(lookup(memory.tones, pred.label), tone.to(z.dtype), self.tone_sigma, self.tone_outlier)
                 if use_tone else None)
-        post, info = phd.update(pred, z, mats, velocity=velocity, likelihood=likelihood, pair_loglik=pair)
+        groups = label_groups(pred) if likelihood and bernoulli else None
+        post, info = phd.update(pred, z, mats, velocity=velocity, likelihood=likelihood, pair_loglik=pair,
+                                label_index=None if groups is None else (groups.inverse, groups.labels.shape[0]))
+        log_lik, existence = info.log_likelihood, memory.existence
+        if groups is not None:
+            with_velocity = velocity is not None and mats.R_velocity is not None
+            log_lik, existence = bernoulli_log_likelihood(existence, groups, info.label_support, mats, z.shape[0],
+                                                          with_velocity, phd.area)
         post = phd.reduce(post, memory.prev_label if self.label_fix and self.merge_priority else None)
         est = phd.extract(post)
         next_label = memory.next_label
@@ -274,8 +285,8 @@ class GMPHDTracker(nn.Module):
             tones = add_births(tones, b_label, tone[is_birth])
         new_state = phd.cap(concat(post, births))
         # labels carry no gradient
-        new_memory = TrackerMemory(next_label + B, ids, pos_d, vel_d, lost, tentative, tones)
-        return StepResult(new_state, new_memory, ids, pos, vel, info.log_likelihood, pending)
+        new_memory = TrackerMemory(next_label + B, ids, pos_d, vel_d, lost, tentative, tones, existence)
+        return StepResult(new_state, new_memory, ids, pos, vel, log_lik, pending)
 
     def log_likelihood(self, measurements: list[Tensor], velocities: list[Tensor | None] | None = None,
                        dt: float = 1.0) -> Tensor:

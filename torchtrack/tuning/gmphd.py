@@ -114,7 +114,7 @@ class GMPHDTunable(Tunable):
     """The enhanced labelled GM-PHD tracker (or ``tracker: labelled-gmphd``, the baseline)."""
 
     name = "gmphd"
-    losses = ("phd", "gospa")
+    losses = ("phd", "bernoulli", "gospa")
 
     def __init__(self, options: Mapping[str, Any] | None = None):
         super().__init__(options)
@@ -122,6 +122,7 @@ class GMPHDTunable(Tunable):
         if self.variant not in ("gmphd", "labelled-gmphd"):
             raise TorchtrackError(f"model.tracker must be 'gmphd' or 'labelled-gmphd'; got {self.variant!r}")
         self.burn_in = 0
+        self._bernoulli = False
         self.threshold, self.ospa_c, self.gospa_c = 10.0, 10.0, 10.0
 
     def tracker_config(self) -> dict:
@@ -269,7 +270,7 @@ class GMPHDTunable(Tunable):
             if dt != 1.0:
                 mats = module.phd.matrices(dt)
             res = module.advance(state, memory, z.to(module.dtype), None if v is None else v.to(module.dtype),
-                                 mats, vmap, dt)
+                                 mats, vmap, dt, bernoulli=self._bernoulli)
             state, memory = res.state, res.memory
             if t < self.burn_in:
                 continue
@@ -283,7 +284,8 @@ class GMPHDTunable(Tunable):
         return total, counted
 
     def loss(self, module: GMPHDTracker, items: Sequence[FrameWindow], loss: str) -> Tensor:
-        if loss == "phd" and module.phd.area is None:
+        self._bernoulli = loss == "bernoulli"
+        if loss in ("phd", "bernoulli") and module.phd.area is None:
             raise TorchtrackError("the PHD likelihood needs model.filter.area (the surveillance area in px²) so "
                                   "that the clutter rate is identifiable")
         total, count = torch.zeros((), dtype=module.dtype), 0
