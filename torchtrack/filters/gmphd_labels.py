@@ -28,6 +28,17 @@ def _first_of_label(label: Tensor, order: Tensor) -> Tensor:
     return o, first
 
 
+def find_labels(keys: Tensor, query: Tensor) -> tuple[Tensor, Tensor]:
+    """Where each of ``query (Q,)`` is in the unique labels ``keys (K,)``: ``(index (Q,), found (Q,))``;
+    ``index`` is meaningful only where ``found``."""
+    if keys.numel() == 0:
+        return torch.zeros_like(query), torch.zeros(query.shape, dtype=torch.bool, device=query.device)
+    order = torch.argsort(keys)
+    loc = torch.searchsorted(keys[order], query).clamp(max=keys.numel() - 1)
+    index = order[loc]
+    return index, keys[index] == query
+
+
 def distance_to_previous(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Tensor) -> Tensor:
     """Euclidean distance ``(E,)`` from each ``pos (E, d)`` to the previous estimate of its label.
 
@@ -35,10 +46,8 @@ def distance_to_previous(label: Tensor, pos: Tensor, prev_label: Tensor, prev_po
     """
     if prev_label.numel() == 0:
         return torch.full(label.shape, float("inf"), dtype=pos.dtype, device=pos.device)
-    sorted_prev, perm = torch.sort(prev_label)
-    loc = torch.searchsorted(sorted_prev, label).clamp(max=sorted_prev.numel() - 1)
-    found = sorted_prev[loc] == label
-    d = (pos - prev_pos[perm[loc]].to(pos.dtype)).norm(dim=-1)
+    index, found = find_labels(prev_label, label)
+    d = (pos - prev_pos[index].to(pos.dtype)).norm(dim=-1)
     return torch.where(found, d, torch.full_like(d, float("inf")))
 
 

@@ -23,6 +23,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.filters.gmphd_labels import find_labels
+
 TONE_MATCH_DISTANCE = 3.0
 """An estimate takes the tone of the nearest detection within this many px (:func:`update_tones`)."""
 
@@ -43,23 +45,11 @@ def no_label_tones(dtype: torch.dtype = torch.float32, device=None) -> LabelTone
 
 def lookup(tones: LabelTones, label: Tensor) -> Tensor:
     """The tone of each ``label (J,)``; NaN where the label has none."""
-    out = torch.full(label.shape, float("nan"), dtype=tones.tone.dtype, device=label.device)
-    if tones.label.numel() == 0 or label.numel() == 0:
-        return out
-    order = torch.argsort(tones.label)
-    sorted_label = tones.label[order]
-    loc = torch.searchsorted(sorted_label, label).clamp(max=sorted_label.numel() - 1)
-    found = sorted_label[loc] == label
-    return torch.where(found, tones.tone[order][loc], out)
-
-
-def _count(tones: LabelTones, label: Tensor) -> Tensor:
+    unknown = torch.full(label.shape, float("nan"), dtype=tones.tone.dtype, device=label.device)
     if tones.label.numel() == 0:
-        return torch.zeros_like(label)
-    order = torch.argsort(tones.label)
-    sorted_label = tones.label[order]
-    loc = torch.searchsorted(sorted_label, label).clamp(max=sorted_label.numel() - 1)
-    return torch.where(sorted_label[loc] == label, tones.count[order][loc], torch.zeros_like(label))
+        return unknown
+    index, found = find_labels(tones.label, label)
+    return torch.where(found, tones.tone[index], unknown)
 
 
 def tone_log_ratio(component_tone: Tensor, detection_tone: Tensor, sigma: float, outlier: float,
@@ -84,7 +74,10 @@ def update_tones(tones: LabelTones, label: Tensor, position: Tensor, z: Tensor, 
         near, k = dist.min(dim=1)
         hit = near <= max_distance
         lab, t = label[hit], z_tone[k[hit]].to(tones.tone.dtype)
-        old, n = lookup(tones, lab), _count(tones, lab)
+        old, n = lookup(tones, lab), torch.zeros_like(lab)
+        if tones.label.numel():
+            index, found = find_labels(tones.label, lab)
+            n = torch.where(found, tones.count[index], n)
         step = torch.clamp(1.0 / (n + 1).to(t.dtype), min=rate)
         new = torch.where(torch.isnan(old), t, old + step * (t - old))
         keep = ~torch.isin(tones.label, lab)
