@@ -122,7 +122,6 @@ class GMPHDTunable(Tunable):
         if self.variant not in ("gmphd", "labelled-gmphd"):
             raise TorchtrackError(f"model.tracker must be 'gmphd' or 'labelled-gmphd'; got {self.variant!r}")
         self.burn_in = 0
-        self._bernoulli = False
         self.threshold, self.ospa_c, self.gospa_c = 10.0, 10.0, 10.0
 
     def tracker_config(self) -> dict:
@@ -255,8 +254,9 @@ class GMPHDTunable(Tunable):
         return "track.yaml", {self.variant: opts}
 
     # -- losses -----------------------------------------------------------------------------------
-    def _run(self, module: GMPHDTracker, item: FrameWindow, want_gospa: bool) -> tuple[Tensor, int]:
-        """Summed loss over the counted frames of one window, and their number."""
+    def _run(self, module: GMPHDTracker, item: FrameWindow, loss: str) -> tuple[Tensor, int]:
+        """Summed ``loss`` over the counted frames of one window, and their number."""
+        want_gospa = loss == "gospa"
         state, memory = module.initial()
         vmap = module.birth.new_velocity_map(module.dtype)
         mats = module.phd.matrices(1.0)
@@ -270,7 +270,7 @@ class GMPHDTunable(Tunable):
             if dt != 1.0:
                 mats = module.phd.matrices(dt)
             res = module.advance(state, memory, z.to(module.dtype), None if v is None else v.to(module.dtype),
-                                 mats, vmap, dt, bernoulli=self._bernoulli)
+                                 mats, vmap, dt, bernoulli=loss == "bernoulli")
             state, memory = res.state, res.memory
             if t < self.burn_in:
                 continue
@@ -284,14 +284,13 @@ class GMPHDTunable(Tunable):
         return total, counted
 
     def loss(self, module: GMPHDTracker, items: Sequence[FrameWindow], loss: str) -> Tensor:
-        self._bernoulli = loss == "bernoulli"
         if loss in ("phd", "bernoulli") and module.phd.area is None:
             raise TorchtrackError("the PHD likelihood needs model.filter.area (the surveillance area in px²) so "
                                   "that the clutter rate is identifiable")
         total, count = torch.zeros((), dtype=module.dtype), 0
         with quiet_caps():
             for item in items:
-                s, c = self._run(module, item, loss == "gospa")
+                s, c = self._run(module, item, loss)
                 total, count = total + s, count + c
         return total / max(count, 1)
 
