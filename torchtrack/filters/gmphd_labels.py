@@ -213,10 +213,8 @@ def confirm_labels(label: Tensor, known: Tensor, tentative: TentativeLabels, ali
     """
     count = torch.ones_like(label)
     if tentative.label.numel():
-        order = torch.argsort(tentative.label)
-        sorted_label = tentative.label[order]
-        loc = torch.searchsorted(sorted_label, label).clamp(max=sorted_label.numel() - 1)
-        count = torch.where(sorted_label[loc] == label, tentative.count[order][loc] + 1, count)
+        index, found = find_labels(tentative.label, label)
+        count = torch.where(found, tentative.count[index] + 1, count)
     report = known | (count >= frames)
     wait = ~torch.isin(tentative.label, label) & (tentative.misses < max_misses) & torch.isin(tentative.label, alive)
     new = ~report
