@@ -149,6 +149,24 @@ def test_contiguous_windows_are_scored_as_one_stream(tmp_path):
     assert tun.score(tracker, data.train, "OSPA") == full
 
 
+def test_training_frames_may_be_several_spans_each_streamed_from_empty(tmp_path):
+    tun, tracker, _ = problem(tmp_path)
+    base = {"truth": str(truth_file(tmp_path, frames=60)), "window": 10, "burn_in": 3,
+            "detections": {"pd": 0.8, "sigma": 1.0, "clutter": 8.0, "image_size": [300, 300]}}
+
+    def train(spans):
+        return tun.load_data({**base, "train_frames": spans}, torch.Generator().manual_seed(1)).train
+
+    both, first, second = train([[1, 20], [41, 60]]), train([1, 20]), train([41, 60])
+    assert [w.frames for w in both] == [w.frames for w in first + second]
+    assert all(all(torch.equal(a, b) for a, b in zip(w.z, v.z)) for w, v in zip(both, first + second))
+    # the tracker restarts at the jump: the error counts are those of the two spans tracked separately
+    pooled, a, b = (tun.score(tracker, items, "MOTA") for items in (both, first, second))
+    assert all(pooled[k] == a[k] + b[k] for k in ("FP", "FN", "IDS"))
+    with pytest.raises(TorchtrackError, match="or a list of such spans"):
+        train([[1, 20], [41]])
+
+
 def test_refine_line_search_uses_training_items_only_and_counts_its_evaluations(tmp_path):
     from torchtrack.tuning.refine import refine
     from torchtrack.tuning.registry import TuneData

@@ -165,7 +165,12 @@ class GMPHDTunable(Tunable):
         if window <= self.burn_in:
             raise TorchtrackError(f"data.window ({window}) must be larger than data.burn_in ({self.burn_in})")
         first, last = int(truth.frame.min()), int(truth.frame.max())
-        train = self._windows(det, truth, config.get("train_frames", [first, last]), window, "train_frames")
+        spans = config.get("train_frames", [first, last])
+        if isinstance(spans, (list, tuple)) and spans and all(isinstance(s, (list, tuple)) for s in spans):
+            # several spans (e.g. the frames either side of a held-out block in a cross-validation fold)
+            train = [w for span in spans for w in self._windows(det, truth, span, window, "train_frames")]
+        else:
+            train = self._windows(det, truth, spans, window, "train_frames")
         held = config.get("held_out_frames")
         # held-out frames form one window each range (scored by streaming the tracker through it)
         held_out = self._windows(det, truth, held, None, "held_out_frames") if held else []
@@ -197,7 +202,8 @@ class GMPHDTunable(Tunable):
 
     def _windows(self, det, truth, span, window: int | None, key: str) -> list[FrameWindow]:
         if not (isinstance(span, (list, tuple)) and len(span) == 2 and int(span[0]) <= int(span[1])):
-            raise TorchtrackError(f"data.{key} must be [first, last] frame numbers; got {span!r}")
+            raise TorchtrackError(f"data.{key} must be [first, last] frame numbers"
+                                  f"{' or a list of such spans' if key == 'train_frames' else ''}; got {span!r}")
         lo, hi = int(span[0]), int(span[1])
         frames = np.arange(lo, hi + 1)
         centres, vel = det.centers(), det.velocity()
@@ -306,7 +312,8 @@ class GMPHDTunable(Tunable):
 
         Windows that continue one another (the training windows of one ``train_frames`` span) are
         streamed as one sequence, as ``torchtrack track`` would run them; the tracker restarts only
-        where the frames jump, and each restart gets fresh identities."""
+        where the frames jump, and each restart gets fresh identities, the truth's too (no identity
+        switch is counted across a jump)."""
         from torchtrack.io.mot import from_points
         from torchtrack.metrics import clear_mot
         from torchtrack.metrics.ospa import mot_ospa_gospa
@@ -314,11 +321,13 @@ class GMPHDTunable(Tunable):
         out: dict[str, float] = {}
         fr, ids, cx, cy, gts = [], [], [], [], []
         offset, top, last = 0, 0, None
+        truth_offset, truth_top = 0, 0
         caps = module.phd.cap_hits
         for item in items:
             if last is None or item.frames[0] != last + 1:
                 module.reset()
                 offset, top = offset + top, 0
+                truth_offset = truth_top
             last = item.frames[-1]
             for frame, z, v in zip(item.frames, item.z, item.velocity):
                 with quiet_caps():
@@ -328,7 +337,8 @@ class GMPHDTunable(Tunable):
                 top = max(top, int(i.max()) + 1) if i.numel() else top
                 cx.append(p[:, 0].double().numpy())
                 cy.append(p[:, 1].double().numpy())
-            gts.append(item.truth)
+            gts.append(item.truth._replace(id=item.truth.id + truth_offset))
+            truth_top = max(truth_top, int(gts[-1].id.max()) + 1) if len(item.truth.id) else truth_top
         module.reset()
         pred = from_points(np.concatenate(fr), np.concatenate(ids), np.concatenate(cx), np.concatenate(cy))
         gt = gts[0] if len(gts) == 1 else type(gts[0])(*(None if a[0] is None else np.concatenate(a)
