@@ -227,6 +227,25 @@ def test_refine_average_returns_the_centroid_of_the_best_points_within_the_budge
         refine(tun, tracker, {"parameters": names, "evaluations": 1, "average": 2}, data, names, progress=False)
 
 
+@pytest.mark.parametrize("lookahead", [False, True])
+def test_refine_lookahead_crosses_a_flat_step(tmp_path, lookahead):
+    from torchtrack.tuning.refine import refine
+
+    tun, tracker, data = problem(tmp_path, frames=30, window=15, start={"pd": 0.3})
+    names = ["phd.p_detection"]
+    # flat from p_D 0.3 to beyond one step (logit +0.5: 0.41), better from two steps on (+1.0: 0.54)
+    tun.evaluate = lambda module, items, ospa=True: {"MOTA": float(get_values(module, names)[names[0]] > 0.5)}
+    out = refine(tun, tracker, {"parameters": names, "step": 0.5, "sweeps": 1, "evaluations": 6,
+                                "lookahead": lookahead}, data, names, progress=False)
+    pd = get_values(tracker, names)[names[0]].item()
+    if lookahead:
+        assert out["best"] == 1.0 and pd > 0.5
+    else:
+        assert out["best"] == 0.0 and pd == pytest.approx(0.3)
+    with pytest.raises(TorchtrackError, match="lookahead"):
+        refine(tun, tracker, {"parameters": names, "lookahead": "yes"}, data, names, progress=False)
+
+
 def draws_config(tmp_path, seeds):
     model = {"tracker": "labelled-gmphd", "dtype": "float64",
              "filter": {"p_detection": 0.5, "clutter_density": 8.0 / AREA, "area": AREA, "sigma": 1.0, "q": 0.1},

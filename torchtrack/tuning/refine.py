@@ -7,7 +7,10 @@ starts at the fitted values and moves each listed parameter along the optimiser'
 ``u`` (``raw = raw_fit + s·u``, :func:`~torchtrack.tuning.trainer.step_scale`: a step ``δ`` is about a
 relative change ``δ`` of a positive parameter, a change ``δ`` of a probability's logit): it steps
 ``+δ`` and keeps stepping while the training metric improves, otherwise tries ``−δ`` the same way, then
-goes on to the next parameter; after a sweep over all of them ``δ`` halves. A vector or matrix
+goes on to the next parameter; after a sweep over all of them ``δ`` halves. With ``lookahead`` (the
+default) a first step that does not improve is followed by one of ``2δ`` before the direction is given
+up: MOTA is flat in places along a parameter (it changes only when a track's fate changes), and a search
+that stops at the first flat step can stay where the gradient fit left it. A vector or matrix
 parameter moves all its entries together. Every metric evaluation is one forward pass over all
 training items (counted in the report); held-out items are never used.
 
@@ -36,7 +39,7 @@ from torchtrack.tuning.parameters import get_values, set_raw, tunable_parameters
 from torchtrack.tuning.registry import Tunable, TuneData, check_keys, search_scores
 from torchtrack.tuning.trainer import step_scale
 
-REFINE_KEYS = ("metric", "maximize", "parameters", "step", "sweeps", "evaluations", "average")
+REFINE_KEYS = ("metric", "maximize", "parameters", "step", "sweeps", "evaluations", "average", "lookahead")
 
 
 def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data: TuneData,
@@ -47,7 +50,8 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     point; k > 1: the centroid of the k best points, see above)) from ``module``'s current values,
     which it leaves at the chosen point. Returns the training metric at the start, the best one
     searched and the one at the chosen point (``final``), the values, the number of metric
-    evaluations, items and frames filtered, and the seconds spent."""
+    evaluations, items and frames filtered, and the seconds spent. ``lookahead`` (default true): a first
+    step of ``δ`` in a direction that does not improve is followed by one of ``2δ`` (see above)."""
     check_keys(config, REFINE_KEYS, "refine")
     metric = str(config.get("metric", "MOTA"))
     sign = 1.0 if config.get("maximize", True) else -1.0
@@ -60,6 +64,9 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     delta = float(config.get("step", 0.5))
     sweeps, budget = int(config.get("sweeps", 2)), int(config.get("evaluations", 12))
     average = int(config.get("average", 1))
+    lookahead = config.get("lookahead", True)
+    if not isinstance(lookahead, bool):
+        raise TorchtrackError(f"refine.lookahead must be true or false; got {lookahead!r}")
     if delta <= 0 or sweeps < 1 or average < 1 or budget < 1 + (average > 1):
         raise TorchtrackError(f"refine needs step > 0, sweeps >= 1, average >= 1 and evaluations >= 1 (2 with "
                               f"average > 1); got {delta}, {sweeps}, {average}, {budget}")
@@ -70,24 +77,24 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     t0 = time.perf_counter()
     evaluations = 0
     seen: dict[str, tuple[float, dict[str, float], dict]] = {}   # key -> (signed metric, point, all scores)
+    from tqdm import tqdm
+
+    bar = tqdm(total=budget, desc=f"refine {metric}", disable=not progress, leave=False)
 
     def score(point: Mapping[str, float]) -> float:
         nonlocal evaluations
         set_raw(module, {n: base[n] + scale[n] * point[n] for n in names})
         scores = search_scores(tunable, module, data.train, metric, "refine.metric")
         evaluations += 1
+        bar.update(1)
         value = sign * float(scores[metric])
         value = value if math.isfinite(value) else -math.inf
         seen[_key(point)] = (value, dict(point), scores)
         return value
 
-    from tqdm import tqdm
-
-    bar = tqdm(total=budget, desc=f"refine {metric}", disable=not progress, leave=False)
     search_budget = budget - (average > 1)      # keep one evaluation for the centroid
     u = {n: 0.0 for n in names}
     start = best = score(u)
-    bar.update(1)
     for _ in range(sweeps):
         for n in names:
             for direction in (1.0, -1.0):
@@ -95,7 +102,9 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
                 while evaluations < search_budget:
                     trial = {**u, n: u[n] + direction * delta}
                     value = score(trial)
-                    bar.update(1)
+                    if value <= best and lookahead and not moved and evaluations < search_budget:
+                        trial = {**u, n: u[n] + 2 * direction * delta}
+                        value = score(trial)
                     if value > best:
                         u, best, moved = trial, value, True
                     else:
@@ -108,7 +117,6 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
         top = [r[1] for r in sorted(seen.values(), key=lambda r: -r[0]) if r[0] > -math.inf][:average] or [u]
         u = {n: sum(p[n] for p in top) / len(top) for n in names}
         final = seen[_key(u)][0] if _key(u) in seen else score(u)
-        bar.update(1)
     bar.close()
     set_raw(module, {n: base[n] + scale[n] * u[n] for n in names})
     train_frames = sum(tunable.item_frames(i) for i in data.train)
