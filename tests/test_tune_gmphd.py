@@ -163,8 +163,9 @@ def test_training_frames_may_be_several_spans_each_streamed_from_empty(tmp_path)
     # the tracker restarts at the jump: the error counts are those of the two spans tracked separately
     pooled, a, b = (tun.score(tracker, items, "MOTA") for items in (both, first, second))
     assert all(pooled[k] == a[k] + b[k] for k in ("FP", "FN", "IDS"))
-    with pytest.raises(TorchtrackError, match="or a list of such spans"):
-        train([[1, 20], [41]])
+    for bad in ([[1, 20], [41]], [[1, 20], 41], ["a", 20]):
+        with pytest.raises(TorchtrackError, match="or a list of such spans"):
+            train(bad)
 
 
 def test_refine_line_search_uses_training_items_only_and_counts_its_evaluations(tmp_path):

@@ -201,7 +201,9 @@ class GMPHDTunable(Tunable):
                                    generator).detections
 
     def _windows(self, det, truth, span, window: int | None, key: str) -> list[FrameWindow]:
-        if not (isinstance(span, (list, tuple)) and len(span) == 2 and int(span[0]) <= int(span[1])):
+        if not (isinstance(span, (list, tuple)) and len(span) == 2
+                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in span)
+                and int(span[0]) <= int(span[1])):
             raise TorchtrackError(f"data.{key} must be [first, last] frame numbers"
                                   f"{' or a list of such spans' if key == 'train_frames' else ''}; got {span!r}")
         lo, hi = int(span[0]), int(span[1])
