@@ -105,6 +105,27 @@ def test_tune_command_reports_bad_configs(tmp_path, capsys):
     assert "unknown loss 'mse'" in capsys.readouterr().err
 
 
+def test_tune_command_set_overrides_config_entries(tmp_path, capsys):
+    json_path = tmp_path / "r.json"
+    rc = main(["tune", "--config", str(_config(tmp_path)), "--out", str(tmp_path / "out"), "--json", str(json_path),
+               "--no-progress", "--set", "data.held_out=3", "--set", "seed=2", "--set", "early_stopping.patience=1"])
+    assert rc == 0
+    report = json.loads(json_path.read_text())
+    assert report["held_out_items"] == 3 and report["train_items"] == 3 and report["seed"] == 2
+
+
+@pytest.mark.parametrize("assignment, message", [
+    ("data.held_out", "expected KEY=VALUE"),
+    ("data..held_out=2", "expected KEY=VALUE"),
+    ("dataset.held_out=2", "unknown key 'dataset'"),
+    ("data.held_out=[1", "invalid YAML value"),
+    ("seed.x=1", "'seed' is not a mapping"),
+])
+def test_tune_command_set_refuses_bad_assignments(tmp_path, capsys, assignment, message):
+    assert main(["tune", "--config", str(_config(tmp_path)), "--out", str(tmp_path), "--set", assignment]) == 2
+    assert message in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("path", sorted((Path(__file__).resolve().parents[1] / "configs")
                                         .glob("tune-*.yaml")), ids=lambda p: p.name)
 def test_shipped_tune_configs_are_valid(path):

@@ -26,6 +26,8 @@ last parameters with a finite loss, writes them, and exits with status 1.
 Examples:
   torchtrack tune --config configs/tune-kalman.yaml
   torchtrack tune --config configs/tune-gmphd-wpafb.yaml --out out/tune-gmphd --json out/tune-gmphd.json
+  torchtrack tune --config configs/tune-gmphd-wpafb.yaml --set data.held_out_frames=[1,128] \
+      --set 'data.train_frames=[[129,512]]'        # another held-out block
 """
 
 
@@ -41,6 +43,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-grid", action="store_true", help="skip the config's grid-search baseline")
     parser.add_argument("--no-refine", action="store_true", help="skip the config's line search on the task metric")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                        help="override a config entry (dotted key, YAML value; repeatable), e.g. "
+                             "--set data.held_out_frames=[1,128] --set 'data.train_frames=[[129,512]]'")
     add_common_options(parser, seed=None)
     for action in parser._actions:
         if action.dest == "seed":
@@ -69,10 +74,10 @@ def run(args) -> int:
 
     from torchtrack.cli._common import format_table, write_json
     from torchtrack.tune import tune
-    from torchtrack.tuning.config import read_tune_config
+    from torchtrack.tuning.config import apply_overrides, read_tune_config
 
     torch.set_num_threads(max(1, args.threads))
-    config = read_tune_config(args.config)
+    config = apply_overrides(read_tune_config(args.config), args.set)
     if args.loss:
         config["loss"] = args.loss
     if args.no_grid:

@@ -67,6 +67,33 @@ def read_tune_config(path: str | os.PathLike) -> dict:
     return cfg
 
 
+def apply_overrides(cfg: dict, assignments: Iterable[str]) -> dict:
+    """Set ``KEY=VALUE`` assignments in a tune config in place (``KEY`` dotted, e.g.
+    ``data.held_out_frames``; ``VALUE`` read as YAML, e.g. ``[1, 128]``); returns ``cfg``. The first part
+    of each key must be a tune-config key; missing mappings on the way are created."""
+    for text in assignments:
+        key, sep, value = text.partition("=")
+        parts = key.strip().split(".")
+        if not sep or not all(parts):
+            raise TorchtrackError(f"--set {text!r}: expected KEY=VALUE with a dotted KEY, e.g. "
+                                  f"data.held_out_frames=[1,128]")
+        if parts[0] not in TUNE_KEYS:
+            raise TorchtrackError(f"--set {text!r}: unknown key {parts[0]!r}; allowed: {', '.join(TUNE_KEYS)}")
+        try:
+            parsed = yaml.safe_load(value)
+        except yaml.YAMLError as exc:
+            raise TorchtrackError(f"--set {text!r}: invalid YAML value: {getattr(exc, 'problem', exc)}") from exc
+        node = cfg
+        for part in parts[:-1]:
+            if node.get(part) is None:
+                node[part] = {}
+            if not isinstance(node[part], dict):
+                raise TorchtrackError(f"--set {text!r}: {part!r} is not a mapping in the config")
+            node = node[part]
+        node[parts[-1]] = parsed
+    return cfg
+
+
 def _plain(t: torch.Tensor):
     return t.detach().cpu().double().tolist()
 
