@@ -108,10 +108,12 @@ def test_tune_command_reports_bad_configs(tmp_path, capsys):
 def test_tune_command_set_overrides_config_entries(tmp_path, capsys):
     json_path = tmp_path / "r.json"
     rc = main(["tune", "--config", str(_config(tmp_path)), "--out", str(tmp_path / "out"), "--json", str(json_path),
-               "--no-progress", "--set", "data.held_out=3", "--set", "seed=2", "--set", "early_stopping.patience=1"])
+               "--no-progress", "--set", "data.held_out=3", "--set", "seed=2", "--set", "early_stopping.patience=1",
+               "--set", "trainable=motion.q"])
     assert rc == 0
     report = json.loads(json_path.read_text())
     assert report["held_out_items"] == 3 and report["train_items"] == 3 and report["seed"] == 2
+    assert report["trainable"] == ["motion.q"] and set(report["fitted"]) == {"motion.q"}
 
 
 @pytest.mark.parametrize("assignment, message", [

@@ -81,7 +81,7 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     generator = torch.Generator().manual_seed(seed)
     tunable = get_tunable(cfg["filter"], cfg.get("model") or {})
     module = tunable.build()
-    trainable = list(cfg["trainable"])
+    trainable = [cfg["trainable"]] if isinstance(cfg["trainable"], str) else list(cfg["trainable"])
     select_trainable(module, trainable)  # validates names before any data work
     loss = cfg.get("loss") or tunable.losses[0]
     if loss not in tunable.losses:

@@ -53,7 +53,7 @@ def read_yaml(path: str | os.PathLike) -> dict:
 
 
 def read_tune_config(path: str | os.PathLike) -> dict:
-    """A tune config with its keys checked (``filter`` and ``trainable`` required)."""
+    """A tune config with its keys checked (``filter``, ``trainable`` and ``data`` required)."""
     cfg = read_yaml(path)
     extra = sorted(set(cfg) - set(TUNE_KEYS))
     if extra:
@@ -62,8 +62,6 @@ def read_tune_config(path: str | os.PathLike) -> dict:
     for key in ("filter", "trainable", "data"):
         if key not in cfg:
             raise TorchtrackError(f"{path}: missing required key {key!r}")
-    if isinstance(cfg["trainable"], str):
-        cfg["trainable"] = [cfg["trainable"]]
     return cfg
 
 
