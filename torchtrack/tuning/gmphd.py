@@ -166,11 +166,9 @@ class GMPHDTunable(Tunable):
             raise TorchtrackError(f"data.window ({window}) must be larger than data.burn_in ({self.burn_in})")
         first, last = int(truth.frame.min()), int(truth.frame.max())
         spans = config.get("train_frames", [first, last])
-        if isinstance(spans, (list, tuple)) and spans and all(isinstance(s, (list, tuple)) for s in spans):
-            # several spans (e.g. the frames either side of a held-out block in a cross-validation fold)
-            train = [w for span in spans for w in self._windows(det, truth, span, window, "train_frames")]
-        else:
-            train = self._windows(det, truth, spans, window, "train_frames")
+        if not (isinstance(spans, (list, tuple)) and spans and all(isinstance(s, (list, tuple)) for s in spans)):
+            spans = [spans]   # one span; several: e.g. the frames either side of a held-out block
+        train = [w for span in spans for w in self._windows(det, truth, span, window, "train_frames")]
         held = config.get("held_out_frames")
         # held-out frames form one window each range (scored by streaming the tracker through it)
         held_out = self._windows(det, truth, held, None, "held_out_frames") if held else []
