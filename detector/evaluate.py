@@ -13,6 +13,7 @@ import torch
 from scipy.optimize import linear_sum_assignment
 
 from detector.decode import Detections
+from torchtrack.errors import TorchtrackError
 from torchtrack.io.video_writer import apply_homography
 from torchtrack.pipeline.registration import warp_previous
 
@@ -71,8 +72,12 @@ class Scores:
                 "tp": self.tp, "fp": self.fp, "fn": self.fn}
 
 
+PRIORS = ("stream", "truth", "empty")
+
+
 def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = None,
-           motions: Iterable[np.ndarray | None] | None = None):
+           motions: Iterable[np.ndarray | None] | None = None,
+           priors: Iterable[np.ndarray | None] | None = None):
     """Run ``detector.detect`` over a sequence, the prior of each frame being the previous detections
     (and their velocities, for the motion-continuity check, from the third frame on: as in the pipeline,
     the first frame's velocities, measured without a previous frame, are not passed on);
@@ -81,9 +86,15 @@ def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = 
     is what a dedicated core would take; wall time depends on the machine's load). With ``motions``
     (per frame the camera map from it to the previous frame, :func:`registered_motions`) the previous
     frame and detections are first mapped onto the current frame, as after the pipeline's registration
-    (the warp is not timed: it belongs to registration)."""
+    (the warp is not timed: it belongs to registration). With ``priors`` (per frame the points ``(N, 2)``
+    in the previous frame's pixels to use as its prior instead of the previous detections, e.g. the
+    previous truth: what a perfect feedback would give) no velocities are passed on."""
     prev, prev_pts, prev_vel = None, None, None
+    override = iter(priors) if priors is not None else None
     for img, m in zip(frames, motions if motions is not None else itertools.repeat(None)):
+        given = next(override) if override is not None else None
+        if prev is not None and given is not None:
+            prev_pts = torch.as_tensor(np.asarray(given, np.float64).reshape(-1, 2)).float()
         if prev is not None and m is not None:
             prev = warp_previous(np.asarray(prev), m, img.shape)
             prev_pts = torch.from_numpy(apply_homography(prev_pts.numpy(), np.linalg.inv(m))).float()
@@ -94,7 +105,7 @@ def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = 
             scores_time.cpu_seconds += time.process_time() - c0
         yield det
         # a first frame's velocities were measured without a previous frame: not a motion to continue
-        prev, prev_pts, prev_vel = img, det.xy, det.velocity if prev is not None else None
+        prev, prev_pts, prev_vel = img, det.xy, det.velocity if prev is not None and override is None else None
 
 
 def moving_only(det: Detections, min_speed: float, camera: np.ndarray | None = None) -> Detections:
@@ -127,21 +138,29 @@ def camera_velocity(xy: np.ndarray, h_prev: np.ndarray, h_cur: np.ndarray) -> np
     return xy - p[:, :2] / p[:, 2:3]
 
 
-def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: float = 2.0) -> dict:
+def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: float = 2.0,
+                    prior: str = "stream") -> dict:
     """Scores on :class:`torchtrack.sim.video.VideoFrame` s of one or more sequences (a list of lists),
     with ``"moving"``: the detections predicted to move over the ground (their velocity less the camera
     jitter's image motion, known from the frames' homographies, as after the pipeline's registration) at
     ``min_speed`` px/frame or more against the moving truth, detections on parked vehicles being
     don't-care (frames after the first). A detector trained on registered pairs
     (``config.data.register``) sees the previous frame warped onto the current one by the true camera
-    motion, and its velocities are scored against the velocity over the ground."""
+    motion, and its velocities are scored against the velocity over the ground. ``prior``: the prior of
+    each frame after the first is the previous frame's detections (``stream``, as in use), the previous
+    frame's truth (``truth``: the detector given a perfect feedback, an upper bound for a tracker that
+    feeds the detector) or empty (``empty``: no feedback)."""
+    if prior not in PRIORS:
+        raise TorchtrackError(f"prior must be one of {', '.join(PRIORS)}; got {prior!r}")
     scores, moving = Scores(radius), Scores(radius)
     registered = _registered(detector)
     for seq in video_frames:
         motions = registered_motions([f.homography for f in seq])
+        priors = None if prior == "stream" else [None] + [p.xy if prior == "truth" else np.zeros((0, 2))
+                                                           for p in seq[:-1]]
         prev_h = None
         for f, m, det in zip(seq, motions, stream(detector, (f.image for f in seq), scores,
-                                                  motions if registered else None)):
+                                                  motions if registered else None, priors)):
             vel = None
             if m is not None:
                 vel = ground_velocity(f.xy, f.velocity, m) if registered else f.velocity
@@ -155,12 +174,14 @@ def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: flo
 
 
 @torch.inference_mode()
-def evaluate_synthetic(detector, video_config, seeds: Iterable[int], radius: float = 10.0) -> dict:
-    """Generate held-out sequences (one per seed) with ``video_config`` and score the detector."""
+def evaluate_synthetic(detector, video_config, seeds: Iterable[int], radius: float = 10.0,
+                       prior: str = "stream") -> dict:
+    """Generate held-out sequences (one per seed) with ``video_config`` and score the detector
+    (:func:`evaluate_frames`)."""
     from torchtrack.sim.video import generate_sequence
 
     seqs = [list(generate_sequence(video_config, torch.Generator().manual_seed(s))) for s in seeds]
-    return evaluate_frames(detector, seqs, radius)
+    return evaluate_frames(detector, seqs, radius, prior=prior)
 
 
 @torch.inference_mode()

@@ -75,3 +75,36 @@ def test_stream_passes_velocities_on_from_the_second_frame_only():
     assert calls[0] == (True, True, None)
     assert calls[1][:2] == (False, False) and calls[1][2] is None
     assert calls[2][:2] == (False, False) and torch.equal(calls[2][2], torch.full((1, 2), 2.0))
+
+
+def test_stream_with_given_priors_passes_them_warped_and_no_velocities():
+    """``priors`` replace the previous detections (e.g. the previous truth), mapped onto the current frame."""
+    from types import SimpleNamespace
+
+    from detector.evaluate import stream
+
+    calls = []
+
+    class Recorder:
+        def detect(self, img, prev, prev_pts, prev_velocity=None):
+            calls.append((None if prev_pts is None else prev_pts.clone(), prev_velocity))
+            return SimpleNamespace(xy=torch.full((1, 2), 50.0), velocity=torch.ones(1, 2))
+
+    shift = np.array([[1.0, 0.0, 2.0], [0.0, 1.0, -3.0], [0.0, 0.0, 1.0]])   # current -> previous
+    truth = [np.array([[10.0, 20.0]]), np.array([[11.0, 21.0], [30.0, 40.0]]), np.zeros((0, 2))]
+    frames = [np.zeros((64, 64), np.uint8)] * 3
+    list(stream(Recorder(), frames, motions=[None, shift, shift], priors=[None, truth[0], truth[1]]))
+    assert calls[0] == (None, None)
+    for (pts, vel), given in zip(calls[1:], truth[:2]):
+        assert vel is None
+        np.testing.assert_allclose(pts.numpy(), given - [2.0, -3.0], atol=1e-5)
+
+
+def test_unknown_prior_is_a_clear_error():
+    import pytest
+
+    from detector.evaluate import evaluate_frames
+    from torchtrack.errors import TorchtrackError
+
+    with pytest.raises(TorchtrackError, match="prior must be one of stream, truth, empty; got 'oracle'"):
+        evaluate_frames(None, [], prior="oracle")

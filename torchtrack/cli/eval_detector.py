@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from detector.evaluate import PRIORS
 from torchtrack.cli._common import add_common_options, format_table, write_json
 
 NAME = "eval-detector"
@@ -37,6 +38,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--threshold", type=float, default=None, help="score threshold (default: checkpoint's)")
     parser.add_argument("--wpafb", type=Path, default=None, help="WPAFB folder (default ../shared/data/wpafb-aoi02)")
     parser.add_argument("--no-wpafb", action="store_true", help="skip the real frames")
+    parser.add_argument("--prior", choices=PRIORS, default="stream",
+                        help="prior heatmap of each synthetic frame after the first: the previous detections "
+                             "(stream, default: as in use), the previous truth (truth: a perfect feedback, the "
+                             "detector's upper bound) or none (empty); velocities are continued only with "
+                             "stream; the real frames always stream")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch intra-op threads (default 1: fastest when other processes load the CPU)")
     add_common_options(parser)
@@ -61,7 +67,7 @@ def run(args) -> int:
     video = load_video_config(args.config) if args.config else from_dict(dict(det.config.data.video))
     video = video.replace(frames=args.frames)
     seeds = [split_seed(args.seed, "test", i) for i in range(args.sequences)]
-    result = evaluate_synthetic(det, video, seeds, args.radius)
+    result = evaluate_synthetic(det, video, seeds, args.radius, prior=args.prior)
     mov = result["moving"]
     rows = [["synthetic (held out)", result["precision"], result["recall"], result["f1"],
              result["velocity_error_px"], result["frames"], result["fps"]],
