@@ -75,7 +75,7 @@ def run(args) -> int:
              mov["frames"], mov["fps"]]]
     payload = {k: result[k] for k in ("precision", "recall", "f1", "velocity_error_px", "frames", "fps",
                                       "fps_cpu_time")}
-    payload["synthetic"] = result
+    payload["synthetic"] = {**result, "prior": args.prior}
     path = args.wpafb or default_path()
     if not args.no_wpafb and (path / "transformed_object_states.csv").is_file():
         real = evaluate_wpafb(det, path, args.radius)
