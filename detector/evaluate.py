@@ -96,7 +96,7 @@ def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = 
         if prev is not None and given is not None:
             prev_pts = torch.as_tensor(np.asarray(given, np.float64).reshape(-1, 2)).float()
         if prev is not None and m is not None:
-            prev = warp_previous(np.asarray(prev), m, img.shape)
+            prev = warp_previous(np.asarray(prev), m, img.shape, fill=np.asarray(img))
             prev_pts = torch.from_numpy(apply_homography(prev_pts.numpy(), np.linalg.inv(m))).float()
         t0, c0 = time.perf_counter(), time.process_time()
         det = detector.detect(img, prev, prev_pts, prev_velocity=prev_vel)

@@ -33,6 +33,30 @@ def test_warp_previous_undoes_a_known_camera_motion_and_crops_exactly():
     np.testing.assert_allclose(crop, back[40:104, 30:78], atol=1e-6)
 
 
+def test_warp_previous_fills_what_lies_outside_the_previous_frame_from_the_current_one():
+    """A pure shift by (3, -2) px: the strip whose source lies outside the previous frame takes the
+    current frame's pixels (no change there); everything else is the shifted previous frame, as without
+    ``fill``. A fill of the wrong shape is refused."""
+    import pytest
+
+    from torchtrack.errors import TorchtrackError
+
+    rng = np.random.default_rng(1)
+    previous = rng.uniform(0, 255, (40, 50)).astype(np.float32)
+    current = rng.uniform(0, 255, (40, 50)).astype(np.float32)
+    m = np.array([[1.0, 0.0, 3.0], [0.0, 1.0, -2.0], [0.0, 0.0, 1.0]])    # x_prev = x + 3, y_prev = y - 2
+    plain = warp_previous(previous, m, current.shape)
+    filled = warp_previous(previous, m, current.shape, fill=current)
+    outside = np.zeros(current.shape, bool)
+    outside[:, -3:] = True                                                  # x + 3 > 49
+    outside[:2, :] = True                                                   # y - 2 < 0
+    np.testing.assert_array_equal(filled[outside], current[outside])
+    np.testing.assert_array_equal(filled[~outside], plain[~outside])
+    np.testing.assert_array_equal(filled[2:, :-3], previous[:-2, 3:])
+    with pytest.raises(TorchtrackError, match="fill has shape"):
+        warp_previous(previous, m, current.shape, fill=current[:, :10])
+
+
 def test_ground_velocity_is_zero_for_static_ground_and_the_reference_motion_under_a_shift():
     rng = np.random.default_rng(1)
     h_prev, h_cur = _homography(rng), _homography(rng)   # reference -> frame

@@ -199,13 +199,25 @@ def transfer_error(h_est: np.ndarray, h_true: np.ndarray, shape: tuple[int, int]
 
 
 def warp_previous(previous: np.ndarray, current_to_previous: np.ndarray, size: tuple[int, int],
-                  offset: tuple[int, int] = (0, 0)) -> np.ndarray:
+                  offset: tuple[int, int] = (0, 0), fill: np.ndarray | None = None) -> np.ndarray:
     """The previous frame resampled onto the current one, ``out[y, x] = previous(M · [x + x0, y + y0, 1]ᵀ)``
     with ``M = current_to_previous`` (3, 3): only what moves over the ground differs between ``out`` and
     the current frame. ``size = (h, w)`` of the output, ``offset = (x0, y0)`` of its top-left corner in the
-    current frame (a crop); bilinear, borders replicated."""
+    current frame (a crop); bilinear. Where ``M`` maps outside the previous frame (a strip along the border
+    after a camera motion) the previous frame's border is replicated, or with ``fill`` (the current frame,
+    of shape ``size``) that pixel of ``fill`` is taken: the strip then shows no change, where replicated
+    border pixels would differ from the current frame like something that moved."""
     m = np.asarray(current_to_previous, np.float64)
     if offset != (0, 0):
         m = m @ np.array([[1.0, 0.0, offset[0]], [0.0, 1.0, offset[1]], [0.0, 0.0, 1.0]])
-    return cv2.warpPerspective(previous, m, (size[1], size[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                               borderMode=cv2.BORDER_REPLICATE)
+    out = cv2.warpPerspective(previous, m, (size[1], size[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                              borderMode=cv2.BORDER_REPLICATE)
+    if fill is None:
+        return out
+    fill = np.asarray(fill)
+    if fill.shape != tuple(size):
+        raise TorchtrackError(f"warp_previous: fill has shape {fill.shape}, the output {tuple(size)}")
+    h, w = previous.shape[:2]
+    inside = cv2.warpPerspective(np.ones((h, w), np.uint8), m, (size[1], size[0]),
+                                 flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
+    return np.where(inside > 0, out, fill.astype(out.dtype))

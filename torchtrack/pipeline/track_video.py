@@ -201,7 +201,7 @@ class Detection:
                 prev = image
             else:
                 # Previous frame resampled into the current frame: x_{k-1} = H_{k-1}^{-1} H_k x_k.
-                prev = warp_previous(self.prev_image, np.linalg.inv(self.prev_h) @ h, image.shape)
+                prev = warp_previous(self.prev_image, np.linalg.inv(self.prev_h) @ h, image.shape, fill=image)
             prior = apply_homography(self.prior_ref, h_inv)
         with self.timer("detection"):
             extra = {} if self.decode_threshold is None else {"threshold": self.decode_threshold}
