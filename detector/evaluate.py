@@ -148,8 +148,8 @@ def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: flo
     (``config.data.register``) sees the previous frame warped onto the current one by the true camera
     motion, and its velocities are scored against the velocity over the ground. ``prior``: the prior of
     each frame after the first is the previous frame's detections (``stream``, as in use), the previous
-    frame's truth (``truth``: the detector given a perfect feedback, an upper bound for a tracker that
-    feeds the detector) or empty (``empty``: no feedback)."""
+    frame's truth (``truth``: the detector given a perfect feedback, what a tracker feeding it could at
+    best provide) or empty (``empty``: no feedback)."""
     if prior not in PRIORS:
         raise TorchtrackError(f"prior must be one of {', '.join(PRIORS)}; got {prior!r}")
     scores, moving = Scores(radius), Scores(radius)
