@@ -41,8 +41,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--prior", choices=PRIORS, default="stream",
                         help="prior heatmap of each synthetic frame after the first: the previous detections "
                              "(stream, default: as in use), the previous truth (truth: a perfect feedback) or "
-                             "none (empty); velocities are continued only with "
-                             "stream; the real frames always stream")
+                             "none (empty); velocities are continued only with stream; the real frames always "
+                             "stream")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch intra-op threads (default 1: fastest when other processes load the CPU)")
     add_common_options(parser)
