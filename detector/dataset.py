@@ -7,7 +7,8 @@ a random sequence and frame ``k >= 1``, a random crop and one of the 8 flips/rot
 frame ``k-1`` and the prior heatmap of the previous truth perturbed as in CenterTrack (centre jitter,
 dropped peaks, false peaks near objects and anywhere). With ``data.register`` the previous frame is
 first warped onto the current one by the true camera motion, as the pipeline does after its
-registration, so that static ground cancels between the two and only what moves differs; the prior and
+registration, so that static ground cancels between the two and only what moves differs (where the warp
+has no previous pixels, along the frame's border, it takes the current ones, as the pipeline does); the prior and
 the velocity targets are then in the current frame's coordinates (velocity over the ground). Being a pure
 function of the index is what makes ``torchrun`` training with a ``DistributedSampler`` equal to
 single-process training.
@@ -163,7 +164,8 @@ class PairDataset(Dataset):
         _, pxy, _ = cache.truth(s, tp)
         if d.register and not same:
             m = cache.current_to_previous(s, t, tp)
-            prev = torch.from_numpy(warp_previous(cache.frames[s, tp].numpy(), m, (c, c), (x0, y0)))
+            prev = torch.from_numpy(warp_previous(cache.frames[s, tp].numpy(), m, (c, c), (x0, y0),
+                                                  fill=cache.frames[s, t, y0:y0 + c, x0:x0 + c].numpy()))
             pxy = torch.from_numpy(apply_homography(pxy.numpy(), np.linalg.inv(m))).float()
             vel = torch.from_numpy(ground_velocity(xy.numpy(), vel.numpy(), m)).float()
         else:
