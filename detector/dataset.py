@@ -159,13 +159,13 @@ class PairDataset(Dataset):
         tp = t if same else t - 1
         c = d.crop
         y0, x0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
-        cur = (cache.frames[s, t, y0:y0 + c, x0:x0 + c].float() - self.mean[s, t]) / self.std[s, t]
+        crop = cache.frames[s, t, y0:y0 + c, x0:x0 + c]
+        cur = (crop.float() - self.mean[s, t]) / self.std[s, t]
         _, xy, vel = cache.truth(s, t)
         _, pxy, _ = cache.truth(s, tp)
         if d.register and not same:
             m = cache.current_to_previous(s, t, tp)
-            prev = torch.from_numpy(warp_previous(cache.frames[s, tp].numpy(), m, (c, c), (x0, y0),
-                                                  fill=cache.frames[s, t, y0:y0 + c, x0:x0 + c].numpy()))
+            prev = torch.from_numpy(warp_previous(cache.frames[s, tp].numpy(), m, (c, c), (x0, y0), fill=crop.numpy()))
             pxy = torch.from_numpy(apply_homography(pxy.numpy(), np.linalg.inv(m))).float()
             vel = torch.from_numpy(ground_velocity(xy.numpy(), vel.numpy(), m)).float()
         else:
