@@ -28,6 +28,8 @@ Examples:
   torchtrack tune --config configs/tune-gmphd-wpafb.yaml --out out/tune-gmphd --json out/tune-gmphd.json
   torchtrack tune --config configs/tune-gmphd-wpafb.yaml --set data.held_out_frames=[1,128] \
       --set 'data.train_frames=[[129,512]]'        # another held-out block
+  torchtrack tune --config configs/tune-gmphd-wpafb.yaml --folds 4 --json out/tune-gmphd-cv.json
+                                                   # each quarter of frames 1-512 held out in turn
 """
 
 
@@ -43,6 +45,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no-grid", action="store_true", help="skip the config's grid-search baseline")
     parser.add_argument("--no-refine", action="store_true", help="skip the config's line search on the task metric")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--folds", type=int, default=None, metavar="K",
+                        help="K-fold cross-validation: hold out each of K contiguous blocks of the frames (or "
+                             "items) in turn, tune (and run the grid) on the rest, report per fold and the mean; "
+                             "outputs under OUT/fold-1 ... OUT/fold-K")
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config entry (dotted key, YAML value; repeatable), e.g. "
                              "--set data.held_out_frames=[1,128] --set 'data.train_frames=[[129,512]]'")
@@ -69,6 +75,40 @@ def _fmt(v) -> str:
     return f"{v:.4g}" if isinstance(v, float) else str(v)
 
 
+def _print_folds(summary: dict) -> None:
+    from torchtrack.cli._common import format_table
+
+    runs = summary["runs"]
+    draws = "held_out_draws" in runs[0]
+    where = (f"mean over {len(runs[0]['held_out_draws']['seeds'])} further detection draws of each held-out block"
+             if draws else "held-out items")
+    first = summary["per_fold"]["tuned"][0]
+    metrics = [k for k in ("MOTA", "OSPA", "IDS") if k in first] or [k for k in first if k != "per_draw"]
+    methods = list(summary["per_fold"])
+    rows = []
+    for i, report in enumerate(runs):
+        held = report.get("held_out_frames")
+        label = f"frames {held[0]}-{held[1]}" if held else f"{report['held_out_items']} items"
+        scores = [summary["per_fold"][m][i] for m in methods]
+        rows.append([f"{report['fold']}: {label}", *[s.get(k, float("nan")) for s in scores for k in metrics]])
+    rows.append(["mean", *[summary["mean"][m].get(k, float("nan")) for m in methods for k in metrics]])
+    names = list(runs[0]["fitted"])
+    print("\nfitted per fold:")
+    print(format_table(["fold", *names], [[r["fold"], *[_fmt(r["fitted"][n]) for n in names]] for r in runs]))
+    print(f"\n{summary['folds']}-fold cross-validation ({where}):")
+    print(format_table(["fold", *[f"{m} {k}" for m in methods for k in metrics]], rows, floatfmt=".4g"))
+    if "difference" in summary:
+        d = summary["difference"]
+        ahead = sum(x >= 0 for x in d["per_fold"])
+        print(f"tuned - grid {d['metric']}: {d['mean']:+.4f} (standard error {d['stderr']:.4f}); tuned at least "
+              f"as good in {ahead} of {summary['folds']} folds")
+    evals = sum(r["filter_evaluations"] for r in runs)
+    line = f"filter evaluations: tuned {evals}"
+    if "grid" in runs[0]:
+        line += f", grid {sum(r['grid']['filter_evaluations'] for r in runs)}"
+    print(line + f"; outputs under {Path(runs[0]['output']['params']).parent.parent}")
+
+
 def run(args) -> int:
     import torch
 
@@ -84,6 +124,13 @@ def run(args) -> int:
         config.pop("grid", None)
     if args.no_refine:
         config.pop("refine", None)
+    if args.folds is not None:
+        from torchtrack.tuning.crossval import cross_validate
+
+        summary = cross_validate(config, args.folds, out=args.out, seed=args.seed, progress=not args.no_progress)
+        _print_folds(summary)
+        write_json(args.json, summary)
+        return 1 if any(r["stopped"] == "non-finite" for r in summary["runs"]) else 0
     report = tune(config, out=args.out, seed=args.seed, progress=not args.no_progress)
     print(format_table(["parameter", "start", "fitted", "truth", "error"], _rows(report)))
     before, after = report["held_out_before"], report["held_out_after"]

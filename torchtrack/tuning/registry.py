@@ -127,10 +127,28 @@ def check_keys(section: Mapping[str, Any], allowed: Sequence[str], where: str) -
                               f"{', '.join(sorted(allowed))}")
 
 
+def fold_bounds(n: int, folds: int) -> list[tuple[int, int]]:
+    """``[start, stop)`` of ``folds`` contiguous blocks covering ``range(n)``, lengths differing by ≤ 1."""
+    if not (isinstance(folds, int) and 2 <= folds <= n):
+        raise TorchtrackError(f"folds must be an integer from 2 to the number of items or frames ({n}); got "
+                              f"{folds!r}")
+    edges = [round(i * n / folds) for i in range(folds + 1)]
+    return list(zip(edges[:-1], edges[1:]))
+
+
 def split_items(items: list, held_out, where: str) -> TuneData:
-    """Split ``items`` into training and held-out: ``held_out`` is a count (the last items) or a
-    fraction in (0, 1)."""
+    """Split ``items`` into training and held-out: ``held_out`` is a count (the last items), a
+    fraction in (0, 1), or ``{fold: k, folds: K}``: block ``k`` (0-based) of ``K`` contiguous blocks
+    (cross-validation, :mod:`torchtrack.tuning.crossval`)."""
     n = len(items)
+    if isinstance(held_out, Mapping):
+        check_keys(held_out, ("fold", "folds"), f"{where}.held_out")
+        fold, folds = held_out.get("fold"), held_out.get("folds")
+        bounds = fold_bounds(n, folds)
+        if not (isinstance(fold, int) and 0 <= fold < folds):
+            raise TorchtrackError(f"{where}.held_out.fold must be an integer from 0 to {folds - 1}; got {fold!r}")
+        lo, hi = bounds[fold]
+        return TuneData(items[:lo] + items[hi:], items[lo:hi])
     if held_out is None or held_out == 0:
         k = 0
     elif isinstance(held_out, float) and 0 < held_out < 1:
