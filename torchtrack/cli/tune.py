@@ -26,7 +26,7 @@ last parameters with a finite loss, writes them, and exits with status 1.
 Examples:
   torchtrack tune --config configs/tune-kalman.yaml
   torchtrack tune --config configs/tune-gmphd-wpafb.yaml --out out/tune-gmphd --json out/tune-gmphd.json
-  torchtrack tune --config configs/tune-gmphd-wpafb.yaml --set data.held_out_frames=[1,128] \
+  torchtrack tune --config configs/tune-gmphd-wpafb.yaml --set data.held_out_frames=[1,128] \\
       --set 'data.train_frames=[[129,512]]'        # another held-out block
   torchtrack tune --config configs/tune-gmphd-wpafb.yaml --folds 4 --json out/tune-gmphd-cv.json
                                                    # each quarter of frames 1-512 held out in turn
