@@ -83,7 +83,7 @@ def _print_folds(summary: dict) -> None:
     where = (f"mean over {len(runs[0]['held_out_draws']['seeds'])} further detection draws of each held-out block"
              if draws else "held-out items")
     first = summary["per_fold"]["tuned"][0]
-    metrics = [k for k in ("MOTA", "OSPA", "IDS") if k in first] or [k for k in first if k != "per_draw"]
+    metrics = [k for k in ("MOTA", "OSPA", "IDS") if k in first] or list(first)
     methods = list(summary["per_fold"])
     rows = []
     for i, report in enumerate(runs):
