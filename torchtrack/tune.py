@@ -48,6 +48,11 @@ def load_filter(path: str | os.PathLike) -> nn.Module:
     return module
 
 
+def output_dir(config: Mapping[str, Any], out: str | os.PathLike | None = None) -> Path:
+    """Where a run of ``config`` writes: ``out``, else the config's ``output.dir``, else ``out/tune-FILTER``."""
+    return Path(out if out is not None else (config.get("output") or {}).get("dir", f"out/tune-{config['filter']}"))
+
+
 def _scalars(values: Mapping[str, torch.Tensor]) -> dict[str, Any]:
     return {n: (float(v) if v.numel() == 1 else v.tolist()) for n, v in values.items()}
 
@@ -92,7 +97,7 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     if extra:
         raise TorchtrackError(f"unknown key(s) {', '.join(map(repr, extra))} in output; allowed: "
                               f"{', '.join(OUTPUT_KEYS)}")
-    out_dir = Path(out if out is not None else output.get("dir", f"out/tune-{tunable.name}"))
+    out_dir = output_dir(cfg, out)
     params_path = Path(output["params"]) if "params" in output and out is None else out_dir / "params.yaml"
     plot_path = Path(output["plot"]) if "plot" in output and out is None else out_dir / "loss.png"
     data = tunable.load_data(cfg["data"] or {}, generator)

@@ -17,25 +17,12 @@ from __future__ import annotations
 import copy
 import math
 import os
+import statistics
 from collections.abc import Mapping, Sequence
-from pathlib import Path
 from typing import Any
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.tuning.registry import fold_bounds
-
-
-def _frame_spans(data: Mapping[str, Any]) -> list[list[int]]:
-    spans = data["train_frames"]
-    if not (isinstance(spans, (list, tuple)) and spans and all(isinstance(s, (list, tuple)) for s in spans)):
-        spans = [spans]
-    spans = list(spans) + ([data["held_out_frames"]] if data.get("held_out_frames") else [])
-    for span in spans:
-        if not (isinstance(span, (list, tuple)) and len(span) == 2
-                and all(isinstance(v, int) and not isinstance(v, bool) for v in span) and span[0] <= span[1]):
-            raise TorchtrackError(f"data.train_frames / data.held_out_frames: expected [first, last] frame numbers; "
-                                  f"got {span!r}")
-    return [list(s) for s in spans]
 
 
 def fold_config(config: Mapping[str, Any], fold: int, folds: int) -> dict[str, Any]:
@@ -43,10 +30,14 @@ def fold_config(config: Mapping[str, Any], fold: int, folds: int) -> dict[str, A
     cfg = copy.deepcopy(dict(config))
     data = cfg.get("data") or {}
     if cfg.get("filter") == "gmphd":
+        from torchtrack.tuning.gmphd import frame_span, train_spans
+
         if "train_frames" not in data:
             raise TorchtrackError("cross-validation of frame data needs data.train_frames (the frames to cut "
                                   "into folds, with data.held_out_frames if given)")
-        spans = _frame_spans(data)
+        spans = train_spans(data["train_frames"])
+        if data.get("held_out_frames"):
+            spans.append(frame_span(data["held_out_frames"], "held_out_frames"))
         first, last = min(s[0] for s in spans), max(s[1] for s in spans)
         lo, hi = fold_bounds(last - first + 1, folds)[fold]
         held = [first + lo, first + hi - 1]
@@ -83,9 +74,9 @@ def cross_validate(config: Mapping[str, Any], folds: int, out: str | os.PathLike
     has ``held_out_draws``, else on the held-out items), ``"mean"`` (per method their mean over the folds)
     and, with a grid, ``"difference"`` (tuned − grid of the grid's metric per fold, its mean and standard
     error)}``."""
-    from torchtrack.tune import tune
+    from torchtrack.tune import output_dir, tune
 
-    base = Path(out if out is not None else (config.get("output") or {}).get("dir", f"out/tune-{config['filter']}"))
+    base = output_dir(config, out)
     runs, per_fold = [], []
     for k in range(folds):
         cfg = fold_config(config, k, folds)
@@ -104,7 +95,6 @@ def cross_validate(config: Mapping[str, Any], folds: int, out: str | os.PathLike
     if "grid" in methods:
         metric = runs[0]["grid"]["metric"]
         diffs = [f["tuned"][metric] - f["grid"][metric] for f in per_fold]
-        mean = sum(diffs) / folds
-        sd = math.sqrt(sum((d - mean) ** 2 for d in diffs) / (folds - 1))
-        summary["difference"] = {"metric": metric, "per_fold": diffs, "mean": mean, "stderr": sd / math.sqrt(folds)}
+        summary["difference"] = {"metric": metric, "per_fold": diffs, "mean": statistics.fmean(diffs),
+                                 "stderr": statistics.stdev(diffs) / math.sqrt(folds)}
     return summary

@@ -45,6 +45,23 @@ TRUTH_KEYS = ("targets", "frames", "q", "speed", "image_size")
 WPAFB_ENV = "TORCHTRACK_WPAFB"
 
 
+def frame_span(span: Any, key: str) -> tuple[int, int]:
+    """``[first, last]`` frame numbers of ``data.<key>`` as ints; a clear error otherwise."""
+    if not (isinstance(span, (list, tuple)) and len(span) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in span)
+            and int(span[0]) <= int(span[1])):
+        raise TorchtrackError(f"data.{key} must be [first, last] frame numbers"
+                              f"{' or a list of such spans' if key == 'train_frames' else ''}; got {span!r}")
+    return int(span[0]), int(span[1])
+
+
+def train_spans(spans: Any) -> list[tuple[int, int]]:
+    """``data.train_frames``: one span or several (e.g. the frames either side of a held-out block)."""
+    if not (isinstance(spans, (list, tuple)) and spans and all(isinstance(s, (list, tuple)) for s in spans)):
+        spans = [spans]
+    return [frame_span(s, "train_frames") for s in spans]
+
+
 class FrameWindow(NamedTuple):
     """Consecutive frames: numbers ``(T,)``, measurement sets ``z[t] (M_t, 2)``, velocities (or None),
     and the truth of those frames (:class:`~torchtrack.io.mot.MOTData`, may be None)."""
@@ -165,9 +182,7 @@ class GMPHDTunable(Tunable):
         if window <= self.burn_in:
             raise TorchtrackError(f"data.window ({window}) must be larger than data.burn_in ({self.burn_in})")
         first, last = int(truth.frame.min()), int(truth.frame.max())
-        spans = config.get("train_frames", [first, last])
-        if not (isinstance(spans, (list, tuple)) and spans and all(isinstance(s, (list, tuple)) for s in spans)):
-            spans = [spans]   # one span; several: e.g. the frames either side of a held-out block
+        spans = train_spans(config.get("train_frames", [first, last]))
         train = [w for span in spans for w in self._windows(det, truth, span, window, "train_frames")]
         held = config.get("held_out_frames")
         # held-out frames form one window each range (scored by streaming the tracker through it)
@@ -199,12 +214,7 @@ class GMPHDTunable(Tunable):
                                    generator).detections
 
     def _windows(self, det, truth, span, window: int | None, key: str) -> list[FrameWindow]:
-        if not (isinstance(span, (list, tuple)) and len(span) == 2
-                and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in span)
-                and int(span[0]) <= int(span[1])):
-            raise TorchtrackError(f"data.{key} must be [first, last] frame numbers"
-                                  f"{' or a list of such spans' if key == 'train_frames' else ''}; got {span!r}")
-        lo, hi = int(span[0]), int(span[1])
+        lo, hi = frame_span(span, key)
         frames = np.arange(lo, hi + 1)
         centres, vel = det.centers(), det.velocity()
         idx = det.split(frames)
