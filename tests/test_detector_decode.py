@@ -5,9 +5,9 @@ import math
 import numpy as np
 import torch
 
-from detector.decode import decode
-from detector.losses import focal_loss
-from detector.targets import gaussian_heatmap, make_targets
+from torchtrack.detector.decode import decode
+from torchtrack.detector.losses import focal_loss
+from torchtrack.detector.targets import gaussian_heatmap, make_targets
 
 
 def test_decode_finds_planted_peaks_and_offsets():

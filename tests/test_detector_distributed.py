@@ -10,8 +10,8 @@ from pathlib import Path
 import torch
 import yaml
 
-from detector.checkpoint import load_checkpoint
-from detector.inference import Detector
+from torchtrack.detector.checkpoint import load_checkpoint
+from torchtrack.detector.inference import Detector
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -5,9 +5,9 @@ import pytest
 import torch
 from scipy.ndimage import gaussian_filter, shift
 
-from detector.losses import matching_loss
-from detector.network import CenterTrackNet
-from detector.refine import continuity_refine, refine_velocity
+from torchtrack.detector.losses import matching_loss
+from torchtrack.detector.network import CenterTrackNet
+from torchtrack.detector.refine import continuity_refine, refine_velocity
 
 
 def _texture(seed: int, size: int = 96) -> np.ndarray:
@@ -98,7 +98,7 @@ def test_continuity_resolves_a_platoon():
 
 
 def test_camera_velocity_is_the_motion_of_parked_vehicles():
-    from detector.evaluate import camera_velocity
+    from torchtrack.detector.evaluate import camera_velocity
     from torchtrack.sim.video import generate_sequence
     from torchtrack.sim.video_config import from_dict
 

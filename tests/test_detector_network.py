@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from detector.network import STRIDE, CenterTrackNet, correlation
+from torchtrack.detector.network import STRIDE, CenterTrackNet, correlation
 
 
 @pytest.mark.parametrize("autograd", [False, True])

@@ -7,8 +7,8 @@ import numpy as np
 import torch
 from test_detector_train import tiny_config
 
-from detector.dataset import PairDataset, build_cache
-from detector.evaluate import ground_velocity, registered_motions
+from torchtrack.detector.dataset import PairDataset, build_cache
+from torchtrack.detector.evaluate import ground_velocity, registered_motions
 from torchtrack.io.video_writer import apply_homography
 from torchtrack.pipeline.registration import warp_previous
 
@@ -85,7 +85,7 @@ def test_stream_passes_velocities_on_from_the_second_frame_only():
     """As in the pipeline: a first frame's velocities were measured without a previous frame."""
     from types import SimpleNamespace
 
-    from detector.evaluate import stream
+    from torchtrack.detector.evaluate import stream
 
     calls = []
 
@@ -105,7 +105,7 @@ def test_stream_with_given_priors_passes_them_warped_and_no_velocities():
     """``priors`` replace the previous detections (e.g. the previous truth), mapped onto the current frame."""
     from types import SimpleNamespace
 
-    from detector.evaluate import stream
+    from torchtrack.detector.evaluate import stream
 
     calls = []
 
@@ -127,7 +127,7 @@ def test_stream_with_given_priors_passes_them_warped_and_no_velocities():
 def test_unknown_prior_is_a_clear_error():
     import pytest
 
-    from detector.evaluate import evaluate_frames
+    from torchtrack.detector.evaluate import evaluate_frames
     from torchtrack.errors import TorchtrackError
 
     with pytest.raises(TorchtrackError, match="prior must be one of stream, truth, empty; got 'oracle'"):

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from detector.checkpoint import load_checkpoint, save_checkpoint
-from detector.config import DetectorConfig, config_from_dict, load_config
-from detector.dataset import PairDataset, build_cache, collate
-from detector.inference import Detector, detector_from_checkpoint
-from detector.losses import detection_loss
+from torchtrack.detector.checkpoint import load_checkpoint, save_checkpoint
+from torchtrack.detector.config import DetectorConfig, config_from_dict, load_config
+from torchtrack.detector.dataset import PairDataset, build_cache, collate
+from torchtrack.detector.inference import Detector, detector_from_checkpoint
+from torchtrack.detector.losses import detection_loss
 from torchtrack.errors import TorchtrackError
 
 TINY_VIDEO = {"height": 96, "width": 96, "margin": 16, "trees": 20, "speckles": 10, "buildings": 2,
@@ -114,8 +114,8 @@ def test_frames_of_mismatched_sizes_are_an_error(tmp_path):
 
 
 def test_export_calibrates_the_threshold_on_validation(tmp_path):
-    from detector.evaluate import evaluate_cache
-    from detector.train import THRESHOLDS, export_weights
+    from torchtrack.detector.evaluate import evaluate_cache
+    from torchtrack.detector.train import THRESHOLDS, export_weights
 
     cfg = tiny_config(tmp_path)
     torch.manual_seed(0)
@@ -136,7 +136,7 @@ def test_export_calibrates_the_threshold_on_validation(tmp_path):
 
 
 def test_data_loading_workers_do_not_change_the_result(tmp_path):
-    from detector.train import train
+    from torchtrack.detector.train import train
 
     cfg = tiny_config(tmp_path)
     params = []

@@ -130,7 +130,7 @@ def test_real_wpafb_frames(tmp_path, capsys):
 def test_weak_detections_leave_the_detector_output_and_its_prior_unchanged(sequence, tmp_path):
     """Decoding further down for the tracker adds weak detections (flagged) but changes neither the
     strong ones, nor detections.txt, nor the prior heatmap the next frame is detected with."""
-    from detector import load_detector
+    from torchtrack.detector import load_detector
     from torchtrack.io.frames import FolderSource
     from torchtrack.pipeline.config import PipelineConfig
     from torchtrack.pipeline.track_video import track_video

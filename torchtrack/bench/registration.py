@@ -16,9 +16,9 @@ import time
 import numpy as np
 import torch
 
-from detector.dataset import split_seed
 from torchtrack.bench._timing import report
 from torchtrack.cli._common import add_common_options
+from torchtrack.detector.dataset import split_seed
 from torchtrack.pipeline.registration import Registration, RegistrationConfig, transfer_error
 from torchtrack.sim.video import VideoConfig, generate_sequence
 

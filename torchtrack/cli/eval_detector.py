@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from detector.evaluate import PRIORS
 from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.detector.evaluate import PRIORS
 
 NAME = "eval-detector"
 HELP = "score the detector on held-out synthetic sequences and on the real WPAFB frames"
@@ -53,10 +53,10 @@ def run(args) -> int:
 
     import torch
 
-    from detector.dataset import split_seed
-    from detector.evaluate import evaluate_synthetic
-    from detector.inference import load_detector
-    from detector.wpafb import default_path, evaluate_wpafb
+    from torchtrack.detector.dataset import split_seed
+    from torchtrack.detector.evaluate import evaluate_synthetic
+    from torchtrack.detector.inference import load_detector
+    from torchtrack.detector.wpafb import default_path, evaluate_wpafb
     from torchtrack.sim.video_config import from_dict, load_video_config
 
     torch.set_num_threads(args.threads)

@@ -40,8 +40,8 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     import dataclasses
 
-    from detector.config import load_config
-    from detector.train import export_weights, train
+    from torchtrack.detector.config import load_config
+    from torchtrack.detector.train import export_weights, train
 
     if args.threads is not None:
         import torch
@@ -63,12 +63,12 @@ def run(args) -> int:
 
     if int(os.environ.get("RANK", "0")) == 0:
         if args.export is not None:
-            from detector.dataset import build_cache
+            from torchtrack.detector.dataset import build_cache
 
             path = export_weights(result["best"], args.export, {"seed": args.seed, "command": "torchtrack "
                                   f"train-detector --config {args.config} --seed {args.seed}"},
                                   calibrate=build_cache(cfg, "val", args.seed))
-            from detector.checkpoint import load_checkpoint
+            from torchtrack.detector.checkpoint import load_checkpoint
 
             thr = load_checkpoint(path)["config"].decode.threshold
             print(f"exported {result['best']} to {args.export} (decoding threshold {thr} calibrated on the "

@@ -24,8 +24,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from detector.dataset import split_seed
 from torchtrack.cli._common import format_table
+from torchtrack.detector.dataset import split_seed
 from torchtrack.filters.multitarget import tracker_names
 from torchtrack.io.frames import FolderSource
 from torchtrack.io.mot import MOTData, read_mot

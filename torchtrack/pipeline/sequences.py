@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch.distributed as dist
 
-from detector import load_detector
+from torchtrack.detector import load_detector
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, read_mot

@@ -45,7 +45,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from detector import load_detector
+from torchtrack.detector import load_detector
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.io.frames import FrameSource, prefetch
@@ -165,10 +165,10 @@ class Detection:
     """Registration + detection of a frame stream (steps 1–2 of the module docstring).
 
     ``detector`` has ``detect(frame, prev_frame, prev_points)`` returning an object with ``xy (K, 2)``,
-    ``score (K,)`` and ``velocity (K, 2)`` (:class:`detector.Detections`: frame pixel coordinates,
+    ``score (K,)`` and ``velocity (K, 2)`` (:class:`torchtrack.detector.Detections`: frame pixel coordinates,
     velocities ``x_k − x_{k-1}`` in px/frame). A detector whose ``detect`` takes ``prev_velocity`` gets the
     previous detections' velocities too (its motion-continuity check). With ``threshold`` (our
-    :class:`detector.Detector` only) it decodes down to that score, and with ``weak_threshold`` further
+    :class:`torchtrack.detector.Detector` only) it decodes down to that score, and with ``weak_threshold`` further
     down still: the detections between the two are marked weak (``FrameDetections.strong`` false). The prior
     heatmap of the next frame takes only the detections at or above the detector's own threshold, so that
     weak peaks do not feed themselves.

@@ -37,6 +37,7 @@ from torchtrack.association.gating import (
     rectangular_gate,
 )
 from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
+from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_bank import BankState, ClassConditionedIMM
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
@@ -48,7 +49,7 @@ from torchtrack.sim.formation import FormationConfig, FormationData, simulate_fo
 NAME = "formation"
 HELP = "class-conditioned tracking gates on the ground formation (the gate paper, Table 1)"
 DESCRIPTION = __doc__
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "formation.yaml"
+DEFAULT_CONFIG = preset_path("formation")
 GATES = ("rectangular", "ellipsoidal", "class_conditioned_ellipse", "class_conditioned_density")
 
 

@@ -28,6 +28,7 @@ from torchtrack.cli._common import (
     torch_threads,
     write_json,
 )
+from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import MMPFOutput, MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import Trajectory, jtc_trajectory, simulate_measurements, true_modes
@@ -35,7 +36,7 @@ from torchtrack.sim.jtc_trajectory import Trajectory, jtc_trajectory, simulate_m
 NAME = "jtc"
 HELP = "joint tracking and classification with a bank of multiple-model particle filters (the JTC paper)"
 DESCRIPTION = __doc__
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "jtc.yaml"
+DEFAULT_CONFIG = preset_path("jtc")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

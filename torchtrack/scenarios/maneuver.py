@@ -14,6 +14,7 @@ from pathlib import Path
 import torch
 
 from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
+from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter
@@ -23,7 +24,7 @@ from torchtrack.sim import maneuver as sim
 NAME = "maneuver"
 HELP = "Kalman refinement and chi-square maneuver detection (the maneuver paper)"
 DESCRIPTION = __doc__
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "maneuver.yaml"
+DEFAULT_CONFIG = preset_path("maneuver")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -29,6 +29,7 @@ from torchtrack.cli._common import (
     torch_threads,
     write_json,
 )
+from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter
 from torchtrack.filters.pmb_sensor import JointSensorPMB, SensorState, v2f_update
@@ -38,7 +39,7 @@ from torchtrack.models import ConstantVelocity, LinearPosition
 NAME = "pedestrian"
 HELP = "feature tracking with an uncertain sensor position: joint filter vs variance inflation vs naive (PMB paper)"
 DESCRIPTION = __doc__
-DEFAULT_CONFIG = Path(__file__).resolve().parents[2] / "configs" / "pedestrian.yaml"
+DEFAULT_CONFIG = preset_path("pedestrian")
 VARIANTS = ("joint", "inflated", "naive")
 EXTRA_VARIANTS = ("inflated_kf",)   # variance inflation around a Kalman-filtered sensor state
 PAPER_OSPA = {"joint": 0.87, "inflated": 0.99, "naive": 2.61}

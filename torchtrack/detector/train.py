@@ -21,13 +21,13 @@ import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler
 
-from detector.checkpoint import load_checkpoint, save_checkpoint
-from detector.config import DetectorConfig
-from detector.dataset import PairDataset, build_cache, collate
-from detector.evaluate import evaluate_cache
-from detector.inference import Detector
-from detector.losses import detection_loss
-from detector.targets import Targets
+from torchtrack.detector.checkpoint import load_checkpoint, save_checkpoint
+from torchtrack.detector.config import DetectorConfig
+from torchtrack.detector.dataset import PairDataset, build_cache, collate
+from torchtrack.detector.evaluate import evaluate_cache
+from torchtrack.detector.inference import Detector
+from torchtrack.detector.losses import detection_loss
+from torchtrack.detector.targets import Targets
 from torchtrack.errors import TorchtrackError
 
 
@@ -180,7 +180,7 @@ def export_weights(src: str | Path, dst: str | Path, extra: dict | None = None, 
     cfg = ck["config"]
     info = {}
     if calibrate is not None:
-        from detector.inference import detector_from_checkpoint
+        from torchtrack.detector.inference import detector_from_checkpoint
 
         det = detector_from_checkpoint(ck)
         thr, rows = calibrate_threshold(det, calibrate, cfg.train.val_frames, cfg.decode.radius)

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 from scipy.optimize import linear_sum_assignment
 
-from detector.decode import Detections
+from torchtrack.detector.decode import Detections
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.video_writer import apply_homography
 from torchtrack.pipeline.registration import warp_previous

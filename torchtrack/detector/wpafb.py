@@ -21,7 +21,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from detector.evaluate import Scores, moving_only, stream
+from torchtrack.detector.evaluate import Scores, moving_only, stream
 from torchtrack.errors import TorchtrackError
 
 FIRST, LAST = 100, 105
@@ -30,7 +30,7 @@ FIRST, LAST = 100, 105
 def default_path() -> Path:
     """``$TORCHTRACK_WPAFB`` or ``../shared/data/wpafb-aoi02`` next to the repository."""
     env = os.environ.get("TORCHTRACK_WPAFB")
-    return Path(env) if env else Path(__file__).resolve().parents[2] / "shared" / "data" / "wpafb-aoi02"
+    return Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "data" / "wpafb-aoi02"
 
 
 def read_truth(path: Path, first: int, last: int) -> dict[int, np.ndarray]:

@@ -25,10 +25,10 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from detector.config import DetectorConfig
-from detector.evaluate import ground_velocity
-from detector.network import STRIDE
-from detector.targets import Targets, gaussian_heatmap, make_targets
+from torchtrack.detector.config import DetectorConfig
+from torchtrack.detector.evaluate import ground_velocity
+from torchtrack.detector.network import STRIDE
+from torchtrack.detector.targets import Targets, gaussian_heatmap, make_targets
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.video_writer import apply_homography
 from torchtrack.pipeline.registration import warp_previous

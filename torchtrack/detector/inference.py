@@ -9,13 +9,13 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from detector.checkpoint import load_checkpoint
-from detector.config import DetectorConfig
-from detector.dataset import normalise
-from detector.decode import Detections, decode
-from detector.network import MULTIPLE, STRIDE, CenterTrackNet
-from detector.refine import continuity_refine, refine_velocity
-from detector.targets import gaussian_heatmap
+from torchtrack.detector.checkpoint import load_checkpoint
+from torchtrack.detector.config import DetectorConfig
+from torchtrack.detector.dataset import normalise
+from torchtrack.detector.decode import Detections, decode
+from torchtrack.detector.network import MULTIPLE, STRIDE, CenterTrackNet
+from torchtrack.detector.refine import continuity_refine, refine_velocity
+from torchtrack.detector.targets import gaussian_heatmap
 from torchtrack.errors import TorchtrackError
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "centertrack_small.pt"
@@ -37,8 +37,8 @@ class Detector(nn.Module):
     ``prev_frame`` grey ``(H, W)`` arrays or tensors of the same size (uint8 or float in 0..255;
     ``prev_frame=None`` uses ``frame``, as CenterTrack does on a first frame), ``prev_points`` ``(N, 2)``
     the previous detections (x, y) px (``None``: empty prior), ``prev_velocity`` ``(N, 2)`` their
-    velocities (optional: enables the motion-continuity check of :func:`detector.refine.continuity_refine`;
-    velocities are first refined by block matching, :func:`detector.refine.refine_velocity`). Returns the
+    velocities (optional: enables the motion-continuity check of :func:`torchtrack.detector.refine.continuity_refine`;
+    velocities are first refined by block matching, :func:`torchtrack.detector.refine.refine_velocity`). Returns the
     trimmed detections: ``xy``
     (K, 2) px, ``score`` (K,), ``velocity`` (K, 2) px/frame, ``x_k - x_{k-1}``.
     """
@@ -99,7 +99,7 @@ class Detector(nn.Module):
 
 
 def detector_from_checkpoint(data: dict) -> Detector:
-    """A :class:`Detector` in eval mode from a validated checkpoint dict (see :mod:`detector.checkpoint`)."""
+    """A :class:`Detector` in eval mode from a validated checkpoint dict (see :mod:`torchtrack.detector.checkpoint`)."""
     det = Detector(data["config"])
     try:
         det.net.load_state_dict(data["model"])
@@ -109,6 +109,6 @@ def detector_from_checkpoint(data: dict) -> Detector:
 
 
 def load_detector(path: str | Path | None = None) -> Detector:
-    """The shipped detector (``detector/weights/centertrack_small.pt``) or the checkpoint at ``path``,
+    """The shipped detector (``torchtrack/detector/weights/centertrack_small.pt``) or the checkpoint at ``path``,
     in eval mode."""
     return detector_from_checkpoint(load_checkpoint(DEFAULT_WEIGHTS if path is None else path))

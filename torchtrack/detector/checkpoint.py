@@ -11,7 +11,7 @@ from pathlib import Path
 
 import torch
 
-from detector.config import config_from_dict
+from torchtrack.detector.config import config_from_dict
 from torchtrack.errors import TorchtrackError
 
 FORMAT = "torchtrack-detector"
