@@ -28,6 +28,6 @@ def preset_path(name_or_path: str | Path) -> Path:
         return path
     stem = path.name[:-5] if path.name.endswith(".yaml") else path.name
     candidate = resources.files("torchtrack") / "configs" / f"{stem}.yaml"
-    if (path.parent == Path(".") or path.parent.name == "configs") and candidate.is_file():
+    if path.parent in (Path("."), Path("configs")) and candidate.is_file():
         return Path(str(candidate))
     raise TorchtrackError(f"{name_or_path}: no such file or preset (presets: {', '.join(preset_names())})")

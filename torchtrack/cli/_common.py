@@ -11,6 +11,7 @@ from pathlib import Path
 
 import torch
 
+from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 
 
@@ -47,13 +48,23 @@ class _NoFittedParams(argparse.Action):
                      f"fitted parameters load into: {PARAMS_SCENARIOS}")
 
 
+def config_file(value: str) -> Path:
+    """argparse ``type`` of every ``--config``-like option: a YAML path, or a shipped preset's name
+    (``torchtrack.config.preset_path``)."""
+    try:
+        return preset_path(value)
+    except TorchtrackError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, runs: int = 100,
                          params: str | None = None) -> None:
     """``--runs``, ``--config``, ``--plot DIR`` and ``--params FITTED.yaml``, which every ``torchtrack
     scenario`` takes; ``params`` says what a fitted-parameter file sets (None: the scenario has no tunable
     filter and ``--params`` is a usage error)."""
     parser.add_argument("--runs", type=int, default=runs, help=f"Monte Carlo runs, batched (default {runs})")
-    parser.add_argument("--config", type=Path, default=default_config, help="scenario YAML (default %(default)s)")
+    parser.add_argument("--config", type=config_file, default=default_config,
+                        help="scenario YAML or preset name (default: the preset of the scenario's name)")
     parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
     if params is None:
         parser.add_argument("--params", action=_NoFittedParams, metavar="FITTED", help=argparse.SUPPRESS)

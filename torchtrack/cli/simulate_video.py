@@ -6,7 +6,7 @@ from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options, write_json
+from torchtrack.cli._common import add_common_options, config_file, write_json
 
 NAME = "simulate-video"
 HELP = "write a synthetic satellite-style sequence: frames, gt.txt (MOTChallenge), camera.json"
@@ -21,8 +21,8 @@ Example: torchtrack simulate-video --out out/seq --frames 30 --seed 1
 
 def add_arguments(parser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output folder")
-    parser.add_argument("--config", type=Path, default=None, help="YAML config (default: built-in, "
-                        "same as configs/video.yaml)")
+    parser.add_argument("--config", type=config_file, default=None,
+                        help="YAML config or preset name (default: built-in, same as the preset video)")
     parser.add_argument("--frames", type=int, default=None, help="number of frames (overrides the config)")
     parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
                         help="frame height and width (overrides the config)")

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, write_json
+from torchtrack.cli._common import add_common_options, config_file, write_json
 from torchtrack.errors import TorchtrackError
 
 NAME = "train-detector"
@@ -20,8 +20,8 @@ Example: torchtrack train-detector --config configs/detector.yaml --seed 0
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--config", type=Path, default=Path("configs/detector.yaml"),
-                        help="YAML config (default configs/detector.yaml)")
+    parser.add_argument("--config", type=config_file, default="detector",
+                        help="YAML config or preset name (default: the preset detector, configs/detector.yaml)")
     parser.add_argument("--out", type=Path, default=None, help="checkpoint folder (overrides train.out)")
     parser.add_argument("--epochs", type=int, default=None, help="number of epochs (overrides train.epochs)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
@@ -47,8 +47,7 @@ def run(args) -> int:
         import torch
 
         torch.set_num_threads(args.threads)
-    cfg = load_config(args.config) if args.config.is_file() or args.config != Path("configs/detector.yaml") \
-        else load_config(None)
+    cfg = load_config(args.config)
     changes = {}
     if args.out is not None:
         changes["out"] = str(args.out)

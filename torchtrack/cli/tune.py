@@ -34,9 +34,10 @@ Examples:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from torchtrack.cli._common import add_common_options
+    from torchtrack.cli._common import add_common_options, config_file
 
-    parser.add_argument("--config", type=Path, required=True, metavar="YAML", help="tune config (configs/tune-*.yaml)")
+    parser.add_argument("--config", type=config_file, required=True, metavar="YAML",
+                        help="tune config: a path or a preset name (configs/tune-*.yaml, e.g. tune-kalman)")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="output folder (default: the config's output.dir, else out/tune-FILTER)")
     parser.add_argument("--threads", type=int, default=1,
