@@ -99,4 +99,7 @@ def test_scenario_command_writes_json_and_plots(tmp_path, capsys):
 def test_scenario_rejects_bad_arguments(capsys):
     assert main(["scenario", "maneuver", "--runs", "0"]) == 2
     assert "--runs must be >= 1" in capsys.readouterr().err
-    assert main(["scenario", "maneuver", "--config", "/nonexistent.yaml"]) == 2
+    with pytest.raises(SystemExit) as exc:                  # argparse's usage error: exit status 2
+        main(["scenario", "maneuver", "--config", "/nonexistent.yaml"])
+    assert exc.value.code == 2
+    assert "argument --config: /nonexistent.yaml: no such file or preset" in capsys.readouterr().err
