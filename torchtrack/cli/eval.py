@@ -23,6 +23,9 @@ MOTA, MOTP, IDF1, precision and recall are printed in percent; the JSON holds fr
 (keys MOTA, MOTP, IDF1, MT, PT, ML, FP, FN, IDS, FRAG, TP, GT, precision, recall, frames, ...).
 MOTP is the mean matched distance in pixels (centre mode) or the mean 1 - IoU (IoU mode).
 
+Ground-truth lines with conf 0 are don't-care objects, as in MOTChallenge and TrackEval: a prediction
+matched to one is dropped (neither a hit nor a false positive); --count-zero-conf scores them as objects.
+
 --moving keeps only ground-truth objects that moved more than 5 px over the last 15 frames (the
 paper's evaluation); predictions matched to the other objects are ignored, not counted as false.
 
@@ -42,6 +45,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gate.add_argument("--iou", type=float, default=None, metavar="T", help="IoU gate instead (e.g. 0.5)")
     parser.add_argument("--moving", action="store_true",
                         help="score only objects that moved > 5 px over the last 15 frames (paper's rule)")
+    parser.add_argument("--count-zero-conf", action="store_true",
+                        help="score ground-truth lines with conf 0 as objects (default: ignored, as MOTChallenge)")
     parser.add_argument("--ospa", type=float, default=None, metavar="C",
                         help="also report the mean per-frame OSPA (p=1) and GOSPA (p=2, alpha=2) of the "
                              "centres with cut-off C px")
@@ -66,7 +71,7 @@ def run(args: argparse.Namespace) -> int:
     gt, pred = read_mot(args.gt), read_mot(args.pred)
     if args.moving:
         gt, pred = drop_ignored(gt, pred, ~moving_mask(gt), threshold=args.threshold, iou=args.iou)
-    scores = clear_mot(gt, pred, threshold=args.threshold, iou=args.iou)
+    scores = clear_mot(gt, pred, threshold=args.threshold, iou=args.iou, count_zero_conf=args.count_zero_conf)
     gate = f"IoU >= {args.iou}" if args.iou is not None else f"centre distance <= {args.threshold} px"
     print(f"{args.pred} vs {args.gt} ({gate}{', moving objects only' if args.moving else ''})")
     print(format_scores(scores))

@@ -9,7 +9,8 @@ Format, one object per line, comma separated (whitespace is accepted too)::
 - ``x, y`` is the box's **top-left** corner, ``w, h`` its size, in pixels; ``x`` is the column, ``y`` the
   row. Point objects (vehicles in WAMI, simulated detections, tracker output) get a fixed box of
   :data:`POINT_BOX_SIZE` pixels centred on the point, so the centre is ``(x + w/2, y + h/2)``.
-- ``conf`` is the confidence (absent → 1). ``c8, c9, c10`` are the MOTChallenge 3-D world coordinates,
+- ``conf`` is the confidence (absent → 1). In ground truth, ``conf`` 0 marks an object to ignore
+  (MOTChallenge's convention; :func:`torchtrack.metrics.clear_mot` honours it). ``c8, c9, c10`` are the MOTChallenge 3-D world coordinates,
   ``-1,-1,-1`` for 2-D data.
 - **Velocity (torchtrack extension).** Detection files that carry a velocity per detection (the
   CenterTrack-style detector's velocity head, or ``torchtrack simulate-detections --velocity-sigma``)
@@ -26,6 +27,7 @@ from __future__ import annotations
 
 import os
 import re
+from array import array
 from collections.abc import Iterable
 from pathlib import Path
 from typing import NamedTuple
@@ -153,62 +155,84 @@ def _bad(path: Path, lineno: int, msg: str) -> TorchtrackError:
     return TorchtrackError(f"{path}:{lineno}: {msg}")
 
 
+def _integer(field: str, what: str, path: Path, lineno: int) -> int:
+    """``field`` as an exact integer (``3`` or ``3.0``; ids above 2**53 stay exact), within int64."""
+    try:
+        value = int(field)
+    except ValueError:
+        try:
+            number = float(field)
+        except ValueError:
+            raise _bad(path, lineno, f"{what} is not a number: {field!r}") from None
+        if not np.isfinite(number) or number != int(number):
+            raise _bad(path, lineno, f"{what} must be an integer, got {field!r}") from None
+        value = int(number)
+    if not -(2**63) <= value < 2**63:
+        raise _bad(path, lineno, f"{what} {field} is outside the 64-bit integer range")
+    return value
+
+
 def read_mot(path: str | os.PathLike) -> MOTData:
     """Read a MOTChallenge text file (see the module docstring for the format and the velocity rule).
 
-    Raises TorchtrackError naming the file and line for a malformed line (too few or too many fields,
-    non-numbers, NaN/inf, negative or non-integer frame, non-integer id or a negative id other than -1,
-    negative box size) and for a repeated (frame, id) pair. An empty file gives an empty MOTData.
+    Raises TorchtrackError naming the file and line for a malformed line (bytes that are not UTF-8, too
+    few or too many fields, non-numbers, NaN/inf, negative, non-integer or beyond-int64 frame, non-integer
+    id or a negative id other than -1, negative box size) and for a repeated (frame, id) pair. An empty
+    file gives an empty MOTData. The file is read line by line into typed columns (8 bytes a value), so
+    memory stays near the size of the result.
     """
     path = Path(path)
+    frames, ids = array("q"), array("q")
+    values = [array("d") for _ in range(7)]        # x, y, w, h, conf, c8, c9
+    linenos = array("q")
     try:
-        text = path.read_text()
+        with open(path, "rb") as handle:
+            for lineno, raw in enumerate(handle, start=1):
+                try:
+                    line = raw.decode("utf-8").strip()
+                except UnicodeDecodeError:
+                    raise _bad(path, lineno, "not UTF-8 text (a binary file?)") from None
+                if not line or line.startswith("#"):
+                    continue
+                fields = [f for f in _SPLIT.split(line) if f]
+                if not 6 <= len(fields) <= 10:
+                    raise _bad(path, lineno, f"expected 6 to 10 fields (frame,id,x,y,w,h,...), got {len(fields)}")
+                frame = _integer(fields[0], "frame", path, lineno)
+                ident = _integer(fields[1], "id", path, lineno)
+                if frame < 0:
+                    raise _bad(path, lineno, f"frame must be a non-negative integer, got {fields[0]!r}")
+                if ident < -1:
+                    raise _bad(path, lineno, f"id must be an integer >= 0 (or -1 for a detection), got {fields[1]!r}")
+                try:
+                    vals = [float(f) for f in fields[2:]]
+                except ValueError:
+                    raise _bad(path, lineno, f"not a number in {line!r}") from None
+                if not all(np.isfinite(vals)):
+                    raise _bad(path, lineno, f"NaN or infinite value in {line!r}")
+                if vals[2] < 0 or vals[3] < 0:
+                    raise _bad(path, lineno, f"negative box size in {line!r}")
+                vals = (vals + [1.0, -1.0, -1.0][len(vals) - 4:])[:7]  # default conf, absent c8, c9; drop c10
+                frames.append(frame)
+                ids.append(ident)
+                linenos.append(lineno)
+                for column, v in zip(values, vals):
+                    column.append(v)
     except OSError as exc:
         raise TorchtrackError(f"cannot read {path}: {exc.strerror or exc}") from exc
-    rows: list[list[float]] = []
-    linenos: list[int] = []
-    for lineno, raw in enumerate(text.splitlines(), start=1):
-        line = raw.strip()
-        if not line or line.startswith("#"):
-            continue
-        fields = [f for f in _SPLIT.split(line) if f]
-        if not 6 <= len(fields) <= 10:
-            raise _bad(path, lineno, f"expected 6 to 10 fields (frame,id,x,y,w,h,...), got {len(fields)}")
-        try:
-            vals = [float(f) for f in fields]
-        except ValueError:
-            raise _bad(path, lineno, f"not a number in {line!r}") from None
-        if not all(np.isfinite(vals)):
-            raise _bad(path, lineno, f"NaN or infinite value in {line!r}")
-        frame, ident = vals[0], vals[1]
-        if frame != int(frame) or frame < 0:
-            raise _bad(path, lineno, f"frame must be a non-negative integer, got {fields[0]!r}")
-        if ident != int(ident) or ident < -1:
-            raise _bad(path, lineno, f"id must be an integer >= 0 (or -1 for a detection), got {fields[1]!r}")
-        if vals[4] < 0 or vals[5] < 0:
-            raise _bad(path, lineno, f"negative box size in {line!r}")
-        vals += [1.0, -1.0, -1.0][len(vals) - 6:]  # default conf and absent c8, c9 where missing
-        rows.append(vals[:9])
-        linenos.append(lineno)
-    if not rows:
+    if not frames:
         return empty_mot()
-    a = np.asarray(rows, dtype=np.float64)
-    frame = a[:, 0].astype(np.int64)
-    ident = a[:, 1].astype(np.int64)
+    frame, ident = np.frombuffer(frames, dtype=np.int64), np.frombuffer(ids, dtype=np.int64)
+    x, y, w, h, conf, c8, c9 = (np.frombuffer(c, dtype=np.float64) for c in values)
     labelled = np.flatnonzero(ident >= 0)
     if labelled.size:
-        key = frame[labelled] * (int(ident.max()) + 1) + ident[labelled]
-        order = np.argsort(key, kind="stable")
-        dup = np.flatnonzero(np.diff(key[order]) == 0)
+        order = labelled[np.lexsort((ident[labelled], frame[labelled]))]
+        dup = np.flatnonzero((np.diff(frame[order]) == 0) & (np.diff(ident[order]) == 0))
         if dup.size:
-            first, second = labelled[order[dup[0]]], labelled[order[dup[0] + 1]]
+            first, second = sorted((order[dup[0]], order[dup[0] + 1]))
             raise _bad(path, linenos[second],
                        f"frame {frame[second]} id {ident[second]} already given on line {linenos[first]}")
-    has_velocity = bool(np.any(a[:, 7:9] != -1.0))
-    vx = a[:, 7].copy() if has_velocity else None
-    vy = a[:, 8].copy() if has_velocity else None
-    return MOTData(frame, ident, a[:, 2].copy(), a[:, 3].copy(), a[:, 4].copy(), a[:, 5].copy(),
-                   a[:, 6].copy(), vx, vy)
+    has_velocity = bool(np.any(c8 != -1.0) or np.any(c9 != -1.0))
+    return MOTData(frame, ident, x, y, w, h, conf, c8 if has_velocity else None, c9 if has_velocity else None)
 
 
 def format_lines(data: MOTData) -> str:

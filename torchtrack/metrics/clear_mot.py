@@ -223,7 +223,7 @@ def drop_ignored(gt: MOTData, pred: MOTData, ignore: np.ndarray, threshold: floa
 
 
 def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None = None,
-              ignore: np.ndarray | None = None) -> dict:
+              ignore: np.ndarray | None = None, count_zero_conf: bool = False) -> dict:
     """CLEAR-MOT, MT/PT/ML, FRAG and IDF1 of tracker output ``pred`` against ground truth ``gt``.
 
     Args:
@@ -234,6 +234,9 @@ def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | 
         ignore: optional (K,) bool over ``gt``'s lines marking don't-care objects (e.g. the vehicles that
             are not moving, :func:`torchtrack.io.wpafb.moving_mask`): in each frame, predictions assigned
             to them (Hungarian, same gate) are dropped, and so are they, before scoring.
+        count_zero_conf: score ground-truth lines whose ``conf`` is 0 as real objects. By default they are
+            don't-care objects, as in MOTChallenge ground truth (``conf`` 0: ignore) and TrackEval: handled
+            like ``ignore``, so a prediction on one is neither a hit nor a false positive.
 
     Returns:
         dict with :data:`KEYS` (``MOTA, MOTP, IDF1, MT, PT, ML, FP, FN, IDS, FRAG, TP, GT, precision,
@@ -247,6 +250,8 @@ def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | 
     _check(gt, "ground truth")
     _check(pred, "prediction")
     metric = _Distance(float(threshold), iou)
+    if not count_zero_conf and np.any(gt.conf == 0):
+        ignore = (gt.conf == 0) | (False if ignore is None else np.asarray(ignore, dtype=bool))
     if ignore is not None:
         gt, pred = drop_ignored(gt, pred, ignore, threshold, iou)
     gt, pred = gt.sorted(), pred.sorted()

@@ -1,0 +1,83 @@
+"""Bad and hostile input (issue 25): one-line errors naming file and line, MOTChallenge's conf-0 convention,
+exact large ids, and memory of reading a detection file bounded by its size."""
+
+import tracemalloc
+
+import numpy as np
+import pytest
+
+from torchtrack.cli import main
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.mot import from_points, read_mot, write_motdata
+from torchtrack.metrics import clear_mot
+
+
+def _two_objects(tmp_path, conf_second: float):
+    """gt: objects 1 and 2 in frames 1-2, object 2 with ``conf_second``; returns the gt path."""
+    gt = from_points([1, 1, 2, 2], [1, 2, 1, 2], [10.0, 50.0, 11.0, 51.0], [10.0, 50.0, 10.0, 50.0],
+                     conf=[1.0, conf_second, 1.0, conf_second])
+    write_motdata(tmp_path / "gt.txt", gt)
+    return tmp_path / "gt.txt"
+
+
+def test_zero_conf_ground_truth_is_ignored_as_in_motchallenge(tmp_path):
+    gt = read_mot(_two_objects(tmp_path, 0.0))
+    only_first = from_points([1, 2], [7, 7], [10.5, 11.5], [10.0, 10.0])
+    m = clear_mot(gt, only_first)
+    assert (m["MOTA"], m["FN"], m["FP"], m["GT"]) == (1.0, 0, 0, 1)
+    # a prediction on the conf-0 object is neither a hit nor a false positive
+    both = from_points([1, 1, 2, 2], [7, 8, 7, 8], [10.5, 50.5, 11.5, 51.5], [10.0, 50.0, 10.0, 50.0])
+    m = clear_mot(gt, both)
+    assert (m["MOTA"], m["FP"], m["TP"], m["predictions"]) == (1.0, 0, 2, 2)
+    # counted as objects on request: the plain score of the full ground truth
+    counted = clear_mot(gt, only_first, count_zero_conf=True)
+    plain = clear_mot(read_mot(_two_objects(tmp_path, 1.0)), only_first)
+    assert counted == plain and plain["MOTA"] == 0.5 and plain["FN"] == 2
+
+
+def test_eval_command_ignores_zero_conf_and_counts_on_request(tmp_path, capsys):
+    gt = _two_objects(tmp_path, 0.0)
+    write_motdata(tmp_path / "pred.txt", from_points([1, 2], [7, 7], [10.5, 11.5], [10.0, 10.0]))
+    assert main(["eval", "--gt", str(gt), "--pred", str(tmp_path / "pred.txt")]) == 0
+    assert "100.00" in capsys.readouterr().out
+    assert main(["eval", "--gt", str(gt), "--pred", str(tmp_path / "pred.txt"), "--count-zero-conf"]) == 0
+    assert "50.00" in capsys.readouterr().out
+
+
+def test_non_utf8_bytes_even_in_a_comment_are_one_error_naming_the_line(tmp_path, capsys):
+    bad = tmp_path / "det.txt"
+    bad.write_bytes(b"1,1,1,1,8,8,1\n# caf\xe9\n2,1,1,1,8,8,1\n")
+    with pytest.raises(TorchtrackError, match=r"det.txt:2: not UTF-8"):
+        read_mot(bad)
+    assert main(["eval", "--gt", str(bad), "--pred", str(bad)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("torchtrack eval: error:") and "det.txt:2" in err[0]
+
+
+def test_large_ids_stay_exact_and_frames_beyond_int64_are_refused(tmp_path):
+    big = 2**53 + 1                             # not representable as a float64
+    path = tmp_path / "t.txt"
+    path.write_text(f"1,{big},1,1,8,8,1\n1,{big + 1},1,1,8,8,1\n")
+    assert read_mot(path).id.tolist() == [big, big + 1]
+    path.write_text("1,1,1,1,8,8,1\n100000000000000000000,1,1,1,8,8,1\n")
+    with pytest.raises(TorchtrackError, match=r"t.txt:2: frame 100000000000000000000 is outside the 64-bit"):
+        read_mot(path)
+    path.write_text("1,1.5,1,1,8,8,1\n")
+    with pytest.raises(TorchtrackError, match=r"t.txt:1: id must be an integer"):
+        read_mot(path)
+
+
+def test_reading_a_detection_file_takes_memory_near_its_size(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 60_000
+    path = tmp_path / "det.txt"
+    xy = rng.uniform(0, 5000, (n, 2))
+    path.write_text("".join(f"{1 + i // 100},-1,{x:.3f},{y:.3f},8.000,8.000,0.9,0.1234,-0.4321,-1\n"
+                            for i, (x, y) in enumerate(xy)))
+    size = path.stat().st_size
+    tracemalloc.start()
+    data = read_mot(path)
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert data.size == n and np.allclose(data.centers()[:, 0], xy[:, 0] + 4.0, atol=1e-3)
+    assert peak < 1.5 * size, f"reading {size} bytes peaked at {peak} bytes"
