@@ -10,7 +10,8 @@ Format, one object per line, comma separated (whitespace is accepted too)::
   row. Point objects (vehicles in WAMI, simulated detections, tracker output) get a fixed box of
   :data:`POINT_BOX_SIZE` pixels centred on the point, so the centre is ``(x + w/2, y + h/2)``.
 - ``conf`` is the confidence (absent → 1). In ground truth, ``conf`` 0 marks an object to ignore
-  (MOTChallenge's convention; :func:`torchtrack.metrics.clear_mot` honours it). ``c8, c9, c10`` are the MOTChallenge 3-D world coordinates,
+  (MOTChallenge's convention; :func:`torchtrack.metrics.clear_mot` honours it).
+  ``c8, c9, c10`` are the MOTChallenge 3-D world coordinates,
   ``-1,-1,-1`` for 2-D data.
 - **Velocity (torchtrack extension).** Detection files that carry a velocity per detection (the
   CenterTrack-style detector's velocity head, or ``torchtrack simulate-detections --velocity-sigma``)
