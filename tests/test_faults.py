@@ -2,6 +2,7 @@
 exact large ids, and memory of reading a detection file bounded by its size."""
 
 import tracemalloc
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -81,3 +82,35 @@ def test_reading_a_detection_file_takes_memory_near_its_size(tmp_path):
     tracemalloc.stop()
     assert data.size == n and np.allclose(data.centers()[:, 0], xy[:, 0] + 4.0, atol=1e-3)
     assert peak < 1.5 * size, f"reading {size} bytes peaked at {peak} bytes"
+
+
+def test_empty_and_nan_weight_files_are_one_error(tmp_path):
+    import torch
+
+    import torchtrack.detector as detector_package
+    from torchtrack.detector.checkpoint import load_checkpoint
+
+    empty = tmp_path / "empty.pt"
+    empty.write_bytes(b"")
+    with pytest.raises(TorchtrackError, match="empty.pt: unreadable, truncated or not a torch file"):
+        load_checkpoint(empty)
+    shipped = torch.load(Path(detector_package.__file__).parent / "weights" / "centertrack_small.pt",
+                         weights_only=True)
+    first = next(k for k, t in shipped["model"].items() if t.is_floating_point())
+    shipped["model"][first] = torch.full_like(shipped["model"][first], float("nan"))
+    torch.save(shipped, tmp_path / "nan.pt")
+    with pytest.raises(TorchtrackError, match=f"nan.pt: NaN or infinite weights in {first}"):
+        load_checkpoint(tmp_path / "nan.pt")
+
+
+def test_binary_wpafb_csv_and_absurd_clutter_are_one_error(tmp_path, capsys):
+    from torchtrack.sim.detections import simulate_detections
+
+    binary = tmp_path / "truth.csv"
+    binary.write_bytes(b"\x89PNG\r\n\x1a\n\xff\xfe")
+    assert main(["convert-wpafb", str(binary), "--out", str(tmp_path / "gt.txt")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "truth.csv: not UTF-8 text" in err[0]
+    truth = from_points([1, 2], [1, 1], [5.0, 6.0], [5.0, 5.0])
+    with pytest.raises(TorchtrackError, match="clutter 1e\\+09 per frame over 2 frames"):
+        simulate_detections(truth, pd=0.9, sigma=1.0, clutter=1e9, image_size=(100, 100))

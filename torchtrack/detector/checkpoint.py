@@ -36,7 +36,7 @@ def load_checkpoint(path: str | Path) -> dict:
         data = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:
         raise TorchtrackError(f"detector checkpoint {path}: unreadable, truncated or not a torch file "
-                              f"({type(exc).__name__}: {str(exc).splitlines()[0][:120]})") from exc
+                              f"({type(exc).__name__}: {(str(exc).splitlines() or [''])[0][:120]})") from exc
     if not isinstance(data, dict) or data.get("format") != FORMAT:
         raise TorchtrackError(f"detector checkpoint {path}: not a torchtrack detector checkpoint "
                               f"(no 'format': '{FORMAT}' entry)")
@@ -46,4 +46,11 @@ def load_checkpoint(path: str | Path) -> dict:
         if key not in data:
             raise TorchtrackError(f"detector checkpoint {path}: missing '{key}'")
     data["config"] = config_from_dict(data["config"], f"detector checkpoint {path}")
+    model = data["model"]
+    if not isinstance(model, dict) or not all(isinstance(t, torch.Tensor) for t in model.values()):
+        raise TorchtrackError(f"detector checkpoint {path}: 'model' is not a state dict of tensors")
+    bad = [name for name, t in model.items() if t.is_floating_point() and not torch.isfinite(t).all()]
+    if bad:
+        raise TorchtrackError(f"detector checkpoint {path}: NaN or infinite weights in {bad[0]}"
+                              + (f" and {len(bad) - 1} more" if len(bad) > 1 else ""))
     return data

@@ -36,11 +36,13 @@ def read_wpafb_csv(path: str | os.PathLike, keep_frame_numbers: bool = False,
     """
     path = Path(path)
     try:
-        with open(path) as fh:
+        with open(path, encoding="utf-8") as fh:
             header = [h.strip() for h in fh.readline().strip().split(",")]
             body = fh.read()
     except OSError as exc:
         raise TorchtrackError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    except UnicodeDecodeError:
+        raise TorchtrackError(f"{path}: not UTF-8 text (expected the WPAFB truth CSV)") from None
     while header and not header[-1]:  # the published file's header ends with six unnamed columns
         header.pop()
     if not header or header[0].strip() != "Frame Number" or (len(header) - 1) % 6:

@@ -26,6 +26,9 @@ import torch
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import POINT_BOX_SIZE, MOTData, from_points
 
+MAX_CLUTTER = 5e7
+"""Most false detections a simulation draws in all (about 4 GB of detections): more is refused up front."""
+
 
 class SimulatedDetections(NamedTuple):
     """``detections`` (id -1) and, per detection, the truth id it came from (``source``, -1 for clutter)."""
@@ -89,6 +92,10 @@ def simulate_detections(
     width, height = (float(v) for v in image_size)
     if not (width > 0 and height > 0):
         raise TorchtrackError(f"image_size must be positive, got {image_size}")
+    frames = _frames_range(truth)
+    if clutter * frames.size > MAX_CLUTTER:
+        raise TorchtrackError(f"clutter {clutter:g} per frame over {frames.size} frames is more than "
+                              f"{MAX_CLUTTER:.0e} false detections in all")
     g = generator if generator is not None else torch.Generator()
     f64 = torch.float64
 
@@ -97,7 +104,6 @@ def simulate_detections(
     pos = truth.centers() + sigma * torch.randn(k, 2, generator=g, dtype=f64).numpy()
     vel_noise = torch.randn(k, 2, generator=g, dtype=f64).numpy()
 
-    frames = _frames_range(truth)
     counts = torch.poisson(torch.full((frames.size,), float(clutter), dtype=f64), generator=g).long().numpy()
     n_clutter = int(counts.sum())
     clutter_pos = torch.rand(n_clutter, 2, generator=g, dtype=f64).numpy() * np.array([width, height])
