@@ -139,7 +139,7 @@ def search_path(dataset: Dataset, roots: Sequence[Path], environ: Mapping[str, s
 
 def absent_message(dataset: Dataset) -> str:
     """How to get ``dataset`` where it is absent, in one line."""
-    return (f"{dataset.title.split(':')[0]} data not found; run `torchtrack data fetch {dataset.name}` "
+    return (f"{dataset.folder} data not found; run `torchtrack data fetch {dataset.name}` "
             f"(into ./data/{dataset.folder}) or set {dataset.env} to its folder")
 
 

@@ -150,8 +150,11 @@ def fetch_dataset(dataset: Dataset, out: str | os.PathLike, base_url: str | None
             _write_notes(dataset, out, origin)
         return FetchResult(out, origin, (), (), kept)
     created = not out.exists()
-    out.mkdir(parents=True, exist_ok=True)
-    staging = Path(tempfile.mkdtemp(prefix=".fetch-", dir=out))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        staging = Path(tempfile.mkdtemp(prefix=".fetch-", dir=out))
+    except OSError as exc:
+        raise TorchtrackError(f"--out {out}: cannot write there ({_one_line(exc.strerror or exc)})") from None
     try:
         from tqdm import tqdm
 
