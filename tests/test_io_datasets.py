@@ -106,6 +106,9 @@ def test_the_shipped_configs_name_the_data_set_not_a_path(tmp_path, monkeypatch)
         assert "shared" not in json.dumps(yaml.safe_load(preset_path(name).read_text()))
 
 
-def test_the_checkout_is_found_from_a_source_tree():
-    root = checkout_root()
-    assert root is not None and (root / "torchtrack" / "io" / "datasets.py").is_file()
+def test_the_checkout_is_found_from_a_source_tree_and_not_from_an_installed_package():
+    import torchtrack
+
+    package_parent = Path(torchtrack.__file__).resolve().parents[1]
+    from_source = (package_parent / "pyproject.toml").is_file()
+    assert checkout_root() == (package_parent if from_source else None)
