@@ -7,13 +7,10 @@ import os
 from pathlib import Path
 
 import numpy as np
-import pytest
 import torch
 
 from torchtrack.cli import main
 from torchtrack.io.mot import read_mot, write_mot
-
-WPAFB = Path(os.environ.get("TORCHTRACK_WPAFB", Path(__file__).resolve().parents[1].parent / "shared/data/wpafb-aoi02"))
 
 
 def scene(tmp_path: Path, T: int = 25, seed: int = 0) -> tuple[Path, Path]:
@@ -75,14 +72,13 @@ def test_track_errors(tmp_path, capsys):
     assert "unknown tracker section" in capsys.readouterr().err
 
 
-@pytest.mark.skipif(not (WPAFB / "transformed_object_states.csv").exists(), reason="WPAFB data absent")
-def test_gmphd_on_real_wpafb_trajectories_short():
+def test_gmphd_on_real_wpafb_trajectories_short(wpafb_data):
     """40 frames of real moving vehicles, simulated detections at the benchmark's defaults."""
     from torchtrack.cli.track import track_detections
     from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
     from torchtrack.sim.detections import simulate_detections
 
-    truth = read_wpafb_csv(WPAFB / "transformed_object_states.csv")
+    truth = read_wpafb_csv(wpafb_data / "transformed_object_states.csv")
     truth = truth.select(moving_mask(truth) & (truth.frame <= 40))
     det = simulate_detections(truth, 0.9, 1.0, 30, (585, 496), 1.0, torch.Generator().manual_seed(0)).detections
     m = track_detections(det, "gmphd", {}, Path(os.environ.get("TMPDIR", "/tmp")) / "tt_wpafb_short", truth)

@@ -15,6 +15,7 @@ def _commands():
     for package, group in (("torchtrack.scenarios", "scenario"), ("torchtrack.bench", "bench")):
         for module in _command_modules(package):
             names.append([group, module.NAME])
+    names.append(["data", "fetch"])
     return names
 
 
@@ -25,7 +26,7 @@ def test_help(argv, capsys):
     assert exc.value.code == 0
     out = capsys.readouterr().out
     assert "usage: torchtrack" in out
-    if argv[0] not in ("scenario", "bench") or len(argv) > 1:  # the two groups only list their members
+    if argv[0] not in ("scenario", "bench", "data") or len(argv) > 1:  # the groups only list their members
         assert "--seed" in out
 
 

@@ -1,7 +1,6 @@
 """The WPAFB truth CSV reader, the moving-object rule and ``torchtrack convert-wpafb``."""
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -11,9 +10,6 @@ from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import read_mot
 from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
-
-WPAFB = Path(os.environ.get("TORCHTRACK_WPAFB", Path(__file__).resolve().parents[1].parent / "shared/data/wpafb-aoi02"))
-CSV = WPAFB / "transformed_object_states.csv"
 
 
 def write_csv(path: Path, rows, ids=(7, 3)) -> Path:
@@ -68,10 +64,10 @@ def test_moving_mask_by_hand(tmp_path):
     assert ms[(sub.id == 7) & (sub.frame == 27)].all()  # window [12, 27] starts at 21: 6 px
 
 
-@pytest.mark.skipif(not CSV.exists(), reason="WPAFB data not present")
-def test_convert_real_csv(tmp_path):
+def test_convert_real_csv(tmp_path, wpafb_data):
     out, js = tmp_path / "gt.txt", tmp_path / "c.json"
-    assert main(["convert-wpafb", str(CSV), "--out", str(out), "--json", str(js)]) == 0
+    csv = wpafb_data / "transformed_object_states.csv"
+    assert main(["convert-wpafb", str(csv), "--out", str(out), "--json", str(js)]) == 0
     d = read_mot(out)
     frames = d.frames()
     assert frames.size == 512 and frames[0] == 1 and frames[-1] == 512

@@ -103,19 +103,8 @@ def test_demo_on_a_tiny_sequence(tmp_path):
     assert np.isfinite(m["fps"]["end_to_end"])
 
 
-def _wpafb():
-    import os
-    from pathlib import Path
-
-    env = os.environ.get("TORCHTRACK_WPAFB")
-    path = Path(env) if env else Path(__file__).resolve().parents[1].parent / "shared/data/wpafb-aoi02"
-    if not (path / "frames").is_dir() or not (path / "transformed_object_states.csv").is_file():
-        pytest.skip(f"WPAFB data not found at {path}")
-    return path
-
-
-def test_real_wpafb_frames(tmp_path, capsys):
-    data = _wpafb()
+def test_real_wpafb_frames(tmp_path, capsys, wpafb_data):
+    data = wpafb_data
     out = tmp_path / "wpafb"
     rc = main(["track", "--frames", str(data / "frames"), "--truth-csv", str(data / "transformed_object_states.csv"),
                "--out", str(out), "--no-progress"])

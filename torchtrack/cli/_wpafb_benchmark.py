@@ -7,7 +7,6 @@ every tracker → CLEAR-MOT at the paper's 10 px, on all vehicles and on the mov
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import torch
@@ -17,19 +16,15 @@ from torchtrack.cli._common import write_json
 from torchtrack.cli.track import compare, load_tracker_config
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
+from torchtrack.io.datasets import WPAFB, wpafb_truth_csv
 
 REPO = Path(__file__).resolve().parents[2]
 
 
 def truth_csv(config: dict) -> Path:
-    """The truth CSV: ``$TORCHTRACK_WPAFB/<file>`` where the variable is set, else ``truth`` of the config
-    relative to the repository root."""
-    name = config.get("truth", "../shared/data/wpafb-aoi02/transformed_object_states.csv")
-    env = os.environ.get("TORCHTRACK_WPAFB")
-    path = Path(env) / Path(name).name if env else (REPO / name)
-    if not path.exists():
-        raise TorchtrackError(f"WPAFB truth not found at {path} (set TORCHTRACK_WPAFB to its folder)")
-    return path
+    """The truth CSV that the config's ``truth`` names: ``wpafb`` (the default) for the data set wherever
+    :func:`torchtrack.io.datasets.locate` finds it, or a path to the CSV or its folder."""
+    return wpafb_truth_csv(config.get("truth", WPAFB.name))
 
 
 def run_benchmark(config_path: Path, out: Path, seed: int, trackers: list[str] | None = None,

@@ -20,7 +20,8 @@ row is skipped. Each vehicle becomes a {POINT_BOX_SIZE:g} x {POINT_BOX_SIZE:g} p
 (--box). Frames are renumbered from 1 unless --keep-frame-numbers.
 
 example:
-  torchtrack convert-wpafb ../shared/data/wpafb-aoi02/transformed_object_states.csv --out out/wpafb/gt.txt
+  torchtrack data fetch wpafb
+  torchtrack convert-wpafb data/wpafb-aoi02/transformed_object_states.csv --out out/wpafb/gt.txt
 """
 
 

@@ -21,9 +21,9 @@ current one by the true camera motion, as after the pipeline's registration, and
 scored against the velocity over the ground. The 'moving vehicles' row scores the detections
 predicted to move over the ground (for an unregistered detector: its velocity less the camera
 jitter's image motion) at 2 px/frame or more against the moving truth (parked vehicles don't-care,
-frames after the first). The WPAFB part runs where
-../shared/data/wpafb-aoi02 (or $TORCHTRACK_WPAFB) exists: all vehicles, and moving vehicles with
-detections on parked vehicles as don't-care.
+frames after the first). The WPAFB part runs where the WPAFB AOI 02 data
+set is found (data/wpafb-aoi02, $TORCHTRACK_WPAFB or ../shared/data/wpafb-aoi02; torchtrack data fetch
+wpafb gets it): all vehicles, and moving vehicles with detections on parked vehicles as don't-care.
 Example: torchtrack eval-detector --sequences 4 --frames 20 --json out/eval.json
 """
 
@@ -36,7 +36,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frames", type=int, default=20, help="frames per sequence (default 20)")
     parser.add_argument("--radius", type=float, default=10.0, help="match distance in px (default 10)")
     parser.add_argument("--threshold", type=float, default=None, help="score threshold (default: checkpoint's)")
-    parser.add_argument("--wpafb", type=Path, default=None, help="WPAFB folder (default ../shared/data/wpafb-aoi02)")
+    parser.add_argument("--wpafb", type=Path, default=None, help="WPAFB AOI 02 folder (default: the located data set, "
+                        "see torchtrack data --help; skipped where there is none)")
     parser.add_argument("--no-wpafb", action="store_true", help="skip the real frames")
     parser.add_argument("--prior", choices=PRIORS, default="stream",
                         help="prior heatmap of each synthetic frame after the first: the previous detections "
@@ -48,6 +49,22 @@ def add_arguments(parser) -> None:
     add_common_options(parser)
 
 
+def wpafb_path(given: Path | None) -> tuple[Path | None, str | None]:
+    """``(folder, None)`` of the WPAFB data (``--wpafb`` or the located one), or ``(None, why)`` where
+    no folder was given and none is found; a given folder without the truth is an error."""
+    from torchtrack.errors import TorchtrackError
+    from torchtrack.io.datasets import WPAFB, wpafb_folder
+
+    if given is not None:
+        if not (given / WPAFB.marker).is_file():
+            raise TorchtrackError(f"--wpafb {given}: no {WPAFB.marker} there")
+        return given, None
+    try:
+        return wpafb_folder(), None
+    except TorchtrackError as exc:
+        return None, str(exc)
+
+
 def run(args) -> int:
     import dataclasses
 
@@ -56,9 +73,10 @@ def run(args) -> int:
     from torchtrack.detector.dataset import split_seed
     from torchtrack.detector.evaluate import evaluate_synthetic
     from torchtrack.detector.inference import load_detector
-    from torchtrack.detector.wpafb import default_path, evaluate_wpafb
+    from torchtrack.detector.wpafb import evaluate_wpafb
     from torchtrack.sim.video_config import from_dict, load_video_config
 
+    path, absent = (None, None) if args.no_wpafb else wpafb_path(args.wpafb)
     torch.set_num_threads(args.threads)
     det = load_detector(args.weights)
     if args.threshold is not None:
@@ -76,8 +94,7 @@ def run(args) -> int:
     payload = {k: result[k] for k in ("precision", "recall", "f1", "velocity_error_px", "frames", "fps",
                                       "fps_cpu_time")}
     payload["synthetic"] = {**result, "prior": args.prior}
-    path = args.wpafb or default_path()
-    if not args.no_wpafb and (path / "transformed_object_states.csv").is_file():
+    if path is not None:
         real = evaluate_wpafb(det, path, args.radius)
         payload["wpafb"] = real
         for name in ("all", "moving"):
@@ -85,7 +102,7 @@ def run(args) -> int:
             rows.append([f"WPAFB real, {name} vehicles", r["precision"], r["recall"], r["f1"],
                          r["velocity_error_px"], r["frames"], r["fps"]])
     elif not args.no_wpafb:
-        print(f"(no WPAFB data at {path}; real frames skipped)")
+        print(f"(real frames skipped: {absent})")
     print(format_table(["data", "precision", "recall", "F1", "vel err px/fr", "frames", "fps"], rows))
     write_json(args.json, payload)
     return 0

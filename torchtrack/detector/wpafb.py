@@ -1,4 +1,5 @@
-"""Scoring the detector on the six real WPAFB AOI 02 frames (``shared/data/wpafb-aoi02``).
+"""Scoring the detector on the six real WPAFB AOI 02 frames (the data set that ``torchtrack data fetch wpafb``
+gets, found by :func:`torchtrack.io.datasets.wpafb_folder`).
 
 Truth: ``transformed_object_states.csv`` (``px`` = row, ``py`` = column, absent = 0, 0). A vehicle is
 *moving* at frame ``k`` when it is more than 5 px from its frame-``k`` position at some frame of
@@ -15,7 +16,6 @@ don't-care.
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import cv2
@@ -23,14 +23,9 @@ import numpy as np
 
 from torchtrack.detector.evaluate import Scores, moving_only, stream
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.datasets import WPAFB, wpafb_folder
 
 FIRST, LAST = 100, 105
-
-
-def default_path() -> Path:
-    """``$TORCHTRACK_WPAFB`` or ``../shared/data/wpafb-aoi02`` next to the repository."""
-    env = os.environ.get("TORCHTRACK_WPAFB")
-    return Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "data" / "wpafb-aoi02"
 
 
 def read_truth(path: Path, first: int, last: int) -> dict[int, np.ndarray]:
@@ -52,14 +47,16 @@ def read_truth(path: Path, first: int, last: int) -> dict[int, np.ndarray]:
 
 
 def evaluate_wpafb(detector, path: Path | None = None, radius: float = 10.0, min_speed: float = 2.0) -> dict:
-    """``{"all": scores, "moving": scores}`` over frames 100-105 (see module docstring)."""
-    path = default_path() if path is None else Path(path)
+    """``{"all": scores, "moving": scores}`` over frames 100-105 (see module docstring); ``path`` is the
+    data set's folder (default: the located one)."""
+    path = wpafb_folder() if path is None else Path(path)
     truth = read_truth(path, FIRST, LAST + 15)
     frames = []
     for k in range(FIRST, LAST + 1):
         img = cv2.imread(str(path / "frames" / f"frame_{k:06d}.png"), cv2.IMREAD_GRAYSCALE)
         if img is None:
-            raise TorchtrackError(f"{path}/frames/frame_{k:06d}.png: cannot read")
+            raise TorchtrackError(f"{path}/frames/frame_{k:06d}.png: cannot read (torchtrack data fetch "
+                                  f"{WPAFB.name} gets the frames)")
         frames.append(img)
     all_s, mov_s = Scores(radius), Scores(radius)
     for k, det in zip(range(FIRST, LAST + 1), stream(detector, frames, all_s)):

@@ -1,6 +1,6 @@
 """Synthetic satellite-style grey video with vehicle truth and the true camera motion.
 
-The generator mimics the WPAFB 2009 wide-area imagery (``shared/data/wpafb-aoi02``): a textured ground
+The generator mimics the WPAFB 2009 wide-area imagery (``data/wpafb-aoi02``): a textured ground
 (mean about 60, std about 18), roads, car parks, trees, speckles and buildings whose roofs move with
 parallax (false motion), vehicles 3-15 px long, bright or dark, moving along lanes with lognormal
 speeds (median ``speed_median``, 90th percentile ``speed_p90`` px/frame), slowing near intersections,

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import contextlib
 import logging
-import os
 from collections.abc import Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any, NamedTuple
@@ -42,7 +41,6 @@ DATA_KEYS = ("wpafb", "truth", "simulate_truth", "detections", "detections_file"
              "held_out_frames", "held_out_draws", "window", "burn_in", "threshold", "ospa_c", "gospa_c")
 DET_KEYS = ("pd", "sigma", "clutter", "velocity_sigma", "image_size")
 TRUTH_KEYS = ("targets", "frames", "q", "speed", "image_size")
-WPAFB_ENV = "TORCHTRACK_WPAFB"
 
 
 def frame_span(span: Any, key: str) -> tuple[int, int]:
@@ -70,17 +68,6 @@ class FrameWindow(NamedTuple):
     z: list[Tensor]
     velocity: list[Tensor | None]
     truth: Any
-
-
-def wpafb_csv(path: str | os.PathLike) -> Path:
-    """The WPAFB truth CSV: ``$TORCHTRACK_WPAFB`` (folder or file) if set, else ``path`` (a folder holds
-    ``transformed_object_states.csv``). Raises when it is absent."""
-    p = Path(os.environ.get(WPAFB_ENV) or path)
-    if p.is_dir():
-        p = p / "transformed_object_states.csv"
-    if not p.is_file():
-        raise TorchtrackError(f"WPAFB truth not found at {p} (set {WPAFB_ENV} to the wpafb-aoi02 folder)")
-    return p
 
 
 def simulate_truth(cfg: Mapping[str, Any], generator: torch.Generator):
@@ -161,12 +148,14 @@ class GMPHDTunable(Tunable):
         self.ospa_c = float(config.get("ospa_c", 10.0))
         self.gospa_c = float(config.get("gospa_c", 10.0))
         if sum(k in config for k in ("wpafb", "truth", "simulate_truth")) != 1:
-            raise TorchtrackError("data (gmphd) needs exactly one of 'wpafb' (the truth CSV or its folder), "
+            raise TorchtrackError("data (gmphd) needs exactly one of 'wpafb' (the data set's name, wpafb, or the "
+                                  "truth CSV or its folder), "
                                   "'truth' (a MOTChallenge file) or 'simulate_truth'")
         if "wpafb" in config:
+            from torchtrack.io.datasets import wpafb_truth_csv
             from torchtrack.io.wpafb import read_wpafb_csv
 
-            truth = read_wpafb_csv(wpafb_csv(config["wpafb"]))
+            truth = read_wpafb_csv(wpafb_truth_csv(config["wpafb"]))
         elif "truth" in config:
             truth = read_mot(Path(config["truth"]))
         else:
