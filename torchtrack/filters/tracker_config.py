@@ -99,7 +99,8 @@ def _copy(mapping: Mapping) -> dict:
     return {k: _copy(v) if isinstance(v, Mapping) else v for k, v in mapping.items()}
 
 
-POSITIONS_ONLY: dict = {"filter": {"q": 1.0, "clutter_density": 3e-4}, "birth": {"sigma_vel_unknown": 12.0}}
+POSITIONS_ONLY: dict = {"filter": {"q": 1.0, "clutter_density": 3e-4}, "birth": {"sigma_vel_unknown": 16.0},
+                        "fix_separation": 12.0}
 """The enhanced GM-PHD's options on detections without velocities, over the others (validation seeds
 100–103 of the WPAFB benchmark; docs/gmphd.md)."""
 
