@@ -27,10 +27,11 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_shipped_yaml_equals_the_built_in_defaults():
     assert set(DEFAULTS) == set(tracker_names())
     assert load_tracker_configs(ROOT / "configs" / "gmphd.yaml") == DEFAULTS
-    assert load_tracker_configs(None) == DEFAULTS
+    assert load_tracker_configs(None) == {}
 
 
 def test_paper_preset_by_name_is_the_paper_filter():
+    assert list(load_tracker_configs("gmphd-paper")) == ["gmphd"]        # only the file's sections
     paper = load_tracker_configs("gmphd-paper")["gmphd"]
     assert paper.label_fix and not paper.merge_priority and paper.handover_frames == 0
     assert paper.filter.velocity_sigma is None and paper.positions_only == {}

@@ -95,11 +95,6 @@ def from_mapping(cls: type[T], values: Mapping | None, source: str = "config", p
     return cls(**kwargs)
 
 
-def to_mapping(config: Any) -> dict:
-    """A dataclass config as the plain mapping :func:`from_mapping` reads back (tuples become lists)."""
-    return _plain(dataclasses.asdict(config))
-
-
 def convert(value: Any, hint: Any, source: str, key: str) -> Any:
     """``value`` as the type ``hint`` (float, int, bool, str, ``X | None``, ``tuple[...]``, dict, list,
     a dataclass); a :class:`TorchtrackError` naming ``source`` and ``key`` where it is not one."""
@@ -171,11 +166,3 @@ def _name(hint: Any) -> str:
 
 def _dotted(prefix: str, key: Any) -> str:
     return f"{prefix}.{key}" if prefix else str(key)
-
-
-def _plain(value: Any) -> Any:
-    if isinstance(value, dict):
-        return {k: _plain(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_plain(v) for v in value]
-    return value

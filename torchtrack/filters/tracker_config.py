@@ -234,14 +234,15 @@ def tracker_config(name: str, options: Any = None, source: str = "tracker option
 
 
 def load_tracker_configs(path_or_preset: str | Path | None) -> dict[str, Any]:
-    """Every registered tracker's configuration, from a YAML file (or shipped preset name) with one section
-    per tracker name (``configs/gmphd.yaml``); trackers without a section get their defaults (None: all)."""
+    """The tracker configurations of a YAML file (or shipped preset name) with one section per tracker name
+    (``configs/gmphd.yaml``), each over its tracker's defaults; only the trackers with a section (None: ``{}``,
+    every tracker runs with its defaults)."""
     if path_or_preset is None:
-        return dict(DEFAULTS)
+        return {}
     path = preset_path(path_or_preset)
     sections = read_mapping(path, "tracker config")
     unknown = sorted(set(sections) - set(DEFAULTS))
     if unknown:
         raise TorchtrackError(f"tracker config {path}: unknown tracker section(s) {unknown}; "
                               f"known: {list(DEFAULTS)}")
-    return {name: tracker_config(name, sections.get(name), str(path)) for name in DEFAULTS}
+    return {name: tracker_config(name, options, str(path)) for name, options in sections.items()}
