@@ -84,21 +84,22 @@ def test_loader_merges_onto_a_base_and_keeps_unset_fields():
     assert from_mapping(GMPHDConfig, {"coast_threshold": None}).coast_threshold is None
 
 
-def _frames(velocities: bool):
+def _frames(velocities: bool, first: int = 1, last: int = 20):
     """Three targets crossing a 200 px scene at 6 px/frame, detected every frame (float64)."""
     start = torch.tensor([[10.0, 20.0], [10.0, 80.0], [190.0, 140.0]], dtype=torch.float64)
     vel = torch.tensor([[6.0, 0.0], [6.0, 1.0], [-6.0, 0.0]], dtype=torch.float64)
-    for k in range(1, 21):
+    for k in range(first, last + 1):
         yield k, start + k * vel, (vel.clone() if velocities else None)
 
 
-def _run(tracker, frames):
-    tracker.reset()
+def _run(tracker, frames, reset=True):
+    if reset:
+        tracker.reset()
     return [(ids.tolist(), pos.tolist()) for ids, pos in (tracker.step(k, z, v) for k, z, v in frames)]
 
 
 @pytest.mark.parametrize("velocities", [True, False])
-def test_the_first_frame_picks_the_options_of_the_input(velocities):
+def test_each_frame_runs_with_the_options_of_its_input(velocities):
     config = tracker_config("gmphd", {"dtype": "float64"})
     tracker = make_tracker("gmphd", config)
     out = _run(tracker, _frames(velocities))
@@ -110,6 +111,20 @@ def test_the_first_frame_picks_the_options_of_the_input(velocities):
     alone = make_tracker("gmphd", dataclasses.replace(chosen, positions_only={}))
     assert _run(alone, _frames(velocities)) == out
     assert all(sorted(ids) == [1, 2, 3] for ids, _ in out[3:])      # one label per target, kept
+
+
+def test_a_switch_of_input_carries_the_mixture_and_labels_over():
+    tracker = make_tracker("gmphd", {"dtype": "float64"})
+    before = _run(tracker, _frames(True, 1, 10))
+    assert tracker.active is tracker.with_velocity
+    after = _run(tracker, _frames(False, 11, 20), reset=False)
+    assert tracker.active is tracker.positions_only and tracker.active.fix_separation == 12.0
+    assert sorted(before[-1][0]) == [1, 2, 3]
+    assert all(sorted(ids) == [1, 2, 3] for ids, _ in after)          # the same labels, no new track
+    back = _run(tracker, _frames(True, 21, 25), reset=False)
+    assert tracker.active is tracker.with_velocity and all(sorted(ids) == [1, 2, 3] for ids, _ in back)
+    with pytest.raises(TorchtrackError, match="frames must increase"):
+        tracker.step(25, torch.zeros(0, 2), None)                       # the last frame carried over too
 
 
 def test_positions_only_options_apply_over_the_others():
@@ -127,4 +142,5 @@ def test_pipeline_selected_trackers_keep_their_validated_values():
     g = cfg["gmphd"]
     assert (g.fix_separation, g.filter.velocity_sigma, g.filter.velocity_outlier, g.tone_sigma) == (4.0, 1.0, 0.3, 4.0)
     assert (g.filter.prune_threshold, g.filter.merge_threshold) == (5e-3, 9.0)
+    assert g.for_input(False) is g               # the same options on the first frame, which has no velocities
     assert cfg["labelled-gmphd"].filter.velocity_sigma is None and not cfg["labelled-gmphd"].label_fix

@@ -29,8 +29,8 @@ from torchtrack.models import ConstantVelocity, LinearPosition
 
 def enhanced_gmphd(config: GMPHDConfig | Mapping | None = None) -> InputAwareGMPHD:
     """The enhanced GM-PHD of the paper (all of sections 2.2–2.4) from its configuration (or the mapping of the
-    keys to change), following the input: the stream's first frame picks the options for detections with
-    velocities or for positions only (:attr:`GMPHDConfig.positions_only`)."""
+    keys to change), following the input: each frame runs with the options for detections with velocities
+    or for positions only (:attr:`GMPHDConfig.positions_only`; :mod:`torchtrack.filters.gmphd_input`)."""
     cfg = tracker_config("gmphd", config)
     return InputAwareGMPHD(GMPHDTracker.from_config(cfg),
                            GMPHDTracker.from_config(cfg.for_input(False)) if cfg.positions_only else None)

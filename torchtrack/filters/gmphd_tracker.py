@@ -280,6 +280,16 @@ class GMPHDTracker(nn.Module):
         state, memory = self.initial()
         self._stream = _Stream(state, memory, self.birth.new_velocity_map(self.dtype))
 
+    def take_stream(self, other: GMPHDTracker) -> None:
+        """Continue ``other``'s stream with this tracker's options: its mixture, labels and their memory, last
+        frame and pending labels, and its velocity map where both trackers keep one (the per-frame switch of
+        :class:`~torchtrack.filters.gmphd_input.InputAwareGMPHD`; both must have the same ``dtype``)."""
+        mine, theirs = self._stream, other._stream
+        mine.state, mine.memory, mine.last_frame, mine.pending = (theirs.state, theirs.memory, theirs.last_frame,
+                                                                  theirs.pending)
+        if mine.vmap is not None and theirs.vmap is not None:
+            mine.vmap = theirs.vmap
+
     @property
     def state(self) -> MixtureState:
         """The current mixture (posterior of the last frame plus the births for the next)."""

@@ -8,7 +8,7 @@ labelled GM-PHD is a preset of :class:`GMPHDConfig`, the plain Panta/Clark/Vo fi
 The built-in GM-PHD defaults are the best settings known on validation data (WPAFB AOI 02 truth with the
 benchmark's simulated detections, seeds 100–103; ``docs/gmphd.md``, "Built-in defaults"). They follow the
 input: with the detector's velocities the velocity update is on (``filter.velocity_sigma``); with positions
-only, :attr:`GMPHDConfig.positions_only` is applied on top (chosen at the stream's first frame).
+only, :attr:`GMPHDConfig.positions_only` is applied on top (chosen per frame, :mod:`torchtrack.filters.gmphd_input`).
 """
 
 from __future__ import annotations
@@ -125,8 +125,8 @@ class GMPHDConfig:
     levels (None: tones unused); tone_outlier: probability that a tone is unrelated; tone_rate: how fast a
     label's tone follows its detections; tone_handover_gap: the hand-over refuses tones this many σ_t apart.
     dtype: float32 (fast) or float64 (accurate).
-    positions_only: options (a partial mapping of these keys) applied over the others when the stream's
-    first frame has no detector velocities; ``{}``: the same options for both inputs.
+    positions_only: options (a partial mapping of these keys) applied over the others on frames without the
+    detector's velocities; ``{}``: the same options for both inputs.
     """
 
     filter: GMPHDFilterOptions = field(default_factory=GMPHDFilterOptions)

@@ -17,7 +17,7 @@ SELECTED_TRACKERS: dict = {
               "tone_sigma": 4.0,
               "filter": {"velocity_sigma": 1.0, "velocity_outlier": 0.3, "p_detection": 0.8, "q": 1.0,
                          "clutter_density": 1e-5},
-              "birth": {"birth_weight": 0.05}},
+              "birth": {"birth_weight": 0.05}, "positions_only": {}},
     "labelled-gmphd": {"filter": {"p_detection": 0.9, "q": 1.0, "clutter_density": 3e-4}},
     "sort": {"max_distance": 30.0, "max_age": 1, "min_hits": 3},
     "greedy": {"max_distance": 20.0, "max_age": 2},
@@ -26,7 +26,8 @@ SELECTED_TRACKERS: dict = {
 :mod:`torchtrack.filters.tracker_config`), with ``min_speed 2`` and ``min_motion 5``: chosen by
 ``torchtrack select-trackers --sequences out/val --min-speeds 1 2 --min-motions 5 8`` on the detector's
 validation-split sequences, with the fixed-lag output and weak detections of the defaults; the GM-PHD's
-``tone_sigma`` (a grey level per label) added after a comparison on 32 validation sequences (docs/pipeline.md)."""
+``tone_sigma`` (a grey level per label) added after a comparison on 32 validation sequences (docs/pipeline.md).
+The GM-PHD keeps these options on the first frame too, which has no velocities (``positions_only: {}``)."""
 
 
 @dataclass
