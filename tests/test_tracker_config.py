@@ -144,3 +144,34 @@ def test_pipeline_selected_trackers_keep_their_validated_values():
     assert (g.filter.prune_threshold, g.filter.merge_threshold) == (5e-3, 9.0)
     assert g.for_input(False) is g               # the same options on the first frame, which has no velocities
     assert cfg["labelled-gmphd"].filter.velocity_sigma is None and not cfg["labelled-gmphd"].label_fix
+
+
+def test_every_section_goes_through_the_one_loader(tmp_path):
+    """Video, detector and pipeline YAML: numeric strings become floats, lists become typed tuples, unknown
+    keys and wrong types are refused by their dotted path, naming the file."""
+    from torchtrack.detector.config import load_config
+    from torchtrack.pipeline.config import load_pipeline_config
+    from torchtrack.sim.video_config import load_video_config
+
+    path = tmp_path / "s.yaml"
+    path.write_text("video:\n  jitter_perspective: 2e-06\n  building_size: [10, 40]\n  frames: 12\n")
+    video = load_video_config(path)
+    assert video.jitter_perspective == 2e-6 and video.building_size == (10.0, 40.0) and video.frames == 12
+    path.write_text("frames: twelve\n")
+    with pytest.raises(TorchtrackError, match=r"s\.yaml \(video config\): frames must be a whole number"):
+        load_video_config(path)
+    path.write_text("model: {widths: [8, 8, 8]}\ntrain: {lr: 1e-3}\n")
+    det = load_config(path)
+    assert det.model.widths == (8, 8, 8) and det.train.lr == 1e-3
+    path.write_text("model: {widths: [8, 8]}\n")
+    with pytest.raises(TorchtrackError, match=r"s\.yaml: model\.widths must be a list of 3"):
+        load_config(path)
+    path.write_text("pipeline:\n  registration: {featurs: 10}\n")
+    with pytest.raises(TorchtrackError, match=r"s\.yaml: unknown key\(s\) \['registration\.featurs'\]"):
+        load_pipeline_config(path)
+    path.write_text("pipeline:\n  trackers: {gmphd: {filter: {qq: 1}}}\n")
+    with pytest.raises(TorchtrackError, match=r"s\.yaml: trackers: unknown key\(s\) \['gmphd\.filter\.qq'\]"):
+        load_pipeline_config(path)
+    path.write_text("pipeline:\n  snapshots: [1, 5]\n  min_speed: 3\n")
+    cfg = load_pipeline_config(path)
+    assert cfg.snapshots == (1, 5) and cfg.min_speed == 3.0
