@@ -27,5 +27,5 @@ def test_pmb_tracker_follows_two_targets_with_stable_ids():
     assert len(set(seen)) == 1                       # the same id on each target throughout
     with pytest.raises(TorchtrackError, match="frames must increase"):
         tracker.step(3, torch.zeros(0, 2))
-    with pytest.raises(TorchtrackError, match="unknown pmb option"):
+    with pytest.raises(TorchtrackError, match=r"unknown key\(s\) \['pmb.nonsense'\]"):
         make_tracker("pmb", {"nonsense": 1})

@@ -100,7 +100,7 @@ def test_tune_command_reports_bad_configs(tmp_path, capsys):
     assert main(["tune", "--config", str(_config(tmp_path, trainable=["motion.x"])), "--out", str(tmp_path)]) == 2
     assert "valid names: measurement.sigma, motion.q" in capsys.readouterr().err
     assert main(["tune", "--config", str(_config(tmp_path, optimiser={})), "--out", str(tmp_path)]) == 2
-    assert "unknown key(s) 'optimiser'" in capsys.readouterr().err
+    assert "unknown key(s) ['optimiser']" in capsys.readouterr().err
     assert main(["tune", "--config", str(_config(tmp_path, loss="mse")), "--out", str(tmp_path)]) == 2
     assert "unknown loss 'mse'" in capsys.readouterr().err
 

@@ -1,16 +1,32 @@
-"""Where configuration files come from: a path, or the name of a preset shipped as package data.
+"""Where configuration files come from (a path, or the name of a preset shipped as package data) and how a
+YAML mapping becomes a typed configuration.
 
 The presets under ``torchtrack/configs/`` (the repository's ``configs/`` folder points there) install with
 the package and are read through :mod:`importlib.resources`, so ``--config gmphd-paper`` or
 ``--benchmark wpafb-benchmark`` work from any folder after a non-editable install.
+
+:func:`from_mapping` is the one loader of every YAML section of the project (trackers, pipeline, video,
+detector, tune): a mapping onto a (nested) dataclass whose fields carry the type, the default and, in the
+class docstring, the meaning of each option. Unknown keys are refused by their full dotted path
+(``gmphd.filter.q_typo``); values are converted to the field's type where that is unambiguous (YAML reads
+``1e-4`` as a string: a numeric string is accepted for a float field) and refused otherwise, naming the key.
 """
 
 from __future__ import annotations
 
+import dataclasses
+import types
+import typing
+from collections.abc import Mapping
 from importlib import resources
 from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
 
 from torchtrack.errors import TorchtrackError
+
+T = TypeVar("T")
 
 
 def preset_names() -> list[str]:
@@ -31,3 +47,122 @@ def preset_path(name_or_path: str | Path) -> Path:
     if path.parent in (Path("."), Path("configs")) and candidate.is_file():
         return Path(str(candidate))
     raise TorchtrackError(f"{name_or_path}: no such file or preset (presets: {', '.join(preset_names())})")
+
+
+def read_mapping(path: str | Path, what: str) -> dict:
+    """The YAML mapping in ``path`` (empty file: ``{}``); one-line errors naming ``what`` and the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise TorchtrackError(f"{what} {path}: no such file")
+    try:
+        data = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
+        raise TorchtrackError(f"{what} {where}: cannot read: {getattr(exc, 'problem', None) or exc}") from None
+    if not isinstance(data, dict):
+        raise TorchtrackError(f"{what} {path}: expected a mapping at the top level")
+    return data
+
+
+def from_mapping(cls: type[T], values: Mapping | None, source: str = "config", prefix: str = "",
+                 base: T | None = None) -> T:
+    """Build the dataclass ``cls`` from ``values``: keys absent take their value from ``base`` (default:
+    the field defaults); nested dataclass fields take nested mappings (merged onto the base's value the same
+    way). ``source`` (a file name) and the dotted ``prefix`` (``gmphd.filter``) name a bad key in the error."""
+    if values is None:
+        values = {}
+    if isinstance(values, cls):
+        return values
+    if not isinstance(values, Mapping):
+        raise TorchtrackError(f"{source}: {prefix or 'the config'} must be a mapping; got {values!r}")
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(_dotted(prefix, k) for k in values if k not in fields)
+    if unknown:
+        raise TorchtrackError(f"{source}: unknown key(s) {unknown}; known: {sorted(fields)}")
+    hints = typing.get_type_hints(cls)
+    kwargs = {}
+    for name, value in values.items():
+        key = _dotted(prefix, name)
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint):
+            kwargs[name] = from_mapping(hint, value, source, key,
+                                        getattr(base, name) if base is not None else None)
+        else:
+            kwargs[name] = convert(value, hint, source, key)
+    if base is not None:
+        return dataclasses.replace(base, **kwargs)
+    return cls(**kwargs)
+
+
+def convert(value: Any, hint: Any, source: str, key: str) -> Any:
+    """``value`` as the type ``hint`` (float, int, bool, str, ``X | None``, ``tuple[...]``, dict, list,
+    a dataclass); a :class:`TorchtrackError` naming ``source`` and ``key`` where it is not one."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        options = typing.get_args(hint)
+        if value is None and type(None) in options:
+            return None
+        exact = [t for t in options if t is not type(None) and isinstance(value, typing.get_origin(t) or t)
+                 and not (t is int and isinstance(value, bool))]
+        for t in exact + [t for t in options if t is not type(None) and t not in exact]:
+            try:
+                return convert(value, t, source, key)
+            except TorchtrackError:
+                continue
+        raise _bad(source, key, value, " or ".join(_name(t) for t in options))
+    if dataclasses.is_dataclass(hint):
+        return from_mapping(hint, value, source, key)
+    if hint is Any:
+        return value
+    if hint is float:
+        if isinstance(value, bool):
+            raise _bad(source, key, value, "a number")
+        try:
+            return float(value)
+        except (TypeError, ValueError):
+            raise _bad(source, key, value, "a number") from None
+    if hint is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise _bad(source, key, value, "a whole number")
+        return value
+    if hint is bool:
+        if not isinstance(value, bool):
+            raise _bad(source, key, value, "true or false")
+        return value
+    if hint is str:
+        if not isinstance(value, str):
+            raise _bad(source, key, value, "a string")
+        return value
+    if origin is tuple or hint is tuple:
+        args = typing.get_args(hint)
+        if not isinstance(value, (list, tuple)):
+            raise _bad(source, key, value, "a list")
+        if not args:
+            return tuple(value)
+        if len(args) == 2 and args[1] is Ellipsis:
+            args = (args[0],) * len(value)
+        elif args and len(args) != len(value):
+            raise _bad(source, key, value, f"a list of {len(args)}")
+        return tuple(convert(v, t, source, f"{key}[{i}]") for i, (v, t) in enumerate(zip(value, args)))
+    if origin is dict or hint is dict:
+        if not isinstance(value, Mapping):
+            raise _bad(source, key, value, "a mapping")
+        return dict(value)
+    if origin is list or hint is list:
+        if not isinstance(value, (list, tuple)):
+            raise _bad(source, key, value, "a list")
+        return list(value)
+    return value
+
+
+def _bad(source: str, key: str, value: Any, expected: str) -> TorchtrackError:
+    return TorchtrackError(f"{source}: {key} must be {expected}; got {value!r}")
+
+
+def _name(hint: Any) -> str:
+    return "null" if hint is type(None) else getattr(hint, "__name__", str(hint))
+
+
+def _dotted(prefix: str, key: Any) -> str:
+    return f"{prefix}.{key}" if prefix else str(key)

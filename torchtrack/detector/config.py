@@ -6,8 +6,7 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
-
+from torchtrack.config import from_mapping, read_mapping
 from torchtrack.errors import TorchtrackError
 
 
@@ -75,26 +74,10 @@ class DetectorConfig:
         return dataclasses.asdict(self)
 
 
-def _section(cls, values, where: str):
-    if values is None:
-        return cls()
-    if not isinstance(values, dict):
-        raise TorchtrackError(f"{where}: expected a mapping")
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise TorchtrackError(f"{where}: unknown key(s) {unknown}; known: {sorted(names)}")
-    kwargs = {k: tuple(v) if isinstance(v, list) else v for k, v in values.items()}
-    return cls(**kwargs)
-
-
 def config_from_dict(values: dict, source: str = "config") -> DetectorConfig:
-    """Build a :class:`DetectorConfig`; unknown sections or keys raise naming ``source``."""
-    sections = {"model": ModelConfig, "data": DataConfig, "train": TrainConfig, "decode": DecodeConfig}
-    unknown = sorted(set(values) - set(sections))
-    if unknown:
-        raise TorchtrackError(f"{source}: unknown section(s) {unknown}; known: {sorted(sections)}")
-    cfg = DetectorConfig(**{k: _section(c, values.get(k), f"{source}: {k}") for k, c in sections.items()})
+    """Build a :class:`DetectorConfig` (:func:`torchtrack.config.from_mapping`); unknown sections or keys and
+    values of the wrong type raise naming ``source`` and the key."""
+    cfg = from_mapping(DetectorConfig, values, source)
     if cfg.train.optimizer not in ("adam", "sgd"):
         raise TorchtrackError(f"{source}: train.optimizer must be adam or sgd, got {cfg.train.optimizer!r}")
     if cfg.data.crop % 16:
@@ -110,10 +93,4 @@ def load_config(path: str | Path | None) -> DetectorConfig:
     """Read ``configs/detector.yaml``-style YAML; ``None`` gives the defaults."""
     if path is None:
         return DetectorConfig()
-    path = Path(path)
-    if not path.is_file():
-        raise TorchtrackError(f"detector config {path}: no such file")
-    data = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(data, dict):
-        raise TorchtrackError(f"detector config {path}: expected a mapping at the top level")
-    return config_from_dict(data, str(path))
+    return config_from_dict(read_mapping(path, "detector config"), str(path))

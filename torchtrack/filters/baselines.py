@@ -11,41 +11,55 @@
 
 from __future__ import annotations
 
+import dataclasses
+from collections.abc import Mapping
+
 import numpy as np
 import torch
 from torch import Tensor
 
 from torchtrack.association.assignment import hungarian
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.gmphd_input import InputAwareGMPHD
 from torchtrack.filters.gmphd_tracker import GMPHDTracker
+from torchtrack.filters.tracker_config import GMPHDConfig, GreedyConfig, PMBConfig, SORTConfig, tracker_config
 from torchtrack.gaussian import kalman_update, symmetrize
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 
-def enhanced_gmphd(config: dict | None = None) -> GMPHDTracker:
-    """The enhanced GM-PHD of the paper (all of sections 2.2–2.4) from its config section."""
-    return GMPHDTracker.from_config(config)
+def enhanced_gmphd(config: GMPHDConfig | Mapping | None = None) -> InputAwareGMPHD:
+    """The enhanced GM-PHD of the paper (all of sections 2.2–2.4) from its configuration (or the mapping of the
+    keys to change), following the input: each frame runs with the options for detections with velocities
+    or for positions only (:attr:`GMPHDConfig.positions_only`; :mod:`torchtrack.filters.gmphd_input`)."""
+    cfg = tracker_config("gmphd", config)
+    return InputAwareGMPHD(GMPHDTracker.from_config(cfg),
+                           GMPHDTracker.from_config(cfg.for_input(False)) if cfg.positions_only else None)
 
 
-def labelled_gmphd(config: dict | None = None) -> GMPHDTracker:
-    """The labelled GM-PHD baseline: the label fix and its extensions (hand-over, coasting, merge priority),
-    the velocity map and the detector's velocity (at birth and in the update) are off whatever the config says
-    (births start at rest with ``birth.sigma_vel_unknown``)."""
-    cfg = dict(config or {})
-    birth = dict(cfg.get("birth") or {})
-    birth.update(use_velocity_map=False, use_detector_velocity=False)
-    filt = {k: v for k, v in dict(cfg.get("filter") or {}).items()
-            if k not in ("velocity_sigma", "velocity_clutter_density")}   # no velocity in the update
-    cfg.update(filter=filt, birth=birth, label_fix=False, handover_frames=0, coast_threshold=None, confirm_new=False)
-    return GMPHDTracker.from_config(cfg)
+def labelled_gmphd(config: GMPHDConfig | Mapping | None = None) -> GMPHDTracker:
+    """The labelled GM-PHD baseline: the preset :data:`~torchtrack.filters.tracker_config.LABELLED_GMPHD` (no
+    label fix or extensions, no velocity map, births at rest, position-only update) with ``config``'s keys."""
+    return GMPHDTracker.from_config(tracker_config("labelled-gmphd", config))
 
 
-def _check_keys(config: dict, known: set[str], who: str) -> dict:
-    cfg = dict(config or {})
-    unknown = set(cfg) - known
-    if unknown:
-        raise TorchtrackError(f"unknown {who} option(s) {sorted(unknown)}; known: {sorted(known)}")
-    return cfg
+def sort(config: SORTConfig | Mapping | None = None) -> SORT:
+    """SORT from its configuration (or the mapping of the keys to change)."""
+    return SORT(**dataclasses.asdict(tracker_config("sort", config)))
+
+
+def greedy(config: GreedyConfig | Mapping | None = None) -> GreedyTracker:
+    """The greedy tracker from its configuration (or the mapping of the keys to change)."""
+    return GreedyTracker(**dataclasses.asdict(tracker_config("greedy", config)))
+
+
+def pmb(config: PMBConfig | Mapping | None = None):
+    """The TOMB/P tracker (:mod:`torchtrack.filters.pmb_tracker`) from its configuration."""
+    from torchtrack.filters.pmb_tracker import PMBTracker
+
+    return PMBTracker(**dataclasses.asdict(tracker_config("pmb", config)))
+
+
+_SORT, _GREEDY = SORTConfig(), GreedyConfig()   # keyword defaults below (one source: tracker_config)
 
 
 def _as_points(positions, dtype) -> Tensor:
@@ -62,10 +76,9 @@ class SORT:
     updated once it has ``min_hits`` consecutive hits (or during the first ``min_hits`` frames).
     """
 
-    KNOWN = {"q", "sigma", "sigma_vel", "max_distance", "max_age", "min_hits"}
-
-    def __init__(self, q: float = 1.0, sigma: float = 1.0, sigma_vel: float = 10.0, max_distance: float = 20.0,
-                 max_age: int = 1, min_hits: int = 3, dtype: torch.dtype = torch.float64):
+    def __init__(self, q: float = _SORT.q, sigma: float = _SORT.sigma, sigma_vel: float = _SORT.sigma_vel,
+                 max_distance: float = _SORT.max_distance, max_age: int = _SORT.max_age,
+                 min_hits: int = _SORT.min_hits, dtype: torch.dtype = torch.float64):
         self.motion = ConstantVelocity(2, q=q, learnable=False).to(dtype)
         self.measurement = LinearPosition(2, sigma=sigma, learnable=False).to(dtype)
         self.sigma_pos, self.sigma_vel = sigma, sigma_vel
@@ -74,10 +87,6 @@ class SORT:
         with torch.no_grad():
             self.H, self.R = self.measurement.matrix(), self.measurement.noise_cov()
         self.reset()
-
-    @classmethod
-    def from_config(cls, config: dict | None = None) -> SORT:
-        return cls(**_check_keys(config, cls.KNOWN, "SORT"))
 
     def reset(self) -> None:
         self.mean = torch.empty(0, 4, dtype=self.dtype)
@@ -141,15 +150,9 @@ class GreedyTracker:
     reported.
     """
 
-    KNOWN = {"max_distance", "max_age"}
-
-    def __init__(self, max_distance: float = 10.0, max_age: int = 0):
+    def __init__(self, max_distance: float = _GREEDY.max_distance, max_age: int = _GREEDY.max_age):
         self.max_distance, self.max_age = max_distance, max_age
         self.reset()
-
-    @classmethod
-    def from_config(cls, config: dict | None = None) -> GreedyTracker:
-        return cls(**_check_keys(config, cls.KNOWN, "greedy"))
 
     def reset(self) -> None:
         self.pos = np.empty((0, 2))

@@ -59,9 +59,12 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.tracker_config import GMPHDFilterOptions
 from torchtrack.gaussian import LOG_2PI
 from torchtrack.models import ConstantVelocity, LinearPosition, MeasurementModel, MotionModel
 from torchtrack.params import Positive, Probability
+
+_F = GMPHDFilterOptions()   # the keyword defaults below (one source: tracker_config)
 
 log = logging.getLogger(__name__)
 
@@ -171,8 +174,9 @@ class GMPHD(nn.Module):
     """The GM-PHD recursion with learnable continuous parameters (all :mod:`torchtrack.params`).
 
     Args:
-        motion: a linear motion model (default ``ConstantVelocity(2, q=1.0)``), state ``[x, y, vx, vy]``.
-        measurement: a linear measurement model (default ``LinearPosition(2, sigma=1.0)``).
+        motion: a linear motion model (default ``ConstantVelocity(2, q)``), state ``[x, y, vx, vy]``.
+        measurement: a linear measurement model (default ``LinearPosition(2, sigma)``).
+        The defaults of every argument are :class:`~torchtrack.filters.tracker_config.GMPHDFilterOptions`'.
         p_survival, p_detection: ``p_S``, ``p_D`` (learnable probabilities).
         clutter_density: clutter intensity ``κ`` per unit measurement volume (px⁻²; learnable).
         area: surveillance area for the ``−λ_c`` term of the log-likelihood (None: term dropped).
@@ -193,14 +197,17 @@ class GMPHD(nn.Module):
     """
 
     def __init__(self, motion: MotionModel | None = None, measurement: MeasurementModel | None = None,
-                 p_survival: float = 0.99, p_detection: float = 0.9, clutter_density: float = 1e-4,
-                 area: float | None = None, gate_probability: float = 0.999, prune_threshold: float = 1e-4,
-                 merge_threshold: float = 4.0, merge_rounds: int = 3, capacity: int = 1024,
-                 extract_threshold: float = 0.5, chunk: int = 4096, velocity_sigma: float | None = None,
-                 velocity_clutter_density: float = 2.5e-3, velocity_outlier: float = 0.0):
+                 p_survival: float = _F.p_survival, p_detection: float = _F.p_detection,
+                 clutter_density: float = _F.clutter_density, area: float | None = _F.area,
+                 gate_probability: float = _F.gate_probability, prune_threshold: float = _F.prune_threshold,
+                 merge_threshold: float = _F.merge_threshold, merge_rounds: int = _F.merge_rounds,
+                 capacity: int = _F.capacity, extract_threshold: float = _F.extract_threshold, chunk: int = _F.chunk,
+                 velocity_sigma: float | None = _F.velocity_sigma,
+                 velocity_clutter_density: float = _F.velocity_clutter_density,
+                 velocity_outlier: float = _F.velocity_outlier):
         super().__init__()
-        self.motion = motion if motion is not None else ConstantVelocity(2, q=1.0)
-        self.measurement = measurement if measurement is not None else LinearPosition(2, sigma=1.0)
+        self.motion = motion if motion is not None else ConstantVelocity(2, q=_F.q)
+        self.measurement = measurement if measurement is not None else LinearPosition(2, sigma=_F.sigma)
         if not (self.motion.is_linear and self.measurement.is_linear):
             raise TorchtrackError("GMPHD needs linear motion and measurement models")
         if self.measurement.state_dim != self.motion.state_dim:

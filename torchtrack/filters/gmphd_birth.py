@@ -32,7 +32,10 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd import scalar
+from torchtrack.filters.tracker_config import GMPHDBirthOptions
 from torchtrack.params import Positive
+
+_B = GMPHDBirthOptions()   # the keyword defaults of AdaptiveBirth (one source: tracker_config)
 
 
 class VelocityMap:
@@ -119,12 +122,14 @@ class AdaptiveBirth(nn.Module):
         suppress_weight: predicted components below this weight do not explain measurements.
         use_detector_velocity, use_velocity_map: the two enhancements of eq. 6.
         velocity_map: keyword arguments of :class:`VelocityMap`.
+        Defaults: :class:`~torchtrack.filters.tracker_config.GMPHDBirthOptions`.
     """
 
-    def __init__(self, birth_weight: float = 0.05, sigma_pos: float = 2.0, sigma_vel_unknown: float = 8.0,
-                 sigma_vel_detector: float = 1.5, sigma_vel_map: float = 2.0, distance_threshold: float = 5.0,
-                 suppress_weight: float = 0.05, use_detector_velocity: bool = True,
-                 use_velocity_map: bool = True, velocity_map: dict | None = None):
+    def __init__(self, birth_weight: float = _B.birth_weight, sigma_pos: float = _B.sigma_pos,
+                 sigma_vel_unknown: float = _B.sigma_vel_unknown, sigma_vel_detector: float = _B.sigma_vel_detector,
+                 sigma_vel_map: float = _B.sigma_vel_map, distance_threshold: float = _B.distance_threshold,
+                 suppress_weight: float = _B.suppress_weight, use_detector_velocity: bool = _B.use_detector_velocity,
+                 use_velocity_map: bool = _B.use_velocity_map, velocity_map: dict | None = None):
         super().__init__()
         self.birth_weight = Positive(birth_weight, "birth_weight")
         self.sigma_pos = Positive(sigma_pos, "birth sigma_pos")

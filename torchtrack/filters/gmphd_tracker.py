@@ -23,7 +23,9 @@ reports one estimate per label (the highest weight).
 
 from __future__ import annotations
 
+import dataclasses
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -55,13 +57,10 @@ from torchtrack.filters.gmphd_tone import (
     tone_log_ratio,
     update_tones,
 )
+from torchtrack.filters.tracker_config import GMPHDConfig, tracker_config
 from torchtrack.models import ConstantVelocity, LinearPosition
 
-FILTER_DEFAULTS = dict(q=2.0, sigma=1.0, p_detection=0.9, clutter_density=1e-4, prune_threshold=5e-3,
-                       merge_threshold=9.0)
-"""Filter options of :meth:`GMPHDTracker.from_config` where the config gives none (tuned on simulated
-WPAFB detections; ``configs/gmphd.yaml`` spells them out)."""
-
+_D = GMPHDConfig()   # the defaults of the keyword arguments below (one source: tracker_config)
 
 class TrackerMemory(NamedTuple):
     """Everything carried from frame to frame besides the mixture (no gradient)."""
@@ -93,37 +92,18 @@ class GMPHDTracker(nn.Module):
     Args:
         phd: the :class:`GMPHD` recursion (its parameters: ``p_S, p_D, κ, Q, R``).
         birth: the :class:`AdaptiveBirth` (parameters: birth weight and covariance).
-        label_fix: apply the label fix of section 2.3 (otherwise one estimate per label is reported).
-        settled_velocity_var: estimates whose velocity variance ``P_vx + P_vy`` is below this feed the
-            velocity map.
-        handover_frames, handover_distance: a label lost for at most ``handover_frames`` frames is given to
-            a new estimate within ``handover_distance`` px of its expected path (0 frames: off).
-        coast_threshold: a label reported at the previous frame stays reported while its best component
-            weighs more than this (None: off), i.e. through a missed detection.
-        fix_separation: label-fix duplicates closer than this (px) to the label's keeper keep the label
-            and are not reported.
-        merge_priority: with the label fix, a merged group keeps a label reported at the previous frame.
-        confirm_new: a new label is reported from the ``confirm_new``-th frame it is extracted (True: the
-            second; False or 1: at once).
-        confirm_misses: a new label not yet reported keeps its count through up to this many frames in which
-            it is not extracted (while it is still in the mixture); 0: the frames must be consecutive.
-        tone_sigma: with detections' grey levels given, the spread σ_t (grey levels) of a vehicle's tone
-            about its label's estimate in the update (:mod:`torchtrack.filters.gmphd_tone`); None: tones
-            are not used.
-        tone_outlier: probability ε that a detection's tone is unrelated to its vehicle's (two vehicles in
-            one detection, a shadow).
-        tone_rate: how far a label's tone moves towards each new detection's tone (after the first
-            ``1/tone_rate`` detections, whose mean it is).
-        tone_handover_gap: the hand-over does not give a lost label to an estimate whose label's tone differs
-            from the lost label's by more than this many ``tone_sigma``.
+        label_fix … tone_handover_gap: the options of the same names of
+            :class:`~torchtrack.filters.tracker_config.GMPHDConfig` (meaning and defaults there).
         dtype: floating dtype of the streaming state (float32 is fast, float64 accurate).
     """
 
-    def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = True,
-                 settled_velocity_var: float = 4.0, handover_frames: int = 8, handover_distance: float = 20.0,
-                 coast_threshold: float | None = 0.03, fix_separation: float = 12.0, merge_priority: bool = True,
-                 confirm_new: bool | int = True, confirm_misses: int = 0, tone_sigma: float | None = None,
-                 tone_outlier: float = 0.1, tone_rate: float = 0.1, tone_handover_gap: float = 6.0,
+    def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = _D.label_fix,
+                 settled_velocity_var: float = _D.settled_velocity_var, handover_frames: int = _D.handover_frames,
+                 handover_distance: float = _D.handover_distance, coast_threshold: float | None = _D.coast_threshold,
+                 fix_separation: float = _D.fix_separation, merge_priority: bool = _D.merge_priority,
+                 confirm_new: bool | int = _D.confirm_new, confirm_misses: int = _D.confirm_misses,
+                 tone_sigma: float | None = _D.tone_sigma, tone_outlier: float = _D.tone_outlier,
+                 tone_rate: float = _D.tone_rate, tone_handover_gap: float = _D.tone_handover_gap,
                  dtype: torch.dtype = torch.float32):
         super().__init__()
         self.phd = phd if phd is not None else GMPHD()
@@ -157,40 +137,26 @@ class GMPHDTracker(nn.Module):
         self.reset()
 
     @classmethod
-    def from_config(cls, config: dict | None = None, **overrides) -> GMPHDTracker:
-        """Build from a config mapping with sections ``filter`` (``q``, ``sigma`` and :class:`GMPHD`
-        arguments), ``birth`` (:class:`AdaptiveBirth` arguments) and top-level ``label_fix``,
-        ``settled_velocity_var``, ``dtype`` (``float32``/``float64``)."""
-        cfg = dict(config or {})
-        cfg.update(overrides)
-        known = {"filter", "birth", "label_fix", "settled_velocity_var", "handover_frames", "handover_distance",
-                 "coast_threshold", "fix_separation", "merge_priority", "confirm_new", "confirm_misses", "tone_sigma",
-                 "tone_outlier", "tone_rate", "tone_handover_gap", "dtype"}
-        unknown = set(cfg) - known
-        if unknown:
-            raise TorchtrackError(f"unknown GM-PHD tracker option(s) {sorted(unknown)}; known: {sorted(known)}")
-        fcfg = {**FILTER_DEFAULTS, **dict(cfg.get("filter") or {})}
-        motion = ConstantVelocity(2, q=float(fcfg.pop("q")))
-        measurement = LinearPosition(2, sigma=float(fcfg.pop("sigma")))
-        try:
-            phd = GMPHD(motion, measurement, **fcfg)
-            birth = AdaptiveBirth(**dict(cfg.get("birth") or {}))
-        except TypeError as exc:
-            raise TorchtrackError(f"bad GM-PHD tracker option: {exc}") from None
-        dtype = {"float32": torch.float32, "float64": torch.float64}.get(str(cfg.get("dtype", "float32")))
-        if dtype is None:
-            raise TorchtrackError(f"dtype must be float32 or float64; got {cfg.get('dtype')!r}")
-        return cls(phd, birth, label_fix=bool(cfg.get("label_fix", True)),
-                   settled_velocity_var=float(cfg.get("settled_velocity_var", 4.0)),
-                   handover_frames=int(cfg.get("handover_frames", 8)),
-                   handover_distance=float(cfg.get("handover_distance", 20.0)),
-                   coast_threshold=cfg.get("coast_threshold", 0.03),
-                   fix_separation=float(cfg.get("fix_separation", 12.0)),
-                   merge_priority=bool(cfg.get("merge_priority", True)),
-                   confirm_new=cfg.get("confirm_new", True), confirm_misses=cfg.get("confirm_misses", 0),
-                   tone_sigma=cfg.get("tone_sigma"), tone_outlier=float(cfg.get("tone_outlier", 0.1)),
-                   tone_rate=float(cfg.get("tone_rate", 0.1)),
-                   tone_handover_gap=float(cfg.get("tone_handover_gap", 6.0)), dtype=dtype)
+    def from_config(cls, config: GMPHDConfig | Mapping | None = None) -> GMPHDTracker:
+        """Build from a :class:`~torchtrack.filters.tracker_config.GMPHDConfig` (or a mapping of the keys to
+        change from its defaults, the ``gmphd`` section of ``configs/gmphd.yaml``; None: the defaults). The
+        options for detections with velocities are used; :func:`~torchtrack.filters.baselines.enhanced_gmphd`
+        also follows a positions-only input."""
+        cfg = tracker_config("gmphd", config)
+        f, b = cfg.filter, cfg.birth
+        motion = ConstantVelocity(2, q=f.q)
+        measurement = LinearPosition(2, sigma=f.sigma)
+        filter_options = {k: v for k, v in dataclasses.asdict(f).items() if k not in ("q", "sigma")}
+        birth_options = dataclasses.asdict(b)
+        phd = GMPHD(motion, measurement, **filter_options)
+        birth = AdaptiveBirth(**birth_options)
+        return cls(phd, birth, label_fix=cfg.label_fix, settled_velocity_var=cfg.settled_velocity_var,
+                   handover_frames=cfg.handover_frames, handover_distance=cfg.handover_distance,
+                   coast_threshold=cfg.coast_threshold, fix_separation=cfg.fix_separation,
+                   merge_priority=cfg.merge_priority, confirm_new=cfg.confirm_new, confirm_misses=cfg.confirm_misses,
+                   tone_sigma=cfg.tone_sigma, tone_outlier=cfg.tone_outlier, tone_rate=cfg.tone_rate,
+                   tone_handover_gap=cfg.tone_handover_gap,
+                   dtype={"float32": torch.float32, "float64": torch.float64}[cfg.dtype])
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
@@ -313,6 +279,16 @@ class GMPHDTracker(nn.Module):
         """Forget all tracks (labels restart at 1)."""
         state, memory = self.initial()
         self._stream = _Stream(state, memory, self.birth.new_velocity_map(self.dtype))
+
+    def take_stream(self, other: GMPHDTracker) -> None:
+        """Continue ``other``'s stream with this tracker's options: its mixture, labels and their memory, last
+        frame and pending labels, and its velocity map where both trackers keep one (the per-frame switch of
+        :class:`~torchtrack.filters.gmphd_input.InputAwareGMPHD`; both must have the same ``dtype``)."""
+        mine, theirs = self._stream, other._stream
+        mine.state, mine.memory, mine.last_frame, mine.pending = (theirs.state, theirs.memory, theirs.last_frame,
+                                                                  theirs.pending)
+        if mine.vmap is not None and theirs.vmap is not None:
+            mine.vmap = theirs.vmap
 
     @property
     def state(self) -> MixtureState:

@@ -2,7 +2,7 @@
 
 A tracker is fed one frame at a time::
 
-    tracker = make_tracker("gmphd", config)          # gmphd, labelled-gmphd, sort, greedy, ...
+    tracker = make_tracker("gmphd", config)          # gmphd, labelled-gmphd, sort, greedy, pmb
     tracker.reset()
     ids, positions = tracker.step(frame, positions, velocities)   # (K, 2) tensors; velocities or None
 
@@ -10,14 +10,17 @@ A tracker is fed one frame at a time::
 and ``positions (E, 2)`` in the detections' coordinates. ``frame`` is the frame number (increasing;
 gaps are time steps without detections).
 
-New trackers register a factory ``config -> tracker`` here by module path (imported on first use).
+``config`` is the tracker's configuration dataclass (:mod:`torchtrack.filters.tracker_config`: type, default
+and meaning of every option), a mapping of the keys to change from its defaults, or None. New trackers
+register a factory ``config -> tracker`` here by module path (imported on first use) and their defaults in
+:data:`torchtrack.filters.tracker_config.DEFAULTS`.
 """
 
 from __future__ import annotations
 
 import importlib
 from collections.abc import Callable, Iterable
-from typing import Protocol
+from typing import Any, Protocol
 
 from torch import Tensor
 
@@ -35,11 +38,11 @@ class Tracker(Protocol):
 TRACKERS: dict[str, str] = {
     "gmphd": "torchtrack.filters.baselines:enhanced_gmphd",
     "labelled-gmphd": "torchtrack.filters.baselines:labelled_gmphd",
-    "sort": "torchtrack.filters.baselines:SORT.from_config",
-    "greedy": "torchtrack.filters.baselines:GreedyTracker.from_config",
-    "pmb": "torchtrack.filters.pmb_tracker:PMBTracker.from_config",
+    "sort": "torchtrack.filters.baselines:sort",
+    "greedy": "torchtrack.filters.baselines:greedy",
+    "pmb": "torchtrack.filters.baselines:pmb",
 }
-"""Tracker name → ``module:factory`` taking the tracker's config mapping (or None)."""
+"""Tracker name → ``module:factory`` taking the tracker's configuration (dataclass, mapping or None)."""
 
 
 def tracker_names() -> list[str]:
@@ -55,8 +58,9 @@ def _resolve(path: str) -> Callable:
     return obj
 
 
-def make_tracker(name: str, config: dict | None = None) -> Tracker:
-    """Build the tracker ``name`` from its config mapping (``None``: defaults)."""
+def make_tracker(name: str, config: Any = None) -> Tracker:
+    """Build the tracker ``name`` from its configuration: its dataclass, a mapping of the keys to change from
+    the built-in defaults, or None (the defaults)."""
     if name not in TRACKERS:
         raise TorchtrackError(f"unknown tracker {name!r}; choose one of {', '.join(TRACKERS)}")
     tracker = _resolve(TRACKERS[name])(config)

@@ -1,8 +1,9 @@
 """The TOMB/P filter behind the streaming tracker interface of :mod:`torchtrack.filters.multitarget`.
 
-``make_tracker("pmb", config)`` builds a :class:`PMBTracker`: point detections in pixels, a 2-D
-constant-velocity :class:`~torchtrack.filters.pmb.PMBFilter`, and per frame the Bernoullis with
-existence above ``estimate_threshold`` reported with their labels (``id = label + 1``). Births come
+``make_tracker("pmb", config)`` builds a :class:`PMBTracker` (options and their defaults:
+:class:`~torchtrack.filters.tracker_config.PMBConfig`): point detections in pixels, a 2-D constant-velocity
+:class:`~torchtrack.filters.pmb.PMBFilter`, and per frame the Bernoullis with existence above
+``estimate_threshold`` reported with their labels (``id = label + 1``). Births come
 from a broad Gaussian intensity covering ``region`` (centre, standard deviation of half its size);
 clutter is ``clutter_rate`` false detections per frame spread uniformly over ``region``. Detector
 velocities are not used.
@@ -20,9 +21,6 @@ from torchtrack.models import ConstantVelocity, LinearPosition
 
 class PMBTracker:
     """Streaming TOMB/P tracker (module docstring)."""
-
-    KNOWN = {"q", "sigma", "p_survival", "p_detection", "clutter_rate", "region", "birth_weight", "sigma_vel",
-             "capacity", "estimate_threshold", "gate", "lbp_iterations"}
 
     def __init__(self, q: float = 1.0, sigma: float = 2.0, p_survival: float = 0.99, p_detection: float = 0.9,
                  clutter_rate: float = 1.0, region: tuple[float, float, float, float] = (0.0, 0.0, 1024.0, 1024.0),
@@ -42,14 +40,6 @@ class PMBTracker:
             poisson_capacity=4, gate=gate, lbp_iterations=lbp_iterations, lbp_tol=1e-6,
             estimate_threshold=estimate_threshold, learnable=False).double()
         self.reset()
-
-    @classmethod
-    def from_config(cls, config: dict | None = None) -> PMBTracker:
-        cfg = dict(config or {})
-        unknown = set(cfg) - cls.KNOWN
-        if unknown:
-            raise TorchtrackError(f"unknown pmb option(s) {sorted(unknown)}; known: {sorted(cls.KNOWN)}")
-        return cls(**cfg)
 
     def reset(self) -> None:
         self.state: PMBState = self.filter.init_state((), undetected_weight=0.0)

@@ -7,9 +7,9 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import yaml
-
+from torchtrack.config import from_mapping, read_mapping
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.tracker_config import tracker_config
 from torchtrack.pipeline.registration import RegistrationConfig
 
 SELECTED_TRACKERS: dict = {
@@ -17,15 +17,17 @@ SELECTED_TRACKERS: dict = {
               "tone_sigma": 4.0,
               "filter": {"velocity_sigma": 1.0, "velocity_outlier": 0.3, "p_detection": 0.8, "q": 1.0,
                          "clutter_density": 1e-5},
-              "birth": {"birth_weight": 0.05}},
+              "birth": {"birth_weight": 0.05}, "positions_only": {}},
     "labelled-gmphd": {"filter": {"p_detection": 0.9, "q": 1.0, "clutter_density": 3e-4}},
     "sort": {"max_distance": 30.0, "max_age": 1, "min_hits": 3},
     "greedy": {"max_distance": 20.0, "max_age": 2},
 }
-"""Per-tracker options of the embedded defaults, with ``min_speed 2`` and ``min_motion 5``: chosen by
+"""Per-tracker options of the embedded defaults (the keys that differ from each tracker's built-in defaults,
+:mod:`torchtrack.filters.tracker_config`), with ``min_speed 2`` and ``min_motion 5``: chosen by
 ``torchtrack select-trackers --sequences out/val --min-speeds 1 2 --min-motions 5 8`` on the detector's
 validation-split sequences, with the fixed-lag output and weak detections of the defaults; the GM-PHD's
-``tone_sigma`` (a grey level per label) added after a comparison on 32 validation sequences (docs/pipeline.md)."""
+``tone_sigma`` (a grey level per label) added after a comparison on 32 validation sequences (docs/pipeline.md).
+The GM-PHD keeps these options on the first frame too, which has no velocities (``positions_only: {}``)."""
 
 
 @dataclass
@@ -108,7 +110,7 @@ class PipelineConfig:
         if self.dtype not in ("float32", "float64"):
             raise TorchtrackError(f"pipeline config: dtype must be float32 or float64, got {self.dtype!r}")
         if isinstance(self.registration, dict):
-            self.registration = _build(RegistrationConfig, self.registration, "registration")
+            self.registration = from_mapping(RegistrationConfig, self.registration, "pipeline config", "registration")
         self.snapshots = tuple(int(s) for s in self.snapshots)
 
     def options_for(self, name: str) -> dict | None:
@@ -122,24 +124,19 @@ class PipelineConfig:
         return dataclasses.replace(self, **changes)
 
 
-def _build(cls, values: dict, where: str):
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise TorchtrackError(f"{where}: unknown key(s) {unknown}; known: {sorted(names)}")
-    return cls(**values)
-
-
 def load_pipeline_config(path: str | Path | None) -> PipelineConfig:
-    """Read a pipeline YAML (the mapping may sit under a top-level ``pipeline:`` key); ``None``: defaults."""
+    """Read a pipeline YAML (the mapping may sit under a top-level ``pipeline:`` key); ``None``: defaults.
+    Each ``trackers`` entry holds the keys to change from that tracker's built-in defaults
+    (:mod:`torchtrack.filters.tracker_config`), checked here."""
     if path is None:
         return PipelineConfig()
-    path = Path(path)
-    if not path.is_file():
-        raise TorchtrackError(f"pipeline config {path}: no such file")
-    data = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(data, dict):
-        raise TorchtrackError(f"pipeline config {path}: expected a mapping at the top level")
+    where = f"pipeline config {path}"
+    data = read_mapping(path, "pipeline config")
     if set(data) == {"pipeline"}:
         data = data["pipeline"] or {}
-    return _build(PipelineConfig, data, f"pipeline config {path}")
+    config = from_mapping(PipelineConfig, data, where)
+    for name, options in config.trackers.items():
+        tracker_config(name, options, where + ": trackers")
+    if config.tracker_options:
+        tracker_config(config.tracker, config.tracker_options, where + ": tracker_options")
+    return config

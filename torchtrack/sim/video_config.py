@@ -6,8 +6,7 @@ import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 
-import yaml
-
+from torchtrack.config import from_mapping, read_mapping
 from torchtrack.errors import TorchtrackError
 
 
@@ -82,42 +81,16 @@ class VideoConfig:
 
 
 def from_dict(values: dict, source: str = "config") -> VideoConfig:
-    """Build a :class:`VideoConfig`, rejecting unknown keys with a message naming ``source``."""
-    names = {f.name: f for f in dataclasses.fields(VideoConfig)}
-    unknown = sorted(set(values) - set(names))
-    if unknown:
-        raise TorchtrackError(f"{source}: unknown video config key(s) {unknown}; known: {sorted(names)}")
-    kwargs = {}
-    for key, value in values.items():
-        default = getattr(VideoConfig, key, None)
-        if isinstance(default, tuple) or isinstance(value, list):
-            value = tuple(_number(v, d, f"{source}: {key}") for v, d in zip(value, default or value))
-        else:
-            value = _number(value, default, f"{source}: {key}")
-        kwargs[key] = value
-    return VideoConfig(**kwargs)
-
-
-def _number(value, default, where: str):
-    """``value`` as a float where the default is a float (YAML 1.1 reads ``2e-06`` as a string)."""
-    if isinstance(default, float) and not isinstance(value, bool):
-        try:
-            return float(value)
-        except (TypeError, ValueError):
-            raise TorchtrackError(f"{where}: expected a number, got {value!r}") from None
-    return value
+    """Build a :class:`VideoConfig` (:func:`torchtrack.config.from_mapping`: unknown keys and values of the
+    wrong type are errors naming ``source`` and the key)."""
+    return from_mapping(VideoConfig, values, f"{source} (video config)")
 
 
 def load_video_config(path: str | Path | None) -> VideoConfig:
     """Read a YAML file (the mapping may sit under a top-level ``video:`` key); ``None`` gives defaults."""
     if path is None:
         return VideoConfig()
-    path = Path(path)
-    if not path.is_file():
-        raise TorchtrackError(f"video config {path}: no such file")
-    data = yaml.safe_load(path.read_text()) or {}
-    if not isinstance(data, dict):
-        raise TorchtrackError(f"video config {path}: expected a mapping at the top level")
+    data = read_mapping(path, "video config")
     if set(data) == {"video"}:
         data = data["video"] or {}
     return from_dict(data, str(path))

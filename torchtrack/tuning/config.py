@@ -18,8 +18,10 @@ parameter from its constrained value through the inverse transform.
 
 from __future__ import annotations
 
+import dataclasses
 import os
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -27,11 +29,32 @@ import torch
 import yaml
 from torch import nn
 
+from torchtrack.config import from_mapping
 from torchtrack.errors import TorchtrackError
 from torchtrack.tuning.parameters import get_raw, get_values, set_raw, set_values, tunable_parameters
 
-TUNE_KEYS = ("filter", "model", "trainable", "data", "loss", "optimizer", "early_stopping", "output", "seed",
-             "evaluate", "grid", "refine")
+
+@dataclass(frozen=True)
+class TuneSections:
+    """The sections of a tune config (``docs/tune.md``); each is read by the tunable filter ``filter`` names
+    (:mod:`torchtrack.tuning.registry`), which checks its own keys. ``filter``, ``trainable`` and ``data`` are
+    required."""
+
+    filter: str | None = None
+    model: Any = None
+    trainable: Any = None
+    data: Any = None
+    loss: Any = None
+    optimizer: Any = None
+    early_stopping: Any = None
+    output: Any = None
+    seed: int | None = None
+    evaluate: Any = None
+    grid: Any = None
+    refine: Any = None
+
+
+TUNE_KEYS = tuple(f.name for f in dataclasses.fields(TuneSections))
 
 
 def read_yaml(path: str | os.PathLike) -> dict:
@@ -55,10 +78,7 @@ def read_yaml(path: str | os.PathLike) -> dict:
 def read_tune_config(path: str | os.PathLike) -> dict:
     """A tune config with its keys checked (``filter``, ``trainable`` and ``data`` required)."""
     cfg = read_yaml(path)
-    extra = sorted(set(cfg) - set(TUNE_KEYS))
-    if extra:
-        raise TorchtrackError(f"{path}: unknown key(s) {', '.join(map(repr, extra))}; allowed: "
-                              f"{', '.join(TUNE_KEYS)}")
+    from_mapping(TuneSections, cfg, str(path))     # unknown sections and bad types, named
     for key in ("filter", "trainable", "data"):
         if key not in cfg:
             raise TorchtrackError(f"{path}: missing required key {key!r}")

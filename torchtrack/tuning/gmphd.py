@@ -133,10 +133,9 @@ class GMPHDTunable(Tunable):
         return {k: v for k, v in self.options.items() if k != "tracker"}
 
     def build(self) -> GMPHDTracker:
-        from torchtrack.filters.baselines import enhanced_gmphd, labelled_gmphd
+        from torchtrack.filters.tracker_config import tracker_config
 
-        factory = enhanced_gmphd if self.variant == "gmphd" else labelled_gmphd
-        return factory(self.tracker_config())
+        return GMPHDTracker.from_config(tracker_config(self.variant, self.tracker_config()))   # with-velocity options
 
     # -- data -------------------------------------------------------------------------------------
     def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
