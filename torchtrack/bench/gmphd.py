@@ -226,7 +226,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"enhanced GM-PHD (label fix, velocity map, detector velocity): {enhanced:,.0f} steps/s; "
               f"mean estimates/step: labelled {card:.1f}, enhanced {card_e:.1f}, targets {w['targets']}")
     if args.json is not None:
-        from torchtrack.cli._common import write_json
+        from torchtrack.io.outputs import write_json
 
         write_json(args.json, results if len(results) > 1 else next(iter(results.values())))
     return 0

@@ -18,10 +18,11 @@ import time
 import torch
 
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options, torch_threads
+from torchtrack.cli._common import add_common_options
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
 from torchtrack.models import LinearPosition, ModeControlInput
+from torchtrack.threads import torch_threads
 
 NAME = "imm"
 HELP = "3-model IMM, 100 000 tracks, against FilterPy's IMMEstimator per track"

@@ -17,8 +17,10 @@ import torch
 
 from torchtrack.association.lbp import LOG_RATIO_MAX, lbp_marginals
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options, format_table, torch_threads
+from torchtrack.cli._common import add_common_options
 from torchtrack.errors import TorchtrackError
+from torchtrack.metrics.table import format_table
+from torchtrack.threads import torch_threads
 
 NAME = "lbp"
 HELP = "LBP association marginals on n x n problems against a NumPy implementation"

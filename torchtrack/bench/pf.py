@@ -23,10 +23,11 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options, torch_threads
+from torchtrack.cli._common import add_common_options
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import jtc_trajectory, simulate_measurements
+from torchtrack.threads import torch_threads
 
 NAME = "pf"
 HELP = "JTC particle-filter bank throughput (particle-steps/s) vs a vectorised NumPy implementation"

@@ -1,15 +1,9 @@
-"""Helpers shared by the command modules: common options, JSON output, tables."""
+"""Argument helpers shared by the command modules: the common options and the scenarios' options."""
 
 from __future__ import annotations
 
 import argparse
-import json
-import math
-from collections.abc import Mapping, Sequence
-from contextlib import contextmanager
 from pathlib import Path
-
-import torch
 
 from torchtrack.errors import TorchtrackError
 
@@ -19,20 +13,6 @@ def add_common_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:
     parser.add_argument("--seed", type=int, default=seed, help=f"random seed (default {seed})")
     parser.add_argument("--json", type=Path, default=None, metavar="PATH",
                         help="also write the reported numbers to this JSON file")
-
-
-@contextmanager
-def torch_threads(n: int | None):
-    """Run the block with ``n`` torch intra-op threads (``None``: unchanged); restore the count after."""
-    if n is not None and n < 1:
-        raise TorchtrackError(f"--threads must be >= 1; got {n}")
-    previous = torch.get_num_threads()
-    if n is not None:
-        torch.set_num_threads(n)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
 
 
 PARAMS_SCENARIOS = "formation (imm), maneuver (kalman)"
@@ -74,39 +54,25 @@ def load_sections(path: Path, expected: set[str]) -> dict:
     return cfg
 
 
-def _jsonable(obj):
-    if isinstance(obj, torch.Tensor):
-        return _jsonable(obj.detach().cpu().tolist())
-    if isinstance(obj, Mapping):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    if hasattr(obj, "item") and not isinstance(obj, (str, bytes)):
-        return obj.item()
-    return obj
+def load_tracker_config(path: str | Path | None) -> dict:
+    """The tracker-options YAML (a path or a preset name, e.g. ``gmphd``): a mapping ``tracker name ->
+    options`` (empty without a path)."""
+    import yaml
 
+    from torchtrack.config import preset_path
+    from torchtrack.filters.multitarget import tracker_names
 
-def write_json(path: Path | None, payload: Mapping) -> None:
-    """Write ``payload`` as indented JSON when ``path`` is given (tensors become lists, NaN null)."""
     if path is None:
-        return
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_jsonable(payload), indent=2) + "\n")
-
-
-def format_table(header: Sequence[str], rows: Sequence[Sequence], floatfmt: str = ".3f") -> str:
-    """A plain aligned text table."""
-    def cell(v):
-        if isinstance(v, float):
-            return format(v, floatfmt)
-        return str(v)
-
-    cells = [[cell(v) for v in row] for row in rows]
-    widths = [max(len(h), *(len(r[i]) for r in cells)) if cells else len(h) for i, h in enumerate(header)]
-    lines = ["  ".join(h.rjust(w) for h, w in zip(header, widths))]
-    lines.append("  ".join("-" * w for w in widths))
-    lines += ["  ".join(c.rjust(w) for c, w in zip(r, widths)) for r in cells]
-    return "\n".join(lines)
+        return {}
+    path = preset_path(path)
+    try:
+        cfg = yaml.safe_load(path.read_text()) or {}
+    except (OSError, yaml.YAMLError) as exc:
+        raise TorchtrackError(f"cannot read tracker config {path}: {exc}") from None
+    if not isinstance(cfg, dict):
+        raise TorchtrackError(f"tracker config {path} must be a mapping of tracker name to options")
+    unknown = set(cfg) - set(tracker_names())
+    if unknown:
+        raise TorchtrackError(f"tracker config {path}: unknown tracker section(s) {sorted(unknown)}; "
+                              f"known: {tracker_names()}")
+    return cfg

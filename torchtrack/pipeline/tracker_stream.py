@@ -16,25 +16,12 @@ Per frame (:class:`TrackerStream`):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import torch
 
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.fixed_lag import FixedLagTracks, LaggedFrame
-
-if TYPE_CHECKING:
-    from torchtrack.pipeline.track_video import FrameDetections
-
-
-def as_numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
-    """``x`` (tensor, array, sequence or None) as a float64 array of shape ``(-1, *shape_tail)``."""
-    if x is None:
-        return np.zeros((0, *shape_tail))
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, np.float64).reshape(-1, *shape_tail)
+from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy
 
 
 def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, int]:

@@ -36,12 +36,14 @@ from torchtrack.association.gating import (
     ellipsoidal_gate,
     rectangular_gate,
 )
-from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
+from torchtrack.cli._common import add_common_options, add_scenario_options, load_sections
 from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_bank import BankState, ClassConditionedIMM
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
 from torchtrack.gaussian import moment_match
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 from torchtrack.models import LinearPosition, ModeControlInput
 from torchtrack.params import RowStochastic
 from torchtrack.sim.formation import FormationConfig, FormationData, simulate_formation

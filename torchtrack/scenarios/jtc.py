@@ -20,18 +20,14 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from torchtrack.cli._common import (
-    add_common_options,
-    add_scenario_options,
-    format_table,
-    load_sections,
-    torch_threads,
-    write_json,
-)
+from torchtrack.cli._common import add_common_options, add_scenario_options, load_sections
 from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import MMPFOutput, MultipleModelParticleFilter, paper_bank
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 from torchtrack.sim.jtc_trajectory import Trajectory, jtc_trajectory, simulate_measurements, true_modes
+from torchtrack.threads import torch_threads
 
 NAME = "jtc"
 HELP = "joint tracking and classification with a bank of multiple-model particle filters (the JTC paper)"

@@ -13,11 +13,13 @@ from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
+from torchtrack.cli._common import add_common_options, add_scenario_options, load_sections
 from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 from torchtrack.models import ConstantPosition, ConstantVelocity, LinearPosition
 from torchtrack.sim import maneuver as sim
 

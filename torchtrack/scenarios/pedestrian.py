@@ -21,20 +21,16 @@ from typing import NamedTuple
 import torch
 from tqdm import tqdm
 
-from torchtrack.cli._common import (
-    add_common_options,
-    add_scenario_options,
-    format_table,
-    load_sections,
-    torch_threads,
-    write_json,
-)
+from torchtrack.cli._common import add_common_options, add_scenario_options, load_sections
 from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter
 from torchtrack.filters.pmb_sensor import JointSensorPMB, SensorState, v2f_update
+from torchtrack.io.outputs import write_json
 from torchtrack.metrics.ospa import ospa
+from torchtrack.metrics.table import format_table
 from torchtrack.models import ConstantVelocity, LinearPosition
+from torchtrack.threads import torch_threads
 
 NAME = "pedestrian"
 HELP = "feature tracking with an uncertain sensor position: joint filter vs variance inflation vs naive (PMB paper)"
