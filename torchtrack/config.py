@@ -31,3 +31,15 @@ def preset_path(name_or_path: str | Path) -> Path:
     if (path.parent == Path(".") or path.parent.name == "configs") and candidate.is_file():
         return Path(str(candidate))
     raise TorchtrackError(f"{name_or_path}: no such file or preset (presets: {', '.join(preset_names())})")
+
+
+def load_sections(path: str | Path, expected: set[str]) -> dict:
+    """Read a YAML config that must consist of exactly the ``expected`` top-level sections."""
+    import yaml
+
+    if not Path(path).is_file():
+        raise TorchtrackError(f"--config: no such file {path}")
+    cfg = yaml.safe_load(Path(path).read_text())
+    if not isinstance(cfg, dict) or set(cfg) != expected:
+        raise TorchtrackError(f"{path}: expected exactly the sections {sorted(expected)}")
+    return cfg

@@ -43,9 +43,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch intra-op threads (default 1: on a shared, loaded machine more threads spin and "
                              "wait for each other)")
     parser.add_argument("--repeats", type=int, default=3)
-    from torchtrack.cli._common import add_common_options
-
-    add_common_options(parser)
 
 
 def make_scans(targets: int, meas: int, scans: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:

@@ -42,18 +42,6 @@ def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, 
                             help=f"fitted parameters from torchtrack tune (OUT/params.yaml): {params}")
 
 
-def load_sections(path: Path, expected: set[str]) -> dict:
-    """Read a YAML config that must consist of exactly the ``expected`` top-level sections."""
-    import yaml
-
-    if not Path(path).is_file():
-        raise TorchtrackError(f"--config: no such file {path}")
-    cfg = yaml.safe_load(Path(path).read_text())
-    if not isinstance(cfg, dict) or set(cfg) != expected:
-        raise TorchtrackError(f"{path}: expected exactly the sections {sorted(expected)}")
-    return cfg
-
-
 def load_tracker_config(path: str | Path | None) -> dict:
     """The tracker-options YAML (a path or a preset name, e.g. ``gmphd``): a mapping ``tracker name ->
     options`` (empty without a path)."""

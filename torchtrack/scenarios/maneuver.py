@@ -8,13 +8,11 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options, add_scenario_options, load_sections
-from torchtrack.config import preset_path
+from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter
@@ -27,13 +25,10 @@ NAME = "maneuver"
 HELP = "Kalman refinement and chi-square maneuver detection (the maneuver paper)"
 DESCRIPTION = __doc__
 DEFAULT_CONFIG = preset_path("maneuver")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_scenario_options(parser, DEFAULT_CONFIG, runs=100,
-                         params="the Kalman filter's q and sigma of the constant-velocity and maneuver experiments "
-                                "(a 'kalman' file, motion cv, noise pwca)")
-    add_common_options(parser)
+RUNS = 100
+PARAMS = ("the Kalman filter's q and sigma of the constant-velocity and maneuver experiments (a 'kalman' file, "
+          "motion cv, noise pwca)")
+"""What a fitted-parameter file (``--params``) sets in this scenario."""
 
 
 def load_config(path: Path) -> dict:
