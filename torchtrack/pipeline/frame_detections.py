@@ -3,7 +3,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterator, Sequence
 from typing import NamedTuple
 
 import numpy as np
@@ -34,6 +34,18 @@ class FrameDetections(NamedTuple):
     strong: np.ndarray
     tones: np.ndarray | None = None
 
+    @classmethod
+    def registered(cls, index: int, positions: np.ndarray, velocities: np.ndarray | None = None,
+                   scores: np.ndarray | None = None) -> FrameDetections:
+        """Detections already in one coordinate frame (a detection file, a tuning window): identity
+        homography, every one strong, ``velocities (K, 2)`` NaN where not given, ``scores`` 1 where not
+        given, motion evidence ``inf`` (no frames to measure it: a ``min_motion`` gate passes everything)."""
+        pos = np.asarray(positions, np.float64).reshape(-1, 2)
+        vel = np.full_like(pos, np.nan) if velocities is None else np.asarray(velocities, np.float64).reshape(-1, 2)
+        k = len(pos)
+        scores = np.ones(k) if scores is None else np.asarray(scores, np.float64)
+        return cls(int(index), np.eye(3), pos, vel, scores, pos, vel, np.full(k, np.inf), np.ones(k, bool))
+
     def select(self, keep: np.ndarray) -> FrameDetections:
         """The detections where ``keep (K,)`` (a mask or indices)."""
         fields = ("positions", "velocities", "scores", "image_positions", "image_velocities", "motion", "strong")
@@ -57,22 +69,12 @@ def as_numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
     return np.asarray(x, np.float64).reshape(-1, *shape_tail)
 
 
-def mot_frames(det: MOTData, frames: Iterable[int]) -> Iterator[FrameDetections]:
+def mot_frames(det: MOTData, frames: Sequence[int]) -> Iterator[FrameDetections]:
     """The detections ``det`` of every frame in ``frames`` (frames without detections give ``K = 0``) as
-    :class:`FrameDetections` of an already registered input: identity homography, reference = frame
-    coordinates, every detection strong, velocities from the file's columns 8–9 (NaN where it has none),
-    motion evidence ``inf`` (no frames to measure it: a ``min_motion`` gate passes everything)."""
-    centres = det.centers()
-    velocity = det.velocity()
-    if velocity is None:
-        velocity = np.full_like(centres, np.nan)
-    order = np.argsort(det.frame, kind="stable")
-    sorted_frames = det.frame[order]
-    for f in frames:
-        idx = order[np.searchsorted(sorted_frames, f, "left"):np.searchsorted(sorted_frames, f, "right")]
-        pos, vel = centres[idx], velocity[idx]
-        yield FrameDetections(int(f), np.eye(3), pos, vel, det.conf[idx], pos, vel, np.full(len(idx), np.inf),
-                              np.ones(len(idx), bool))
+    :meth:`FrameDetections.registered`, with the file's scores and velocities (columns 8–9, where given)."""
+    centres, velocity = det.centers(), det.velocity()
+    for f, idx in zip(frames, det.split(frames)):
+        yield FrameDetections.registered(f, centres[idx], None if velocity is None else velocity[idx], det.conf[idx])
 
 
 def frame_range(*datas: MOTData | None) -> range:

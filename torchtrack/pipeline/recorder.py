@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchtrack.io.mot import MOTData, MOTWriter, empty_mot, from_points
+from torchtrack.io.mot import MOTData, MOTWriter, concat_mot, from_points
 
 
 class TrackRecorder:
@@ -45,13 +45,7 @@ class TrackRecorder:
     def tracks(self) -> MOTData:
         """Everything recorded, in recording order."""
         if self._data is None:
-            frames = self._frames
-            if not frames:
-                self._data = empty_mot()
-            else:
-                self._data = MOTData(*(None if getattr(frames[0], name) is None
-                                       else np.concatenate([getattr(f, name) for f in frames])
-                                       for name in MOTData._fields))
+            self._data = concat_mot(self._frames)
             self._frames = [self._data]
         return self._data
 

@@ -31,7 +31,7 @@ from torchtrack.detector import load_detector
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
-from torchtrack.io.mot import MOTData, read_mot
+from torchtrack.io.mot import MOTData, concat_mot, read_mot
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import score
 from torchtrack.pipeline.config import PipelineConfig
@@ -120,9 +120,10 @@ def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, pro
             "tracks": tracks}
 
 
-def concatenate(parts: list[tuple[MOTData, MOTData]]) -> tuple[MOTData, MOTData]:
-    """Pool ``(gt, tracks)`` pairs into one pair, offsetting frames and ids so sequences never mix
-    (lines keep their order, so per-line masks of the parts concatenate alongside)."""
+def concatenate(parts: list[tuple[MOTData, MOTData]], offset_frames: bool = True) -> tuple[MOTData, MOTData]:
+    """Pool ``(gt, tracks)`` pairs into one pair, offsetting identities (and, with ``offset_frames``, frame
+    numbers) so that the parts never mix (lines keep their order, so per-line masks of the parts
+    concatenate alongside)."""
     gts, preds = [], []
     frame_off = id_off = 0
     for gt, pred in parts:
@@ -130,17 +131,9 @@ def concatenate(parts: list[tuple[MOTData, MOTData]]) -> tuple[MOTData, MOTData]
         top = max(int(gt.id.max()) if gt.size else 0, int(pred.id.max()) if pred.size else 0)
         gts.append(gt._replace(frame=gt.frame + frame_off, id=gt.id + id_off))
         preds.append(pred._replace(frame=pred.frame + frame_off, id=pred.id + id_off))
-        frame_off += last + 1
+        frame_off += (last + 1) if offset_frames else 0
         id_off += top + 1
-
-    def cat(items: list[MOTData]) -> MOTData:
-        fields = []
-        for name in MOTData._fields:
-            vals = [getattr(m, name) for m in items]
-            fields.append(None if any(v is None for v in vals) else np.concatenate(vals))
-        return MOTData(*fields)
-
-    return cat(gts), cat(preds)
+    return concat_mot(gts), concat_mot(preds)
 
 
 def _distributed() -> tuple[int, int]:
