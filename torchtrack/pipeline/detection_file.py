@@ -4,7 +4,8 @@ the frames of a MOTChallenge detection file go through the same stream as the vi
 
 A detection file has no frames to measure motion on and its positions are already in one coordinate frame,
 so :func:`detection_file_config` turns the moving-object gate, the weak detections and the fixed-lag output
-off and takes the trackers' options from the tracker YAML alone (built-in defaults where it has no section).
+off and takes the trackers' options from the tracker YAML alone (built-in defaults where it has no section),
+unless a pipeline config is given as its base.
 """
 
 from __future__ import annotations
@@ -24,11 +25,12 @@ from torchtrack.pipeline.replay import run_tracker
 def detection_file_config(tracker_options: Mapping[str, dict] | None = None, threshold: float = 10.0,
                           base: PipelineConfig | None = None) -> PipelineConfig:
     """The stream settings for a detection file: ``base``'s (default: no gate, no weak detections, online
-    output) with ``tracker_options`` (tracker name → options; missing names get the built-in defaults) and
-    the CLEAR-MOT ``threshold`` (px)."""
+    output, every tracker at its built-in defaults), each tracker of ``tracker_options`` (tracker name →
+    options) with those options, and the CLEAR-MOT ``threshold`` (px)."""
     if base is None:
-        base = PipelineConfig(min_speed=0.0, min_motion=0.0, weak_threshold=None, output_lag=0)
-    return base.replace(tracker_options={}, trackers=dict(tracker_options or {}), threshold=threshold)
+        base = PipelineConfig(min_speed=0.0, min_motion=0.0, weak_threshold=None, output_lag=0, trackers={})
+    return base.replace(tracker_options={}, trackers={**base.trackers, **(tracker_options or {})},
+                        threshold=threshold)
 
 
 def track_detections(det: MOTData, name: str, config: PipelineConfig, out: str | Path, gt: MOTData | None = None,

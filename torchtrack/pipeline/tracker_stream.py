@@ -62,14 +62,15 @@ class TrackerStream:
 
     def tracker_input(self, det: FrameDetections) -> FrameDetections:
         """The detections the tracker gets: moving, and strong or continuing a previous position."""
-        moving = det.moving(self.config.min_speed, self.config.min_motion)
+        gated = self.config.min_speed > 0 or self.config.min_motion > 0
+        moving = det.moving(self.config.min_speed, self.config.min_motion) if gated else det
         keep = moving.strong.copy()
         weak = np.flatnonzero(~keep & (moving.scores >= (self.config.weak_threshold or np.inf)))
         if len(weak) and len(self.previous) and not np.isnan(moving.velocities).any():
             start = moving.positions[weak] - moving.velocities[weak]
             gap = np.hypot(start[:, None, 0] - self.previous[None, :, 0], start[:, None, 1] - self.previous[None, :, 1])
             keep[weak[gap.min(axis=1) < self.config.weak_distance]] = True
-        return moving.select(keep)
+        return moving if keep.all() else moving.select(keep)
 
     def step(self, det: FrameDetections) -> tuple[np.ndarray, np.ndarray, list[LaggedFrame]]:
         """One frame: the tracker's online ``ids (N,)``, ``positions (N, 2)`` and the frames final now."""
