@@ -1,4 +1,4 @@
-"""Argument helpers shared by the command modules: the common options and the scenarios' options."""
+"""Helpers shared by the command modules: the common options, the scenarios' options and the tracker YAML."""
 
 from __future__ import annotations
 
