@@ -74,12 +74,13 @@ def test_track_errors(tmp_path, capsys):
 
 def test_gmphd_on_real_wpafb_trajectories_short(wpafb_data):
     """40 frames of real moving vehicles, simulated detections at the benchmark's defaults."""
-    from torchtrack.cli.track import track_detections
     from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
+    from torchtrack.pipeline.detection_file import detection_file_config, track_detections
     from torchtrack.sim.detections import simulate_detections
 
     truth = read_wpafb_csv(wpafb_data / "transformed_object_states.csv")
     truth = truth.select(moving_mask(truth) & (truth.frame <= 40))
     det = simulate_detections(truth, 0.9, 1.0, 30, (585, 496), 1.0, torch.Generator().manual_seed(0)).detections
-    m = track_detections(det, "gmphd", {}, Path(os.environ.get("TMPDIR", "/tmp")) / "tt_wpafb_short", truth)
+    out = Path(os.environ.get("TMPDIR", "/tmp")) / "tt_wpafb_short"
+    m = track_detections(det, "gmphd", detection_file_config(), out, truth)
     assert m["MOTA"] > 0.6 and m["cap_hits"] == 0

@@ -9,8 +9,7 @@ from test_detector_train import tiny_config
 
 from torchtrack.detector.dataset import PairDataset, build_cache
 from torchtrack.detector.evaluate import ground_velocity, registered_motions
-from torchtrack.io.video_writer import apply_homography
-from torchtrack.pipeline.registration import warp_previous
+from torchtrack.geometry import apply_homography, warp_previous
 
 
 def _homography(rng: np.random.Generator) -> np.ndarray:

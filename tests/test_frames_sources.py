@@ -99,8 +99,7 @@ def test_array_source_checks_sizes():
 
 
 def test_synthetic_source_matches_generator():
-    from torchtrack.io.frames import SyntheticSource
-    from torchtrack.sim.video import VideoConfig, generate_sequence
+    from torchtrack.sim.video import SyntheticSource, VideoConfig, generate_sequence
 
     cfg = VideoConfig(height=128, width=128, frames=3)
     src = SyntheticSource(cfg, torch.Generator().manual_seed(5))

@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.io.video_writer import AnnotatedVideoWriter, apply_homography, identity_color, save_png
+from torchtrack.geometry import apply_homography
+from torchtrack.io.video_writer import AnnotatedVideoWriter, identity_color, save_png
 
 
 @pytest.mark.parametrize("background", [True, False])

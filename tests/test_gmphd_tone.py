@@ -15,7 +15,8 @@ from torchtrack.filters.gmphd_labels import label_handover, no_lost_labels
 from torchtrack.filters.gmphd_tone import LabelTones, add_births, lookup, no_label_tones, tone_log_ratio, update_tones
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.models import ConstantVelocity, LinearPosition
-from torchtrack.pipeline.track_video import FrameDetections, grey_level
+from torchtrack.pipeline.detection import grey_level
+from torchtrack.pipeline.frame_detections import FrameDetections
 from torchtrack.pipeline.tracker_stream import run_tracker_step
 
 F64 = torch.float64

@@ -10,7 +10,7 @@ import torch
 from torchtrack.errors import TorchtrackError
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.fixed_lag import FixedLagTracks
-from torchtrack.pipeline.track_video import FrameDetections
+from torchtrack.pipeline.frame_detections import FrameDetections
 from torchtrack.pipeline.tracker_stream import TrackerStream
 
 V = np.array([5.0, 0.0])

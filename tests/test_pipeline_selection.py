@@ -8,8 +8,8 @@ import torch
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import from_points
 from torchtrack.pipeline.config import PipelineConfig
+from torchtrack.pipeline.frame_detections import FrameDetections
 from torchtrack.pipeline.selection import SequenceDetections, choose, evaluate, option_sets, select
-from torchtrack.pipeline.track_video import FrameDetections
 
 
 def test_option_sets_nest_dotted_keys():

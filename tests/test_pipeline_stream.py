@@ -9,10 +9,12 @@ import numpy as np
 import pytest
 import torch
 
+from torchtrack.geometry import apply_homography, homography_jacobian
 from torchtrack.io.frames import ArraySource
 from torchtrack.io.mot import read_mot
 from torchtrack.pipeline import track_video as tv
 from torchtrack.pipeline.config import PipelineConfig
+from torchtrack.pipeline.detection import motion_evidence
 from torchtrack.sim.video import VideoConfig, generate_sequence
 
 
@@ -70,7 +72,7 @@ def test_positions_reach_the_tracker_in_reference_coordinates(tmp_path, sequence
     h1 = sequence[0].homography
     for f, seen in zip(sequence, tracker.seen):
         # Truth in frame k mapped to frame 1 by the TRUE camera motion H_1 H_k^{-1}.
-        expected = tv.apply_homography(f.xy, h1 @ np.linalg.inv(f.homography))
+        expected = apply_homography(f.xy, h1 @ np.linalg.inv(f.homography))
         err = np.linalg.norm(seen.numpy() - expected, axis=1)
         assert np.median(err) < 0.5 and err.max() < 1.0  # registration of a tiny 160 x 160 frame
     # tracks.txt is in frame coordinates again: the truth of each frame, exactly.
@@ -93,7 +95,7 @@ def test_detector_sees_registered_previous_frame_and_prior(tmp_path, sequence, m
     reg_diff = np.median(np.abs(frame.astype(float) - prev.astype(float))[8:-8, 8:-8])
     assert reg_diff < raw_diff
     # The prior points are the previous frame's detections, mapped into this frame.
-    expected = tv.apply_homography(sequence[2].xy, sequence[3].homography @ np.linalg.inv(sequence[2].homography))
+    expected = apply_homography(sequence[2].xy, sequence[3].homography @ np.linalg.inv(sequence[2].homography))
     err = np.linalg.norm(prior - expected, axis=1)
     assert np.median(err) < 0.5 and err.max() < 1.0
 
@@ -129,9 +131,9 @@ def test_homography_jacobian_matches_finite_differences():
     h = np.array([[1.01, 0.02, 3.0], [-0.01, 0.99, -2.0], [1e-4, -2e-4, 1.0]])
     p = np.array([[10.0, 20.0], [100.0, 50.0]])
     eps = 1e-5
-    num = np.stack([(tv.apply_homography(p + eps * e, h) - tv.apply_homography(p - eps * e, h)) / (2 * eps)
+    num = np.stack([(apply_homography(p + eps * e, h) - apply_homography(p - eps * e, h)) / (2 * eps)
                     for e in np.eye(2)], axis=2)
-    np.testing.assert_allclose(tv.homography_jacobian(h, p), num, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(homography_jacobian(h, p), num, rtol=1e-7, atol=1e-9)
 
 
 class OnePoint:
@@ -214,7 +216,7 @@ def test_motion_evidence_is_the_local_frame_difference():
     previous = np.full((40, 40), 60, np.uint8)
     image = previous.copy()
     image[18:23, 28:33] = 160  # a 5 x 5 vehicle arrived; nothing else changed
-    ev = tv.motion_evidence(image, previous, np.array([[30.0, 20.0], [10.0, 10.0], [32.0, 20.0]]))
+    ev = motion_evidence(image, previous, np.array([[30.0, 20.0], [10.0, 10.0], [32.0, 20.0]]))
     np.testing.assert_allclose(ev, [100.0, 0.0, 60.0])  # centred: all 25 px differ; 2 px off: 15 of 25
 
 

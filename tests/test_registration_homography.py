@@ -5,7 +5,8 @@ import numpy as np
 import pytest
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.pipeline.registration import Registration, RegistrationConfig, transfer_error
+from torchtrack.geometry import transfer_error
+from torchtrack.pipeline.registration import Registration, RegistrationConfig
 
 
 def _texture(shape: tuple[int, int], seed: int) -> np.ndarray:

@@ -124,7 +124,7 @@ def test_grid_search_scores_every_point_and_keeps_the_best(tmp_path):
 def test_exported_tracker_options_are_accepted_by_track(tmp_path):
     import yaml
 
-    from torchtrack.cli.track import load_tracker_config
+    from torchtrack.cli._common import load_tracker_config
     from torchtrack.filters.multitarget import make_tracker
 
     tun, tracker, _ = problem(tmp_path, frames=30)

@@ -47,7 +47,10 @@ def fitted_gmphd(tmp_path, tracker="labelled-gmphd"):
 def test_track_params_reproduces_the_fitted_tracker_exactly(tmp_path):
     import argparse
 
-    from torchtrack.cli.track import detection_frames, fitted_tracker, frame_range, run_frames
+    from torchtrack.cli.track import fitted_tracker
+    from torchtrack.pipeline.detection_file import detection_file_config
+    from torchtrack.pipeline.frame_detections import frame_range, mot_frames
+    from torchtrack.pipeline.replay import run_tracker
 
     det_path = detections_file(tmp_path)
     module, params = fitted_gmphd(tmp_path)
@@ -58,14 +61,15 @@ def test_track_params_reproduces_the_fitted_tracker_exactly(tmp_path):
     loaded = fitted_tracker(args)
     module.reset()
     steps = 0
-    for frame, z, v in detection_frames(det, frame_range(det)):
-        (ia, pa), (ib, pb) = module.step(frame, z, v), loaded.step(frame, z, v)
+    for f in mot_frames(det, frame_range(det)):
+        z, v = torch.from_numpy(f.positions), None if np.isnan(f.velocities).any() else torch.from_numpy(f.velocities)
+        (ia, pa), (ib, pb) = module.step(f.index, z, v), loaded.step(f.index, z, v)
         assert torch.equal(ia, ib) and torch.equal(pa, pb)
         steps += int(ia.numel())
     assert steps > 20
     # and the command writes the same tracks file
     module.reset()
-    run_frames(module, detection_frames(det, frame_range(det)), tmp_path / "expected.txt")
+    run_tracker(module, detection_file_config(), mot_frames(det, frame_range(det)), tmp_path / "expected.txt")
     out = tmp_path / "out"
     assert main(["track", "--detections", str(det_path), "--params", str(params), "--tracker", "labelled-gmphd",
                  "--out", str(out)]) == 0

@@ -166,3 +166,11 @@ def _name(hint: Any) -> str:
 
 def _dotted(prefix: str, key: Any) -> str:
     return f"{prefix}.{key}" if prefix else str(key)
+
+
+def load_sections(path: str | Path, expected: set[str]) -> dict:
+    """Read a YAML config that must consist of exactly the ``expected`` top-level sections."""
+    cfg = read_mapping(path, "--config")
+    if set(cfg) != expected:
+        raise TorchtrackError(f"{path}: expected exactly the sections {sorted(expected)}")
+    return cfg

@@ -5,7 +5,8 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 
-from torchtrack.cli._common import format_table, write_json
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 
 
 def best_time(fn: Callable[[], object], repeats: int = 3, warmup: int = 1) -> float:

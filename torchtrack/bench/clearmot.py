@@ -14,7 +14,6 @@ import warnings
 import numpy as np
 
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData, from_points
 from torchtrack.metrics import clear_mot
@@ -28,7 +27,6 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frames", type=int, default=512, help="frames (default 512)")
     parser.add_argument("--objects", type=int, default=100, help="objects and predictions per frame (100)")
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats, best kept (default 3)")
-    add_common_options(parser)
 
 
 def workload(frames: int, objects: int, seed: int) -> tuple[MOTData, MOTData]:

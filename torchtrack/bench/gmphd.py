@@ -24,7 +24,6 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import report
-from torchtrack.cli._common import add_common_options
 from torchtrack.filters.gmphd import chi2_quantile
 from torchtrack.filters.multitarget import make_tracker
 
@@ -50,7 +49,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed passes of the whole sequence, the fastest kept "
                         "(default 5; slower passes are the machine's noise)")
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    add_common_options(parser)
 
 
 def scenario(w: dict, steps: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -226,7 +224,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"enhanced GM-PHD (label fix, velocity map, detector velocity): {enhanced:,.0f} steps/s; "
               f"mean estimates/step: labelled {card:.1f}, enhanced {card_e:.1f}, targets {w['targets']}")
     if args.json is not None:
-        from torchtrack.cli._common import write_json
+        from torchtrack.io.outputs import write_json
 
         write_json(args.json, results if len(results) > 1 else next(iter(results.values())))
     return 0

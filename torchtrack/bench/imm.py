@@ -18,10 +18,10 @@ import time
 import torch
 
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options, torch_threads
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
 from torchtrack.models import LinearPosition, ModeControlInput
+from torchtrack.threads import torch_threads
 
 NAME = "imm"
 HELP = "3-model IMM, 100 000 tracks, against FilterPy's IMMEstimator per track"
@@ -41,7 +41,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch intra-op threads (default 1: the compiled elementwise step is faster on one "
                              "thread of this 2-core machine, 6.1 M vs 3.1 M track-steps/s idle)")
     parser.add_argument("--no-compile", action="store_true", help="eager step instead of torch.compile")
-    add_common_options(parser)
 
 
 def _model(dtype: torch.dtype) -> ConstantVelocityIMM:

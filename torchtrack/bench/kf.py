@@ -22,7 +22,6 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options
 from torchtrack.filters.kalman import GaussianState, KalmanFilter, _GaussianFilter
 from torchtrack.filters.kalman_fast import run_cv_fast
 from torchtrack.models import ConstantVelocity, LinearPosition
@@ -40,7 +39,6 @@ def add_arguments(parser) -> None:
     parser.add_argument("--general-steps", type=int, default=10, help="steps timed for the general path")
     parser.add_argument("--loop-tracks", type=int, default=200, help="tracks for the per-track loop")
     parser.add_argument("--no-compile", action="store_true", help="time the eager fast and general paths")
-    add_common_options(parser)
 
 
 def _cpu_seconds(fn) -> float:

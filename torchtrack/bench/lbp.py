@@ -17,8 +17,9 @@ import torch
 
 from torchtrack.association.lbp import LOG_RATIO_MAX, lbp_marginals
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options, format_table, torch_threads
 from torchtrack.errors import TorchtrackError
+from torchtrack.metrics.table import format_table
+from torchtrack.threads import torch_threads
 
 NAME = "lbp"
 HELP = "LBP association marginals on n x n problems against a NumPy implementation"
@@ -35,7 +36,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch intra-op threads (default 1: on a shared, loaded machine more threads spin and "
                              "wait for each other)")
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats, best is kept (default 5)")
-    add_common_options(parser)
 
 
 def numpy_lbp(log_w: np.ndarray, log_miss: np.ndarray, log_new: np.ndarray, iterations: int,

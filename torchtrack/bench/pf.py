@@ -23,10 +23,10 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import best_time, report
-from torchtrack.cli._common import add_common_options, torch_threads
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import jtc_trajectory, simulate_measurements
+from torchtrack.threads import torch_threads
 
 NAME = "pf"
 HELP = "JTC particle-filter bank throughput (particle-steps/s) vs a vectorised NumPy implementation"
@@ -42,7 +42,6 @@ def add_arguments(parser) -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
     parser.add_argument("--compile", action="store_true", help="torch.compile the filter step (inductor)")
     parser.add_argument("--repeats", type=int, default=3, help="best of this many timed runs each (default 3)")
-    add_common_options(parser)
 
 
 def numpy_bank(bank: MultipleModelParticleFilter, z: np.ndarray, mean: np.ndarray, std: np.ndarray, dt: float,

@@ -18,10 +18,10 @@ import torch
 
 from torchtrack.bench._timing import best_time, report
 from torchtrack.bench.lbp import _loadavg, best_cpu_time, numpy_lbp
-from torchtrack.cli._common import torch_threads
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter, PMBState
 from torchtrack.models import ConstantVelocity, LinearPosition
+from torchtrack.threads import torch_threads
 
 NAME = "pmb"
 HELP = "TOMB/P filter scans/s (100 tracks, 150 measurements per scan) against a NumPy implementation"
@@ -43,9 +43,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="torch intra-op threads (default 1: on a shared, loaded machine more threads spin and "
                              "wait for each other)")
     parser.add_argument("--repeats", type=int, default=3)
-    from torchtrack.cli._common import add_common_options
-
-    add_common_options(parser)
 
 
 def make_scans(targets: int, meas: int, scans: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:

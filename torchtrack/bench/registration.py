@@ -17,9 +17,9 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import report
-from torchtrack.cli._common import add_common_options
 from torchtrack.detector.dataset import split_seed
-from torchtrack.pipeline.registration import Registration, RegistrationConfig, transfer_error
+from torchtrack.geometry import transfer_error
+from torchtrack.pipeline.registration import Registration, RegistrationConfig
 from torchtrack.sim.video import VideoConfig, generate_sequence
 
 NAME = "registration"
@@ -31,7 +31,6 @@ def add_arguments(parser) -> None:
     parser.add_argument("--sequences", type=int, default=3, help="synthetic sequences (default 3)")
     parser.add_argument("--frames", type=int, default=30, help="frames per sequence (default 30)")
     parser.add_argument("--size", type=int, default=512, help="frame side in px (default 512)")
-    add_common_options(parser)
 
 
 def evaluate(config: RegistrationConfig, sequences: list[list]) -> tuple[float, np.ndarray]:

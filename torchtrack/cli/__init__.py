@@ -15,7 +15,9 @@ import importlib
 import importlib.util
 import pkgutil
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from types import ModuleType
 
 from torchtrack.errors import TorchtrackError
 
@@ -50,8 +52,11 @@ def _command_modules(package: str) -> list:
     return [importlib.import_module(mod) for _, _, mod in discover(package)]
 
 
-def add_subcommands(parser: argparse.ArgumentParser, package: str, dest: str, argv: list[str]) -> None:
-    """Attach the command modules of ``package`` to ``parser``; import only the one ``argv`` selects."""
+def add_subcommands(parser: argparse.ArgumentParser, package: str, dest: str, argv: list[str],
+                    options: Callable[[argparse.ArgumentParser, ModuleType], None] | None = None) -> None:
+    """Attach the command modules of ``package`` to ``parser``; import only the one ``argv`` selects. Its
+    parser gets the module's ``add_arguments`` (where it has one), then ``options(parser, module)`` (the
+    options that every module of ``package`` takes)."""
     sub = parser.add_subparsers(dest=dest, metavar="NAME", required=True)
     chosen = next((a for a in argv if not a.startswith("-")), None)
     for name, help_, modname in discover(package):
@@ -62,7 +67,10 @@ def add_subcommands(parser: argparse.ArgumentParser, package: str, dest: str, ar
         p = sub.add_parser(name, help=help_, description=getattr(module, "DESCRIPTION", help_),
                            formatter_class=argparse.RawDescriptionHelpFormatter)
         p.set_defaults(_run=module.run, _argv_rest=argv[argv.index(chosen) + 1:])
-        module.add_arguments(p)
+        if hasattr(module, "add_arguments"):
+            module.add_arguments(p)
+        if options is not None:
+            options(p, module)
 
 
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:

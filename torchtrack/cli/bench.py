@@ -1,13 +1,15 @@
 """``torchtrack bench NAME``: throughput against a reference timed in the same run."""
 
 from torchtrack.cli import add_subcommands
+from torchtrack.cli._common import add_common_options
 
 NAME = "bench"
 HELP = "measure throughput against a reference implementation timed in the same run"
 
 
 def add_arguments(parser) -> None:
-    add_subcommands(parser, "torchtrack.bench", "workload", parser.get_default("_argv_rest") or [])
+    add_subcommands(parser, "torchtrack.bench", "workload", parser.get_default("_argv_rest") or [],
+                    options=lambda p, _: add_common_options(p))
 
 
 def run(args) -> int:

@@ -7,9 +7,11 @@ from pathlib import Path
 
 import numpy as np
 
-from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.cli._common import add_common_options
 from torchtrack.io.mot import POINT_BOX_SIZE, write_motdata
+from torchtrack.io.outputs import write_json
 from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
+from torchtrack.metrics.table import format_table
 
 NAME = "convert-wpafb"
 HELP = "convert the WPAFB truth CSV (transformed_object_states.csv) to MOTChallenge text"

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, write_json
+from torchtrack.cli._common import add_common_options
+from torchtrack.io.outputs import write_json
 from torchtrack.pipeline.config import load_pipeline_config
 from torchtrack.pipeline.demo import format_demo, run_demo
 

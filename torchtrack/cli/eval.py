@@ -6,11 +6,13 @@ import argparse
 import math
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.cli._common import add_common_options
 from torchtrack.io.mot import read_mot
+from torchtrack.io.outputs import write_json
 from torchtrack.io.wpafb import moving_mask
 from torchtrack.metrics import clear_mot, drop_ignored, mot_ospa_gospa
 from torchtrack.metrics.clear_mot import KEYS
+from torchtrack.metrics.table import format_table
 
 NAME = "eval"
 HELP = "score tracks (MOTChallenge text) against ground truth: CLEAR-MOT, MT/PT/ML, IDF1"

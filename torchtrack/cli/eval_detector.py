@@ -4,8 +4,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.cli._common import add_common_options
 from torchtrack.detector.evaluate import PRIORS
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 
 NAME = "eval-detector"
 HELP = "score the detector on held-out synthetic sequences and on the real WPAFB frames"

@@ -8,9 +8,11 @@ from pathlib import Path
 
 import yaml
 
-from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.cli._common import add_common_options
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.selection import GRIDS, check_ids_reference, collect, select
 

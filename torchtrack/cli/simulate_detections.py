@@ -8,8 +8,10 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchtrack.cli._common import add_common_options, format_table, write_json
+from torchtrack.cli._common import add_common_options
 from torchtrack.io.mot import POINT_BOX_SIZE, read_mot, write_motdata
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 from torchtrack.sim.detections import default_image_size, simulate_detections
 
 NAME = "simulate-detections"

@@ -6,7 +6,8 @@ from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options, config_file, write_json
+from torchtrack.cli._common import add_common_options, config_file
+from torchtrack.io.outputs import write_json
 
 NAME = "simulate-video"
 HELP = "write a synthetic satellite-style sequence: frames, gt.txt (MOTChallenge), camera.json"

@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, config_file, write_json
+from torchtrack.cli._common import add_common_options, config_file
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import write_json
 
 NAME = "train-detector"
 HELP = "train the small CenterTrack-style detector on synthetic satellite video"

@@ -77,7 +77,7 @@ def _fmt(v) -> str:
 
 
 def _print_folds(summary: dict) -> None:
-    from torchtrack.cli._common import format_table
+    from torchtrack.metrics.table import format_table
 
     runs = summary["runs"]
     draws = "held_out_draws" in runs[0]
@@ -113,7 +113,8 @@ def _print_folds(summary: dict) -> None:
 def run(args) -> int:
     import torch
 
-    from torchtrack.cli._common import format_table, write_json
+    from torchtrack.io.outputs import write_json
+    from torchtrack.metrics.table import format_table
     from torchtrack.tune import tune
     from torchtrack.tuning.config import apply_overrides, read_tune_config
 

@@ -30,8 +30,7 @@ from torchtrack.detector.evaluate import ground_velocity
 from torchtrack.detector.network import STRIDE
 from torchtrack.detector.targets import Targets, gaussian_heatmap, make_targets
 from torchtrack.errors import TorchtrackError
-from torchtrack.io.video_writer import apply_homography
-from torchtrack.pipeline.registration import warp_previous
+from torchtrack.geometry import apply_homography, warp_previous
 
 CACHE_VERSION = 3   # bump when the generator or the cache's content changes
 

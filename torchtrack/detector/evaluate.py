@@ -14,8 +14,7 @@ from scipy.optimize import linear_sum_assignment
 
 from torchtrack.detector.decode import Detections
 from torchtrack.errors import TorchtrackError
-from torchtrack.io.video_writer import apply_homography
-from torchtrack.pipeline.registration import warp_previous
+from torchtrack.geometry import apply_homography, warp_previous
 
 
 def match(pred: np.ndarray, truth: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:

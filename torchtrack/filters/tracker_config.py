@@ -233,10 +233,11 @@ def tracker_config(name: str, options: Any = None, source: str = "tracker option
     return config
 
 
-def load_tracker_configs(path_or_preset: str | Path | None) -> dict[str, Any]:
-    """The tracker configurations of a YAML file (or shipped preset name) with one section per tracker name
-    (``configs/gmphd.yaml``), each over its tracker's defaults; only the trackers with a section (None: ``{}``,
-    every tracker runs with its defaults)."""
+def read_tracker_sections(path_or_preset: str | Path | None) -> dict[str, dict]:
+    """The sections of a tracker-options YAML file (or shipped preset name) with one section per tracker name
+    (``configs/gmphd.yaml``), as mappings of the keys they change, each checked against its tracker's
+    configuration (unknown trackers, keys and bad values are errors naming the file and key); only the
+    trackers with a section (None: ``{}``, every tracker runs with its defaults)."""
     if path_or_preset is None:
         return {}
     path = preset_path(path_or_preset)
@@ -245,4 +246,11 @@ def load_tracker_configs(path_or_preset: str | Path | None) -> dict[str, Any]:
     if unknown:
         raise TorchtrackError(f"tracker config {path}: unknown tracker section(s) {unknown}; "
                               f"known: {list(DEFAULTS)}")
-    return {name: tracker_config(name, options, str(path)) for name, options in sections.items()}
+    for name, options in sections.items():
+        tracker_config(name, options, str(path))
+    return {name: dict(options or {}) for name, options in sections.items()}
+
+
+def load_tracker_configs(path_or_preset: str | Path | None) -> dict[str, Any]:
+    """:func:`read_tracker_sections` built into each tracker's configuration dataclass."""
+    return {name: tracker_config(name, options) for name, options in read_tracker_sections(path_or_preset).items()}

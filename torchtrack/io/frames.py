@@ -1,4 +1,5 @@
-"""Frame sources: video files, folders of images, in-memory arrays and the synthetic generator.
+"""Frame sources: video files, folders of images and in-memory arrays (the synthetic generator's source is
+:class:`torchtrack.sim.video.SyntheticSource`).
 
 Every source yields :class:`Frame` objects ``(index, image, name)`` one at a time (streaming, bounded
 memory): ``index`` counts from 1 as in MOTChallenge files, ``image`` is ``uint8 (H, W)`` grey
@@ -30,10 +31,8 @@ from typing import NamedTuple
 
 import cv2
 import numpy as np
-import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.sim.video import VideoConfig, generate_sequence
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".wmv")
@@ -224,31 +223,6 @@ def open_frames(path: str | Path, color: bool = False) -> FrameSource:
     if p.is_dir():
         return FolderSource(p, color=color)
     return VideoSource(p, color=color)
-
-
-class SyntheticSource(FrameSource):
-    """Frames of :func:`torchtrack.sim.video.generate_sequence`, generated as they are read.
-
-    ``truth`` holds the last frame's :class:`~torchtrack.sim.video.VideoFrame` (ids, positions,
-    camera homography) while iterating. Iterating again regenerates the same sequence only if the
-    ``generator`` is re-seeded: pass a fresh one per pass.
-    """
-
-    def __init__(self, config: VideoConfig | None = None, generator: torch.Generator | None = None,
-                 name: str = "<synthetic>") -> None:
-        self.config = config or VideoConfig()
-        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
-        self.path = name
-        self.shape = (self.config.height, self.config.width)
-        self.truth = None
-
-    def __len__(self) -> int:
-        return self.config.frames
-
-    def __iter__(self) -> Iterator[Frame]:
-        for vf in generate_sequence(self.config, self.generator):
-            self.truth = vf
-            yield Frame(vf.index + 1, vf.image, f"{self.path}[{vf.index + 1}]")
 
 
 def prefetch(frames: Iterable[Frame], size: int = 2) -> Iterator[Frame]:

@@ -29,7 +29,7 @@ from __future__ import annotations
 import os
 import re
 from array import array
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import NamedTuple
 
@@ -107,6 +107,14 @@ def empty_mot(with_velocity: bool = False) -> MOTData:
     i = np.zeros(0, dtype=np.int64)
     v = f.copy() if with_velocity else None
     return MOTData(i, i.copy(), f, f.copy(), f.copy(), f.copy(), f.copy(), v, None if v is None else f.copy())
+
+
+def concat_mot(items: Sequence[MOTData]) -> MOTData:
+    """The objects of ``items`` one after the other (velocities kept only where every item has them)."""
+    if not items:
+        return empty_mot()
+    return MOTData(*(None if any(getattr(m, name) is None for m in items)
+                     else np.concatenate([getattr(m, name) for m in items]) for name in MOTData._fields))
 
 
 def from_points(

@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.geometry import apply_homography
 
 _GOLDEN = 0.6180339887498949
 
@@ -35,17 +36,6 @@ def identity_color(identity: int) -> tuple[int, int, int]:
     hue = (int(identity) * _GOLDEN) % 1.0
     r, g, b = colorsys.hsv_to_rgb(hue, 0.85, 1.0)
     return int(b * 255), int(g * 255), int(r * 255)
-
-
-def apply_homography(points: np.ndarray, homography: np.ndarray | None) -> np.ndarray:
-    """``points (K, 2)`` mapped by ``homography (3, 3)`` (identity when ``None``) → ``(K, 2)``."""
-    points = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    if homography is None or len(points) == 0:
-        return points
-    h = np.asarray(homography, dtype=np.float64)
-    q = points @ h[:2, :2].T + h[:2, 2]
-    w = points @ h[2, :2] + h[2, 2]
-    return q / w[:, None]
 
 
 def to_bgr(image: np.ndarray) -> np.ndarray:

@@ -32,14 +32,14 @@ The GM-PHD keeps these options on the first frame too, which has no velocities (
 
 @dataclass
 class PipelineConfig:
-    """Every knob of :func:`torchtrack.pipeline.track_video.track_video`.
+    """Every knob of the tracker stream and of :func:`torchtrack.pipeline.track_video.track_video`.
 
     tracker / tracker_options: the tracker's name and its options (``make_tracker(name, options)``).
     trackers: options per tracker name for the trackers compared on the same detections (``demo``,
     ``track --compare``); ``tracker_options``, where given, overrides the entry of ``tracker``.
     min_speed, min_motion: the paper tracks moving objects only: detections whose predicted speed (the
     detector's velocity head, px/frame) or whose motion evidence (mean absolute difference to the registered
-    previous frame around the detection, grey levels; ``track_video.motion_evidence``) is below these are
+    previous frame around the detection, grey levels; ``detection.motion_evidence``) is below these are
     not given to the tracker (they are still recorded in ``detections.txt`` and feed the detector's prior
     heatmap). 0 passes every detection.
     detector_weights: a weights file (``None``: the shipped weights).

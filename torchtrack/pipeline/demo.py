@@ -24,35 +24,20 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchtrack.cli._common import format_table
 from torchtrack.detector.dataset import split_seed
-from torchtrack.filters.multitarget import tracker_names
+from torchtrack.filters.multitarget import make_tracker, tracker_names
+from torchtrack.geometry import apply_homography
 from torchtrack.io.frames import FolderSource
 from torchtrack.io.mot import MOTData, read_mot
-from torchtrack.io.video_writer import apply_homography
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table1, score
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.plots import plot_scores, plot_tracks
-from torchtrack.pipeline.track_video import (
-    rerun_tracker,
-    score,
-    torch_threads,
-    track_video,
-    write_json_atomic,
-)
+from torchtrack.pipeline.replay import run_tracker
+from torchtrack.pipeline.track_video import track_video
 from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import VideoConfig, read_camera, write_sequence
-
-TABLE_HEADER = ["Method", "GT", "MT (%)", "PT (%)", "ML (%)", "FP", "FN", "IDS", "MOTA (%)", "MOTP (px)", "FPS"]
-
-
-def table_rows(scores: dict[str, dict]) -> list[list]:
-    """Rows of the paper's Table 1 layout from tracker → CLEAR-MOT (+ ``FPS``) dicts."""
-    rows = []
-    for name, s in scores.items():
-        gt = max(s["GT"], 1)
-        rows.append([name, s["GT"], 100 * s["MT"] / gt, 100 * s["PT"] / gt, 100 * s["ML"] / gt, s["FP"], s["FN"],
-                     s["IDS"], 100 * s["MOTA"], s["MOTP"], s["FPS"]])
-    return rows
+from torchtrack.threads import torch_threads
 
 
 def _paths(data: MOTData, to_first: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -97,14 +82,15 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     scores = {cfg.tracker: {**metrics["clear_mot"], "FPS": metrics["fps"].get("tracking_only", float("inf"))}}
     for name in [n for n in (trackers or tracker_names()) if n != cfg.tracker]:
         with torch_threads(cfg.threads):
-            path, seconds = rerun_tracker(name, cfg, result.detections, out / "trackers" / f"{name}.txt")
-        scores[name] = {**score(gt, read_mot(path), cfg.threshold, ignore), "FPS": len(result.detections) / seconds}
+            run = run_tracker(make_tracker(name, cfg.options_for(name)), cfg, result.detections,
+                              out / "trackers" / f"{name}.txt")
+        scores[name] = {**score(gt, run.tracks, cfg.threshold, ignore), "FPS": run.fps}
     homographies = {d.index: d.homography for d in result.detections}
     first = next(iter(FolderSource(seq / "frames"))).image
     camera = read_camera(seq / "camera.json")
     true_to_first = {k + 1: camera[0] @ np.linalg.inv(h) for k, h in enumerate(camera)}
     plots = {
-        "tracks": plot_tracks(first, _paths(read_mot(result.files["tracks"]), homographies),
+        "tracks": plot_tracks(first, _paths(result.tracks, homographies),
                               out / "tracks_first_frame.png",
                               f"{cfg.tracker} tracks over frame 1 (white: truth), {vcfg.frames} frames",
                               _paths(gt if ignore is None else gt.select(~ignore), true_to_first)),
@@ -117,13 +103,13 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
         "trackers": scores,
         "files": {k: str(v) for k, v in {**result.files, **plots}.items()},
     })
-    write_json_atomic(out / "metrics.json", metrics)
+    write_json(out / "metrics.json", metrics)
     return metrics
 
 
 def format_demo(metrics: dict) -> str:
     """The Table 1 text plus the end-to-end line."""
-    table = format_table(TABLE_HEADER, table_rows(metrics["trackers"]), floatfmt=".2f")
+    table = format_table1(metrics["trackers"])
     fps = metrics["fps"]
     det = metrics.get("detector", {})
     lines = [

@@ -16,8 +16,7 @@ that overlap stays large while the camera moves; the reference frame never chang
 in reference coordinates stay valid for the whole sequence and are drawn back into frame ``k`` by
 ``H_k⁻¹``.
 
-:func:`transfer_error` measures a registration against the true camera motion: the distance, in
-pixels, between where the estimated and the true homographies send a grid of points of the frame.
+:func:`torchtrack.geometry.transfer_error` measures a registration against the true camera motion.
 """
 
 from __future__ import annotations
@@ -179,45 +178,3 @@ class Registration:
         if refresh:
             self._set_key(image, h, features)
         return RegistrationResult(h, inliers, refresh)
-
-
-def transfer_error(h_est: np.ndarray, h_true: np.ndarray, shape: tuple[int, int], step: int = 16) -> np.ndarray:
-    """Pixel distances ``‖π(H_est x) − π(H_true x)‖`` over a grid of frame points ``x``.
-
-    ``h_est``, ``h_true`` ``(3, 3)`` frame → reference; ``shape`` ``(H, W)`` of the frame; ``step`` the
-    grid spacing in pixels. Returns a flat array of distances (pixels, in reference coordinates).
-    """
-    hgt, wid = shape
-    ys, xs = np.mgrid[step // 2:hgt:step, step // 2:wid:step]
-    pts = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
-
-    def project(h: np.ndarray) -> np.ndarray:
-        q = pts @ h[:2, :2].T + h[:2, 2]
-        return q / (pts @ h[2, :2] + h[2, 2])[:, None]
-
-    return np.linalg.norm(project(np.asarray(h_est, float)) - project(np.asarray(h_true, float)), axis=1)
-
-
-def warp_previous(previous: np.ndarray, current_to_previous: np.ndarray, size: tuple[int, int],
-                  offset: tuple[int, int] = (0, 0), fill: np.ndarray | None = None) -> np.ndarray:
-    """The previous frame resampled onto the current one, ``out[y, x] = previous(M · [x + x0, y + y0, 1]ᵀ)``
-    with ``M = current_to_previous`` (3, 3): only what moves over the ground differs between ``out`` and
-    the current frame. ``size = (h, w)`` of the output, ``offset = (x0, y0)`` of its top-left corner in the
-    current frame (a crop); bilinear. Where ``M`` maps outside the previous frame (a strip along the border
-    after a camera motion) the previous frame's border is replicated, or with ``fill`` (the current frame,
-    of shape ``size``) that pixel of ``fill`` is taken: the strip then shows no change, where replicated
-    border pixels would differ from the current frame like something that moved."""
-    m = np.asarray(current_to_previous, np.float64)
-    if offset != (0, 0):
-        m = m @ np.array([[1.0, 0.0, offset[0]], [0.0, 1.0, offset[1]], [0.0, 0.0, 1.0]])
-    out = cv2.warpPerspective(previous, m, (size[1], size[0]), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                              borderMode=cv2.BORDER_REPLICATE)
-    if fill is None:
-        return out
-    fill = np.asarray(fill)
-    if fill.shape != tuple(size):
-        raise TorchtrackError(f"warp_previous: fill has shape {fill.shape}, the output {tuple(size)}")
-    h, w = previous.shape[:2]
-    inside = cv2.warpPerspective(np.ones((h, w), np.uint8), m, (size[1], size[0]),
-                                 flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
-    return np.where(inside > 0, out, fill.astype(out.dtype))

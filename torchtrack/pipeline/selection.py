@@ -23,10 +23,14 @@ import numpy as np
 from tqdm import tqdm
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.io.mot import MOTData, from_points, read_mot
+from torchtrack.filters.multitarget import make_tracker
+from torchtrack.io.mot import MOTData, read_mot
+from torchtrack.metrics.table import score
 from torchtrack.pipeline.config import PipelineConfig
+from torchtrack.pipeline.frame_detections import FrameDetections
+from torchtrack.pipeline.replay import run_tracker
 from torchtrack.pipeline.sequences import concatenate, find_sequences
-from torchtrack.pipeline.track_video import FrameDetections, replay_tracker, score, track_video
+from torchtrack.pipeline.track_video import track_video
 from torchtrack.pipeline.truth import parked_mask
 
 GRIDS: dict[str, dict[str, list]] = {
@@ -90,14 +94,7 @@ def evaluate(name: str, options: dict | None, gate: tuple[float, float], data: l
                          min_motion=gate[1])
     parts, masks = [], []
     for seq in data:
-        frames, ids, points = [], [], [np.zeros((0, 2))]
-        for index, i, img, _ in replay_tracker(name, run, seq.detections):
-            frames.append(np.full(len(i), index, dtype=np.int64))
-            ids.append(i)
-            points.append(img)
-        p = np.concatenate(points)
-        tracks = from_points(np.concatenate(frames), np.concatenate(ids), p[:, 0], p[:, 1])
-        parts.append((seq.gt, tracks))
+        parts.append((seq.gt, run_tracker(make_tracker(name, run.options_for(name)), run, seq.detections).tracks))
         masks.append(seq.ignore if seq.ignore is not None else np.zeros(seq.gt.size, bool))
     return score(*concatenate(parts), config.threshold, np.concatenate(masks))
 

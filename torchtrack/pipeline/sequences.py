@@ -29,12 +29,17 @@ import torch.distributed as dist
 
 from torchtrack.detector import load_detector
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.multitarget import make_tracker
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
-from torchtrack.io.mot import MOTData, read_mot
+from torchtrack.io.mot import MOTData, concat_mot, read_mot
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import score
 from torchtrack.pipeline.config import PipelineConfig
-from torchtrack.pipeline.track_video import rerun_tracker, score, torch_threads, track_video, write_json_atomic
+from torchtrack.pipeline.replay import run_tracker
+from torchtrack.pipeline.track_video import track_video
 from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import read_camera
+from torchtrack.threads import torch_threads
 
 
 @dataclass
@@ -105,19 +110,20 @@ def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, pro
     result = track_video(seq.source(), out / seq.name, config, detector=detector, gt=gt, gt_path=str(seq.gt),
                          ignore=ignore, camera=camera, keep_detections=bool(others), progress=progress)
     seconds = time.perf_counter() - t0
-    tracks = {config.tracker: (read_mot(result.files["tracks"]), result.metrics["timings_s"].get("tracking", 0.0))}
+    tracks = {config.tracker: (result.tracks, result.metrics["timings_s"].get("tracking", 0.0))}
     for name in others:
         with torch_threads(config.threads):
-            path, tracker_s = rerun_tracker(name, config, result.detections,
-                                            out / seq.name / "trackers" / f"{name}.txt")
-        tracks[name] = (read_mot(path), tracker_s)
+            run = run_tracker(make_tracker(name, config.options_for(name)), config, result.detections,
+                              out / seq.name / "trackers" / f"{name}.txt")
+        tracks[name] = (run.tracks, run.seconds)
     return {"name": seq.name, "metrics": result.metrics, "seconds": seconds, "gt": gt, "ignore": ignore,
             "tracks": tracks}
 
 
-def concatenate(parts: list[tuple[MOTData, MOTData]]) -> tuple[MOTData, MOTData]:
-    """Pool ``(gt, tracks)`` pairs into one pair, offsetting frames and ids so sequences never mix
-    (lines keep their order, so per-line masks of the parts concatenate alongside)."""
+def concatenate(parts: list[tuple[MOTData, MOTData]], offset_frames: bool = True) -> tuple[MOTData, MOTData]:
+    """Pool ``(gt, tracks)`` pairs into one pair, offsetting identities (and, with ``offset_frames``, frame
+    numbers) so that the parts never mix (lines keep their order, so per-line masks of the parts
+    concatenate alongside)."""
     gts, preds = [], []
     frame_off = id_off = 0
     for gt, pred in parts:
@@ -125,17 +131,9 @@ def concatenate(parts: list[tuple[MOTData, MOTData]]) -> tuple[MOTData, MOTData]
         top = max(int(gt.id.max()) if gt.size else 0, int(pred.id.max()) if pred.size else 0)
         gts.append(gt._replace(frame=gt.frame + frame_off, id=gt.id + id_off))
         preds.append(pred._replace(frame=pred.frame + frame_off, id=pred.id + id_off))
-        frame_off += last + 1
+        frame_off += (last + 1) if offset_frames else 0
         id_off += top + 1
-
-    def cat(items: list[MOTData]) -> MOTData:
-        fields = []
-        for name in MOTData._fields:
-            vals = [getattr(m, name) for m in items]
-            fields.append(None if any(v is None for v in vals) else np.concatenate(vals))
-        return MOTData(*fields)
-
-    return cat(gts), cat(preds)
+    return concat_mot(gts), concat_mot(preds)
 
 
 def _distributed() -> tuple[int, int]:
@@ -197,7 +195,7 @@ def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, det
         summary["registration_error_px"] = {"median_of_sequence_medians": float(np.median(reg)),
                                             "max_of_sequence_medians": float(np.max(reg))}
     out.mkdir(parents=True, exist_ok=True)
-    write_json_atomic(out / "metrics.json", summary)
+    write_json(out / "metrics.json", summary)
     if world > 1:
         dist.barrier()
     return summary

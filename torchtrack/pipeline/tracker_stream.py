@@ -16,25 +16,12 @@ Per frame (:class:`TrackerStream`):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
-
 import numpy as np
 import torch
 
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.fixed_lag import FixedLagTracks, LaggedFrame
-
-if TYPE_CHECKING:
-    from torchtrack.pipeline.track_video import FrameDetections
-
-
-def as_numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
-    """``x`` (tensor, array, sequence or None) as a float64 array of shape ``(-1, *shape_tail)``."""
-    if x is None:
-        return np.zeros((0, *shape_tail))
-    if isinstance(x, torch.Tensor):
-        x = x.detach().cpu().numpy()
-    return np.asarray(x, np.float64).reshape(-1, *shape_tail)
+from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy
 
 
 def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, int]:
@@ -75,14 +62,15 @@ class TrackerStream:
 
     def tracker_input(self, det: FrameDetections) -> FrameDetections:
         """The detections the tracker gets: moving, and strong or continuing a previous position."""
-        moving = det.moving(self.config.min_speed, self.config.min_motion)
+        gated = self.config.min_speed > 0 or self.config.min_motion > 0
+        moving = det.moving(self.config.min_speed, self.config.min_motion) if gated else det
         keep = moving.strong.copy()
         weak = np.flatnonzero(~keep & (moving.scores >= (self.config.weak_threshold or np.inf)))
         if len(weak) and len(self.previous) and not np.isnan(moving.velocities).any():
             start = moving.positions[weak] - moving.velocities[weak]
             gap = np.hypot(start[:, None, 0] - self.previous[None, :, 0], start[:, None, 1] - self.previous[None, :, 1])
             keep[weak[gap.min(axis=1) < self.config.weak_distance]] = True
-        return moving.select(keep)
+        return moving if keep.all() else moving.select(keep)
 
     def step(self, det: FrameDetections) -> tuple[np.ndarray, np.ndarray, list[LaggedFrame]]:
         """One frame: the tracker's online ``ids (N,)``, ``positions (N, 2)`` and the frames final now."""

@@ -21,7 +21,6 @@ area that collects clutter of uniformly drawn class); with ``--plot``, estimated
 
 from __future__ import annotations
 
-import argparse
 import math
 from pathlib import Path
 
@@ -36,12 +35,13 @@ from torchtrack.association.gating import (
     ellipsoidal_gate,
     rectangular_gate,
 )
-from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
-from torchtrack.config import preset_path
+from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_bank import BankState, ClassConditionedIMM
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
 from torchtrack.gaussian import moment_match
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 from torchtrack.models import LinearPosition, ModeControlInput
 from torchtrack.params import RowStochastic
 from torchtrack.sim.formation import FormationConfig, FormationData, simulate_formation
@@ -50,14 +50,10 @@ NAME = "formation"
 HELP = "class-conditioned tracking gates on the ground formation (the gate paper, Table 1)"
 DESCRIPTION = __doc__
 DEFAULT_CONFIG = preset_path("formation")
+RUNS = 100
+PARAMS = "every class IMM's transition matrix and process and measurement noise (an 'imm' file with 3 modes)"
+"""What a fitted-parameter file (``--params``) sets in this scenario."""
 GATES = ("rectangular", "ellipsoidal", "class_conditioned_ellipse", "class_conditioned_density")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_scenario_options(parser, DEFAULT_CONFIG, runs=100,
-                         params="every class IMM's transition matrix and process and measurement noise "
-                                "(an 'imm' file with 3 modes)")
-    add_common_options(parser)
 
 
 def load_config(path: Path) -> dict:

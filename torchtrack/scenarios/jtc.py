@@ -20,23 +20,19 @@ from pathlib import Path
 import torch
 from tqdm import tqdm
 
-from torchtrack.cli._common import (
-    add_common_options,
-    add_scenario_options,
-    format_table,
-    load_sections,
-    torch_threads,
-    write_json,
-)
-from torchtrack.config import preset_path
+from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import MMPFOutput, MultipleModelParticleFilter, paper_bank
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 from torchtrack.sim.jtc_trajectory import Trajectory, jtc_trajectory, simulate_measurements, true_modes
+from torchtrack.threads import torch_threads
 
 NAME = "jtc"
 HELP = "joint tracking and classification with a bank of multiple-model particle filters (the JTC paper)"
 DESCRIPTION = __doc__
 DEFAULT_CONFIG = preset_path("jtc")
+RUNS = 100
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -53,8 +49,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--compile", action="store_true",
                         help="torch.compile the filter step (inductor; needs a C compiler; ~1 min of compilation "
                              "per batch shape, then ~25%% less CPU per scan)")
-    add_scenario_options(parser, DEFAULT_CONFIG, runs=100)
-    add_common_options(parser)
 
 
 def load_config(path: Path) -> dict:

@@ -8,16 +8,16 @@
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options, add_scenario_options, format_table, load_sections, write_json
-from torchtrack.config import preset_path
+from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table
 from torchtrack.models import ConstantPosition, ConstantVelocity, LinearPosition
 from torchtrack.sim import maneuver as sim
 
@@ -25,13 +25,10 @@ NAME = "maneuver"
 HELP = "Kalman refinement and chi-square maneuver detection (the maneuver paper)"
 DESCRIPTION = __doc__
 DEFAULT_CONFIG = preset_path("maneuver")
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_scenario_options(parser, DEFAULT_CONFIG, runs=100,
-                         params="the Kalman filter's q and sigma of the constant-velocity and maneuver experiments "
-                                "(a 'kalman' file, motion cv, noise pwca)")
-    add_common_options(parser)
+RUNS = 100
+PARAMS = ("the Kalman filter's q and sigma of the constant-velocity and maneuver experiments (a 'kalman' file, "
+          "motion cv, noise pwca)")
+"""What a fitted-parameter file (``--params``) sets in this scenario."""
 
 
 def load_config(path: Path) -> dict:

@@ -21,25 +21,21 @@ from typing import NamedTuple
 import torch
 from tqdm import tqdm
 
-from torchtrack.cli._common import (
-    add_common_options,
-    add_scenario_options,
-    format_table,
-    load_sections,
-    torch_threads,
-    write_json,
-)
-from torchtrack.config import preset_path
+from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter
 from torchtrack.filters.pmb_sensor import JointSensorPMB, SensorState, v2f_update
+from torchtrack.io.outputs import write_json
 from torchtrack.metrics.ospa import ospa
+from torchtrack.metrics.table import format_table
 from torchtrack.models import ConstantVelocity, LinearPosition
+from torchtrack.threads import torch_threads
 
 NAME = "pedestrian"
 HELP = "feature tracking with an uncertain sensor position: joint filter vs variance inflation vs naive (PMB paper)"
 DESCRIPTION = __doc__
 DEFAULT_CONFIG = preset_path("pedestrian")
+RUNS = 10
 VARIANTS = ("joint", "inflated", "naive")
 EXTRA_VARIANTS = ("inflated_kf",)   # variance inflation around a Kalman-filtered sensor state
 PAPER_OSPA = {"joint": 0.87, "inflated": 0.99, "naive": 2.61}
@@ -51,8 +47,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="feature survival probability (config default 0.99; the paper states 0.7)")
     parser.add_argument("--threads", type=int, default=1,
                         help="torch intra-op threads (default 1: the tensors are small, more threads only spin)")
-    add_scenario_options(parser, DEFAULT_CONFIG, runs=10)
-    add_common_options(parser)
 
 
 def load_config(path: Path) -> dict:

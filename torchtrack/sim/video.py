@@ -32,6 +32,7 @@ import numpy as np
 import torch
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.frames import Frame, FrameSource
 from torchtrack.sim.video_config import VideoConfig, load_video_config
 from torchtrack.sim.video_scene import Scene, build_scene, draw_buildings
 
@@ -343,3 +344,28 @@ def read_camera(path: str | Path) -> np.ndarray:
     if H.ndim != 3 or H.shape[1:] != (3, 3):
         raise TorchtrackError(f"{path}: homographies must have shape (T, 3, 3), got {H.shape}")
     return H
+
+
+class SyntheticSource(FrameSource):
+    """Frames of :func:`torchtrack.sim.video.generate_sequence`, generated as they are read.
+
+    ``truth`` holds the last frame's :class:`~torchtrack.sim.video.VideoFrame` (ids, positions,
+    camera homography) while iterating. Iterating again regenerates the same sequence only if the
+    ``generator`` is re-seeded: pass a fresh one per pass.
+    """
+
+    def __init__(self, config: VideoConfig | None = None, generator: torch.Generator | None = None,
+                 name: str = "<synthetic>") -> None:
+        self.config = config or VideoConfig()
+        self.generator = generator if generator is not None else torch.Generator().manual_seed(0)
+        self.path = name
+        self.shape = (self.config.height, self.config.width)
+        self.truth = None
+
+    def __len__(self) -> int:
+        return self.config.frames
+
+    def __iter__(self) -> Iterator[Frame]:
+        for vf in generate_sequence(self.config, self.generator):
+            self.truth = vf
+            yield Frame(vf.index + 1, vf.image, f"{self.path}[{vf.index + 1}]")

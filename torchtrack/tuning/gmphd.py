@@ -309,40 +309,38 @@ class GMPHDTunable(Tunable):
         """CLEAR-MOT (MOTA, IDS, FP, FN) and (``ospa``) mean OSPA of the streaming tracker over the windows.
 
         Windows that continue one another (the training windows of one ``train_frames`` span) are
-        streamed as one sequence, as ``torchtrack track`` would run them; the tracker restarts only
-        where the frames jump, and each restart gets fresh identities, the truth's too (no identity
-        switch is counted across a jump)."""
-        from torchtrack.io.mot import from_points
-        from torchtrack.metrics import clear_mot
+        streamed as one sequence through the stream of ``torchtrack track --detections``
+        (:func:`torchtrack.pipeline.replay.run_tracker`); the tracker restarts only where the frames jump,
+        and each restart gets its own identities, the truth's too (no identity switch is counted across a
+        jump; frames are not offset, so windows over the same frames share them)."""
+        from torchtrack.io.mot import concat_mot
         from torchtrack.metrics.ospa import mot_ospa_gospa
+        from torchtrack.metrics.table import score
+        from torchtrack.pipeline.detection_file import detection_file_config
+        from torchtrack.pipeline.frame_detections import FrameDetections
+        from torchtrack.pipeline.replay import run_tracker
+        from torchtrack.pipeline.sequences import concatenate
 
-        out: dict[str, float] = {}
-        fr, ids, cx, cy, gts = [], [], [], [], []
-        offset, top, last = 0, 0, None
-        truth_offset, truth_top = 0, 0
-        caps = module.phd.cap_hits
+        stream = detection_file_config(threshold=self.threshold).replace(dtype=str(module.dtype).split(".")[-1])
+        runs: list[list[FrameWindow]] = []
         for item in items:
-            if last is None or item.frames[0] != last + 1:
-                module.reset()
-                offset, top = offset + top, 0
-                truth_offset = truth_top
-            last = item.frames[-1]
-            for frame, z, v in zip(item.frames, item.z, item.velocity):
-                with quiet_caps():
-                    i, p = module.step(frame, z, v)
-                fr.append(np.full(i.shape[0], frame))
-                ids.append(i.numpy() + offset)
-                top = max(top, int(i.max()) + 1) if i.numel() else top
-                cx.append(p[:, 0].double().numpy())
-                cy.append(p[:, 1].double().numpy())
-            gts.append(item.truth._replace(id=item.truth.id + truth_offset))
-            truth_top = max(truth_top, int(gts[-1].id.max()) + 1) if len(item.truth.id) else truth_top
+            if not runs or item.frames[0] != runs[-1][-1].frames[-1] + 1:
+                runs.append([])
+            runs[-1].append(item)
+        caps = module.phd.cap_hits
+        parts = []
+        for run in runs:
+            module.reset()
+            frames = (FrameDetections.registered(f, z.detach().double().numpy(),
+                                                 None if v is None else v.detach().double().numpy())
+                      for item in run for f, z, v in zip(item.frames, item.z, item.velocity))
+            with quiet_caps():
+                tracks = run_tracker(module, stream, frames).tracks
+            parts.append((concat_mot([w.truth for w in run]), tracks))
         module.reset()
-        pred = from_points(np.concatenate(fr), np.concatenate(ids), np.concatenate(cx), np.concatenate(cy))
-        gt = gts[0] if len(gts) == 1 else type(gts[0])(*(None if a[0] is None else np.concatenate(a)
-                                                         for a in zip(*gts)))
-        m = clear_mot(gt, pred, threshold=self.threshold)
-        out.update({k: float(m[k]) for k in ("MOTA", "MOTP", "IDF1", "FP", "FN", "IDS")})
+        gt, pred = concatenate(parts, offset_frames=False)
+        m = score(gt, pred, self.threshold)
+        out = {k: float(m[k]) for k in ("MOTA", "MOTP", "IDF1", "FP", "FN", "IDS")}
         if ospa:
             _, o, _ = mot_ospa_gospa(gt, pred, c=self.ospa_c, p_ospa=1.0)
             out["OSPA"] = float(o[0].mean())

@@ -1,10 +1,9 @@
 """The frame-input options of ``torchtrack track``: ``--video FILE``, ``--frames DIR``, ``--sequences DIR``.
 
-``torchtrack/cli/track.py`` calls :func:`add_frame_options` on its parser and, before its own
-``--detections`` path, :func:`run_frame_inputs`, which returns ``None`` when no frame option was given.
-Options it reads from that parser when present: ``--tracker``, ``--gt``, ``--out``, ``--json``,
-``--threads``, ``--compare``, ``--trackers``; the
-tracker's options come from ``torchtrack track --config`` through ``tracker_options``.
+``torchtrack/cli/track.py`` calls :func:`add_frame_options` on its parser and, when one of them was given,
+:func:`run_frame_inputs` with its parsed arguments (it also reads ``--tracker``, ``--gt``, ``--out``,
+``--json``, ``--threads``, ``--compare`` and ``--trackers`` of ``torchtrack track``); the tracker's options
+come from ``torchtrack track --config`` through ``tracker_options``.
 """
 
 from __future__ import annotations
@@ -12,13 +11,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from torchtrack.cli._common import format_table, write_json
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
 from torchtrack.io.frames import open_frames
 from torchtrack.io.mot import read_mot
-from torchtrack.pipeline.config import load_pipeline_config
-from torchtrack.pipeline.demo import TABLE_HEADER, table_rows
+from torchtrack.io.outputs import write_json
+from torchtrack.metrics.table import format_table, format_table1
+from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.sequences import destroy, run_sequences
 from torchtrack.pipeline.track_video import track_video
 from torchtrack.pipeline.truth import wpafb_truth
@@ -60,29 +59,36 @@ def _score_row(name: str, m: dict | None, fps: float) -> list:
     return [name, *[m[k] for k in SCORE_COLUMNS], fps]
 
 
-def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = None) -> int | None:
-    """Run the pipeline for ``--video``/``--frames``/``--sequences``; ``None`` if none was given."""
-    if not (args.video or args.frames or args.sequences):
-        return None
-    if getattr(args, "detections", None):
-        raise TorchtrackError("give either --detections or one of --video/--frames/--sequences, not both")
+def frame_inputs_given(args: argparse.Namespace) -> bool:
+    """Whether ``--video``, ``--frames`` or ``--sequences`` was given."""
+    return bool(args.video or args.frames or args.sequences)
+
+
+def pipeline_config(args: argparse.Namespace, tracker_options: dict | None) -> PipelineConfig:
+    """``--pipeline-config`` (default: the embedded settings) with ``--tracker``, ``--config``'s options for
+    it, ``--threads``, ``--weights`` and ``--no-video``."""
     config = load_pipeline_config(args.pipeline_config)
-    changes = {"tracker": getattr(args, "tracker", None) or config.tracker}
+    changes = {"tracker": args.tracker, "threads": args.threads}
     if tracker_options:
         changes["tracker_options"] = tracker_options
-    if getattr(args, "threads", None):
-        changes["threads"] = args.threads
     if args.weights:
         changes["detector_weights"] = str(args.weights)
     if args.no_video:
         changes["video"] = False
-    config = config.replace(**changes)
-    out = Path(getattr(args, "out", None) or "out/track")
+    return config.replace(**changes)
+
+
+def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = None) -> int:
+    """Run the pipeline for ``--video``/``--frames``/``--sequences`` and print its scores."""
+    if args.detections:
+        raise TorchtrackError("give either --detections or one of --video/--frames/--sequences, not both")
+    config = pipeline_config(args, tracker_options)
+    out = args.out
     header = ["sequence", *SCORE_COLUMNS, "FPS"]
     if args.sequences:
-        if getattr(args, "gt", None):
+        if args.gt:
             raise TorchtrackError("--gt does not apply to --sequences: each sequence folder holds its gt.txt")
-        compare = (getattr(args, "trackers", None) or tracker_names()) if getattr(args, "compare", False) else []
+        compare = (args.trackers or tracker_names()) if args.compare else []
         try:
             summary = run_sequences(args.sequences, out, config, progress=not args.no_progress, compare=compare)
         finally:
@@ -98,14 +104,14 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
         if "trackers" in summary:
             print(f"all trackers on the same detections, pooled over {summary['aggregate']['sequences']} sequences "
                   "(FPS: the tracker alone):")
-            print(format_table(TABLE_HEADER, table_rows(summary["trackers"]), floatfmt=".2f"))
+            print(format_table1(summary["trackers"]))
         if "registration_error_px" in summary:
             print("registration error vs camera truth: median of sequence medians "
                   f"{summary['registration_error_px']['median_of_sequence_medians']:.3f} px")
-        write_json(getattr(args, "json", None), summary)
+        write_json(args.json, summary)
         return 0
     source = open_frames(args.video or args.frames)
-    gt_path = getattr(args, "gt", None)
+    gt_path = args.gt
     gt = read_mot(gt_path) if gt_path else None
     ignore = None
     if args.truth_csv:
@@ -124,5 +130,5 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
     if "registration_error_px" in m:
         print(f"registration error vs camera truth: median {m['registration_error_px']['median']:.3f} px")
     print("wrote " + ", ".join(str(p) for p in result.files.values()))
-    write_json(getattr(args, "json", None), m)
+    write_json(args.json, m)
     return 0

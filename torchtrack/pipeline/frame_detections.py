@@ -1,0 +1,86 @@
+"""What a tracker is given per frame: :class:`FrameDetections`, from the video pipeline's detector
+(:class:`torchtrack.pipeline.detection.Detection`) or from a MOTChallenge detection file (:func:`mot_frames`)."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from torchtrack.io.mot import MOTData
+
+
+class FrameDetections(NamedTuple):
+    """Detections of one frame: ``positions``/``velocities (K, 2)`` in reference coordinates, ``scores (K,)``,
+    ``homography (3, 3)`` frame → reference; ``image_positions``/``image_velocities`` in frame coordinates
+    (the detector's output); ``motion (K,)`` the motion evidence at each detection
+    (:func:`~torchtrack.pipeline.detection.motion_evidence`); ``strong (K,)`` whether it scored at least the
+    detection threshold (the others are weak detections, decoded further down for
+    :class:`~torchtrack.pipeline.tracker_stream.TrackerStream` to continue tracks); ``tones (K,)`` the grey
+    level at each detection (:func:`~torchtrack.pipeline.detection.grey_level`; None where not measured).
+    On the first frame there is no previous frame: ``velocities`` are NaN (unknown) and ``motion`` is ``inf``,
+    so that the moving-object gate passes everything and the trackers start without a velocity."""
+
+    index: int
+    homography: np.ndarray
+    positions: np.ndarray
+    velocities: np.ndarray
+    scores: np.ndarray
+    image_positions: np.ndarray
+    image_velocities: np.ndarray
+    motion: np.ndarray
+    strong: np.ndarray
+    tones: np.ndarray | None = None
+
+    @classmethod
+    def registered(cls, index: int, positions: np.ndarray, velocities: np.ndarray | None = None,
+                   scores: np.ndarray | None = None) -> FrameDetections:
+        """Detections already in one coordinate frame (a detection file, a tuning window): identity
+        homography, every one strong, ``velocities (K, 2)`` NaN where not given, ``scores`` 1 where not
+        given, motion evidence ``inf`` (no frames to measure it: a ``min_motion`` gate passes everything)."""
+        pos = np.asarray(positions, np.float64).reshape(-1, 2)
+        vel = np.full_like(pos, np.nan) if velocities is None else np.asarray(velocities, np.float64).reshape(-1, 2)
+        k = len(pos)
+        scores = np.ones(k) if scores is None else np.asarray(scores, np.float64)
+        return cls(int(index), np.eye(3), pos, vel, scores, pos, vel, np.full(k, np.inf), np.ones(k, bool))
+
+    def select(self, keep: np.ndarray) -> FrameDetections:
+        """The detections where ``keep (K,)`` (a mask or indices)."""
+        fields = ("positions", "velocities", "scores", "image_positions", "image_velocities", "motion", "strong")
+        if self.tones is not None:
+            fields += ("tones",)
+        return self._replace(**{k: getattr(self, k)[keep] for k in fields})
+
+    def moving(self, min_speed: float = 0.0, min_motion: float = 0.0) -> FrameDetections:
+        """The detections with predicted speed ``>= min_speed`` px/frame (or unknown) and motion evidence
+        ``>= min_motion``."""
+        return self.select(~(np.hypot(self.velocities[:, 0], self.velocities[:, 1]) < min_speed)
+                           & (self.motion >= min_motion))
+
+
+def as_numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
+    """``x`` (tensor, array, sequence or None) as a float64 array of shape ``(-1, *shape_tail)``."""
+    if x is None:
+        return np.zeros((0, *shape_tail))
+    if isinstance(x, torch.Tensor):
+        x = x.detach().cpu().numpy()
+    return np.asarray(x, np.float64).reshape(-1, *shape_tail)
+
+
+def mot_frames(det: MOTData, frames: Sequence[int]) -> Iterator[FrameDetections]:
+    """The detections ``det`` of every frame in ``frames`` (frames without detections give ``K = 0``) as
+    :meth:`FrameDetections.registered`, with the file's scores and velocities (columns 8–9, where given)."""
+    centres, velocity = det.centers(), det.velocity()
+    for f, idx in zip(frames, det.split(frames)):
+        yield FrameDetections.registered(f, centres[idx], None if velocity is None else velocity[idx], det.conf[idx])
+
+
+def frame_range(*datas: MOTData | None) -> range:
+    """All frame numbers from the first to the last frame present in any of ``datas``."""
+    frames = [d.frame for d in datas if d is not None and d.size]
+    if not frames:
+        return range(1, 1)
+    every = np.concatenate(frames)
+    return range(int(every.min()), int(every.max()) + 1)
