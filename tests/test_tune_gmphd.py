@@ -124,7 +124,7 @@ def test_grid_search_scores_every_point_and_keeps_the_best(tmp_path):
 def test_exported_tracker_options_are_accepted_by_track(tmp_path):
     import yaml
 
-    from torchtrack.cli._common import load_tracker_config
+    from torchtrack.filters.tracker_config import read_tracker_sections
     from torchtrack.filters.multitarget import make_tracker
 
     tun, tracker, _ = problem(tmp_path, frames=30)
@@ -132,7 +132,7 @@ def test_exported_tracker_options_are_accepted_by_track(tmp_path):
     name, doc = tun.export(tracker)
     path = tmp_path / name
     path.write_text(yaml.safe_dump(doc))
-    cfg = load_tracker_config(path)
+    cfg = read_tracker_sections(path)
     rebuilt = make_tracker("labelled-gmphd", cfg["labelled-gmphd"])
     values = get_values(rebuilt)
     assert values["phd.p_detection"].item() == pytest.approx(0.77, rel=1e-6)

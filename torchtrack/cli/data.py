@@ -6,8 +6,9 @@ import argparse
 import os
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, write_json
+from torchtrack.cli._common import add_common_options
 from torchtrack.io.datasets import DATASETS, WPAFB, get_dataset
+from torchtrack.io.outputs import write_json
 
 NAME = "data"
 HELP = "get the data sets that the WPAFB benchmark and the real-frame evaluation need (data fetch wpafb)"
