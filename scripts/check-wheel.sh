@@ -59,6 +59,9 @@ if [ -n "$WPAFB" ]; then
   step "torchtrack track --benchmark wpafb (TORCHTRACK_WPAFB=$WPAFB)"
   TORCHTRACK_WPAFB="$WPAFB" run torchtrack track --benchmark wpafb --trackers gmphd --out out/wpafb --json wpafb.json
   test -s wpafb.json
+  step "torchtrack data fetch wpafb --from $WPAFB (into ./data/wpafb-aoi02)"
+  run torchtrack data fetch wpafb --from "$WPAFB" --no-progress
+  test -s data/wpafb-aoi02/SHA256SUMS
 else
   step "WPAFB data not found: benchmark skipped (torchtrack data fetch wpafb)"
 fi
