@@ -9,8 +9,8 @@ import yaml
 
 from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
-from torchtrack.tune import fit, get_tunable, get_values, load_filter, load_params, save_params
 from torchtrack.tuning.parameters import get_raw
+from torchtrack.tuning.tune import fit, get_tunable, get_values, load_filter, load_params, save_params
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])

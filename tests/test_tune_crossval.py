@@ -13,9 +13,9 @@ from test_tune_gmphd import draws_config
 
 from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
-from torchtrack.tune import load_filter
 from torchtrack.tuning.crossval import cross_validate, fold_config
 from torchtrack.tuning.registry import fold_bounds, get_tunable, split_items
+from torchtrack.tuning.tune import load_filter
 
 
 @pytest.mark.parametrize("n, folds", [(10, 3), (512, 4), (7, 7), (5, 2)])

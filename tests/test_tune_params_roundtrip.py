@@ -11,8 +11,8 @@ import torch
 from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import from_points, read_mot, write_motdata
-from torchtrack.tune import get_tunable, save_params
 from torchtrack.tuning.parameters import get_raw, set_values
+from torchtrack.tuning.tune import get_tunable, save_params
 
 AREA = 200.0 * 200.0
 

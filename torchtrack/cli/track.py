@@ -70,9 +70,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def fitted_tracker(args: argparse.Namespace) -> Tracker:
     """The GM-PHD tracker of a ``torchtrack tune`` fitted-parameter file (``--params``): built from the
-    file's tracker options and loaded with the fitted values exactly (:func:`torchtrack.tune.load_filter`)."""
-    from torchtrack.tune import load_filter
+    file's tracker options and loaded with the fitted values exactly (:func:`torchtrack.tuning.tune.load_filter`)."""
     from torchtrack.tuning.config import read_params_file
+    from torchtrack.tuning.tune import load_filter
 
     doc = read_params_file(args.params, ("gmphd",), "torchtrack track --params")
     kind = (doc.get("model") or {}).get("tracker", "gmphd")

@@ -16,7 +16,7 @@ split into training and held-out sequences or windows), the loss (marginal log-l
 predictive likelihood, particle estimate, soft GOSPA) and the optimiser (adam or lbfgs, mini-batches,
 early stopping on the held-out loss). See docs/tune.md.
 
-Writes OUT/params.yaml (the fitted parameters; torchtrack.tune.load_params / load_filter,
+Writes OUT/params.yaml (the fitted parameters; torchtrack.tuning.tune.load_params / load_filter,
 `torchtrack track --params` (GM-PHD) and `torchtrack scenario maneuver|formation --params` (Kalman,
 IMM) read it; for the GM-PHD OUT/track.yaml is also a `torchtrack track --config` file) and
 OUT/loss.png (the loss curve). An optional `refine` section adds a line search on the task metric
@@ -115,8 +115,8 @@ def run(args) -> int:
 
     from torchtrack.io.outputs import write_json
     from torchtrack.metrics.table import format_table
-    from torchtrack.tune import tune
     from torchtrack.tuning.config import apply_overrides, read_tune_config
+    from torchtrack.tuning.tune import tune
 
     torch.set_num_threads(max(1, args.threads))
     config = apply_overrides(read_tune_config(args.config), args.set)

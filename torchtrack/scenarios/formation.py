@@ -77,7 +77,7 @@ def build_bank(fcfg: dict, sigma_w: float, confusion, params: Path | None = None
     With ``params`` (a ``torchtrack tune`` file of an ``imm`` filter fitted with scan time ``dt``) every
     class IMM takes its fitted transition matrix ``transition.learned``, per-mode process noise
     ``motion.sigma`` and measurement noise ``measurement.sigma`` (loaded exactly,
-    :func:`torchtrack.tune.load_params`); the classes keep their own control inputs.
+    :func:`torchtrack.tuning.tune.load_params`); the classes keep their own control inputs.
     """
     doc = None
     if params is not None:

@@ -11,7 +11,7 @@ the loss, the optimiser and early stopping. :func:`tune` runs it and writes
 
 Example::
 
-    from torchtrack.tune import tune, load_filter
+    from torchtrack.tuning.tune import tune, load_filter
     report = tune("configs/tune-kalman.yaml")
     kf = load_filter(report["output"]["params"])     # the fitted KalmanFilter
 """
