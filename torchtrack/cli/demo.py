@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, config_file
 from torchtrack.io.outputs import write_json
 from torchtrack.pipeline.config import load_pipeline_config
 from torchtrack.pipeline.demo import format_demo, run_demo
@@ -29,8 +29,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--truth", choices=("moving", "all"), default="moving",
                         help="moving: the moving vehicles are the targets, parked ones don't-care (the "
                              "paper's protocol, default); all: every vehicle is a target")
-    parser.add_argument("--config", type=Path, default=None, metavar="YAML",
-                        help="pipeline settings (configs/pipeline.yaml); default: the embedded ones")
+    parser.add_argument("--config", type=config_file, default=None, metavar="YAML",
+                        help="pipeline settings, a path or a preset name (e.g. pipeline-online); default: the "
+                             "embedded ones (the preset pipeline)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_common_options(parser)
 

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import yaml
 
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, config_file
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
 from torchtrack.io.outputs import write_json
@@ -39,7 +39,7 @@ Use sequences that are not the ones you report (docs/pipeline.md). Example:
 def add_arguments(parser) -> None:
     parser.add_argument("--sequences", type=Path, required=True, metavar="DIR", help="validation sequences")
     parser.add_argument("--out", type=Path, required=True, metavar="YAML", help="pipeline config to write")
-    parser.add_argument("--pipeline-config", type=Path, default=None, metavar="YAML",
+    parser.add_argument("--pipeline-config", type=config_file, default=None, metavar="YAML",
                         help="starting pipeline settings (default: the embedded ones)")
     parser.add_argument("--trackers", nargs="+", choices=tracker_names(), default=None,
                         help="trackers to tune (default: all)")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, config_file
 from torchtrack.cli._frames import add_frame_options, frame_inputs_given, run_frame_inputs
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import Tracker, tracker_names
@@ -44,7 +44,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "velocity vx, vy in columns 8-9 where the detector gives one)")
     parser.add_argument("--tracker", choices=tracker_names(), default="gmphd",
                         help="tracker (default gmphd: the enhanced GM-PHD)")
-    parser.add_argument("--config", default=None, metavar="YAML",
+    parser.add_argument("--config", type=config_file, default=None, metavar="YAML",
                         help="tracker options: a YAML mapping with one section per tracker name, a path or a "
                              "preset name (e.g. gmphd); defaults are the built-in values")
     parser.add_argument("--params", type=Path, default=None, metavar="FITTED",
