@@ -77,10 +77,20 @@ def mot_frames(det: MOTData, frames: Sequence[int]) -> Iterator[FrameDetections]
         yield FrameDetections.registered(f, centres[idx], None if velocity is None else velocity[idx], det.conf[idx])
 
 
-def frame_range(*datas: MOTData | None) -> range:
-    """All frame numbers from the first to the last frame present in any of ``datas``."""
+MAX_GAP = 50
+"""Longest run of frames without data that a stream steps through one frame at a time (:func:`stream_frames`)."""
+
+
+def stream_frames(*datas: MOTData | None, max_gap: int = MAX_GAP) -> np.ndarray:
+    """The frame numbers a stream steps through: every frame from the first to the last present in any of
+    ``datas`` (frames between them without detections are frames in which nothing was detected), except that
+    a gap of more than ``max_gap`` frames without data is crossed in one step — the trackers predict by the
+    frame difference — so that sparse frame numbers (frames 1 and 10⁹) cost nothing. Sorted int64 array."""
     frames = [d.frame for d in datas if d is not None and d.size]
     if not frames:
-        return range(1, 1)
-    every = np.concatenate(frames)
-    return range(int(every.min()), int(every.max()) + 1)
+        return np.zeros(0, dtype=np.int64)
+    present = np.unique(np.concatenate(frames))
+    gaps = np.diff(present)
+    short = np.flatnonzero((gaps > 1) & (gaps <= max_gap + 1))
+    filled = [np.arange(present[i] + 1, present[i + 1]) for i in short]
+    return np.unique(np.concatenate([present, *filled])) if filled else present
