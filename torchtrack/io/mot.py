@@ -302,7 +302,10 @@ class MOTWriter:
         """Append the objects of one frame (arrays of length n, n may be 0) and flush."""
         ids = _as_int_array(ids, "ids")
         frames = np.full(ids.shape[0], int(frame), dtype=np.int64)
-        data = from_points(frames, ids, cx, cy, box=self.box, conf=conf, vx=vx, vy=vy)
+        self.write_lines(from_points(frames, ids, cx, cy, box=self.box, conf=conf, vx=vx, vy=vy))
+
+    def write_lines(self, data: MOTData) -> None:
+        """Append the objects of ``data`` in the order given (one frame's, typically) and flush."""
         self._file.write(format_lines(data))
         self._file.flush()
 

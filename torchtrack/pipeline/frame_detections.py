@@ -72,9 +72,9 @@ def as_numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
 def mot_frames(det: MOTData, frames: Sequence[int]) -> Iterator[FrameDetections]:
     """The detections ``det`` of every frame in ``frames`` (frames without detections give ``K = 0``) as
     :meth:`FrameDetections.registered`, with the file's scores and velocities (columns 8–9, where given)."""
-    centres, velocity = det.centers(), det.velocity()
     for f, idx in zip(frames, det.split(frames)):
-        yield FrameDetections.registered(f, centres[idx], None if velocity is None else velocity[idx], det.conf[idx])
+        one = det.select(idx)
+        yield FrameDetections.registered(f, one.centers(), one.velocity(), one.conf)
 
 
 MAX_GAP = 50
