@@ -132,3 +132,25 @@ def test_sparse_frame_numbers_are_crossed_in_one_step(tmp_path):
     tracks = read_mot(tmp_path / "out" / "tracks.txt")
     assert tracks.frames().tolist() == [1, 2, 3, 10**9, 10**9 + 1]
     assert clear_mot(gt, tracks)["MOTA"] == 1.0
+
+
+@pytest.mark.parametrize("scenario, section, key", [("maneuver", "stationary", "sigma"), ("formation", "scenario", "dt"),
+                                                    ("jtc", "trajectory", "speed"), ("pedestrian", "scene", "dt")])
+def test_scenario_configs_refuse_wrong_types_and_unknown_keys_naming_the_key(scenario, section, key, tmp_path,
+                                                                             capsys):
+    import yaml
+
+    from torchtrack.config import preset_path
+
+    doc = yaml.safe_load(preset_path(scenario).read_text())
+    doc[section][key] = "abc"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(doc))
+    assert main(["scenario", scenario, "--config", str(bad), "--runs", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"torchtrack scenario: error: {bad}: {section}.{key} must be a number; got 'abc'"]
+    doc[section][key] = "1e-1"                  # PyYAML reads this as a string: taken as the number
+    doc[section]["typo"] = 1
+    bad.write_text(yaml.safe_dump(doc))
+    assert main(["scenario", scenario, "--config", str(bad), "--runs", "1"]) == 2
+    assert f"unknown key(s) ['{section}.typo']" in capsys.readouterr().err

@@ -58,7 +58,7 @@ GATES = ("rectangular", "ellipsoidal", "class_conditioned_ellipse", "class_condi
 
 def load_config(path: Path) -> dict:
     """Read and check the scenario YAML (sections ``scenario``, ``filter``, ``association``)."""
-    cfg = load_sections(path, {"scenario", "filter", "association"})
+    cfg = load_sections(path, "formation")
     try:
         cfg["scenario"] = FormationConfig(**{**cfg["scenario"], "classes": tuple(cfg["scenario"]["classes"])})
     except TypeError as exc:

@@ -52,7 +52,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def load_config(path: Path) -> dict:
-    cfg = load_sections(path, {"trajectory", "sensor", "filter", "true_class"})
+    cfg = load_sections(path, "jtc")
     return cfg
 
 

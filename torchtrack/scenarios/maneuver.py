@@ -32,7 +32,7 @@ PARAMS = ("the Kalman filter's q and sigma of the constant-velocity and maneuver
 
 
 def load_config(path: Path) -> dict:
-    cfg = load_sections(path, {"stationary", "constant_velocity", "maneuver", "filter"})
+    cfg = load_sections(path, "maneuver")
     return cfg
 
 

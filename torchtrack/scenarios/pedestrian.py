@@ -50,7 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def load_config(path: Path) -> dict:
-    cfg = load_sections(path, {"scene", "filter", "ospa"})
+    cfg = load_sections(path, "pedestrian")
     return cfg
 
 
