@@ -134,7 +134,8 @@ def test_sparse_frame_numbers_are_crossed_in_one_step(tmp_path):
     assert clear_mot(gt, tracks)["MOTA"] == 1.0
 
 
-@pytest.mark.parametrize("scenario, section, key", [("maneuver", "stationary", "sigma"), ("formation", "scenario", "dt"),
+@pytest.mark.parametrize("scenario, section, key", [("maneuver", "stationary", "sigma"),
+                                                    ("formation", "scenario", "dt"),
                                                     ("jtc", "trajectory", "speed"), ("pedestrian", "scene", "dt")])
 def test_scenario_configs_refuse_wrong_types_and_unknown_keys_naming_the_key(scenario, section, key, tmp_path,
                                                                              capsys):
