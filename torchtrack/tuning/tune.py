@@ -27,8 +27,9 @@ import torch
 import yaml
 from torch import nn
 
+from torchtrack.config import read_mapping
 from torchtrack.errors import TorchtrackError
-from torchtrack.tuning.config import load_params, read_tune_config, read_yaml, save_params
+from torchtrack.tuning.config import load_params, read_tune_config, save_params
 from torchtrack.tuning.losses import exact_gospa, sinkhorn_gospa
 from torchtrack.tuning.parameters import get_values, select_trainable, tunable_parameters
 from torchtrack.tuning.plot import plot_loss_curve
@@ -40,7 +41,7 @@ OUTPUT_KEYS = ("dir", "params", "plot")
 
 def load_filter(path: str | os.PathLike) -> nn.Module:
     """Build the filter a fitted-parameter file describes (``filter`` + ``model``) and load its params."""
-    doc = read_yaml(path)
+    doc = read_mapping(path, "fitted parameters")
     if "filter" not in doc:
         raise TorchtrackError(f"{path}: missing 'filter' (one of {', '.join(tunable_names())})")
     module = get_tunable(doc["filter"], doc.get("model") or {}).build()
