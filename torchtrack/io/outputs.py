@@ -95,18 +95,18 @@ def write_yaml(path: str | os.PathLike, payload: Mapping, header: str = "") -> P
     return write_text(path, header + yaml.safe_dump(dict(payload), sort_keys=False))
 
 
-def _writable_folder(path: Path, flag: str) -> None:
-    """Error naming ``flag`` unless files can be created in the folder ``path`` (created later if missing:
-    then its nearest existing ancestor must be a writable folder)."""
-    probe = path
+def _writable_folder(folder: Path, flag: str, given: Path) -> None:
+    """Error naming ``flag`` and the path ``given`` unless files can be created in ``folder`` (created later
+    if missing: then its nearest existing ancestor must be a writable folder)."""
+    probe = folder
     while not probe.exists():
         if probe.is_symlink():
-            raise TorchtrackError(f"{flag} {path}: {probe} is a broken symbolic link")
+            raise TorchtrackError(f"{flag} {given}: cannot be written, {probe} is a broken symbolic link")
         probe = probe.parent
     if not probe.is_dir():
-        raise TorchtrackError(f"{flag} {path}: cannot be written, {probe} is a file, not a folder")
+        raise TorchtrackError(f"{flag} {given}: cannot be written, {probe} is a file, not a folder")
     if not os.access(probe, os.W_OK | os.X_OK):
-        raise TorchtrackError(f"{flag} {path}: cannot be written, {probe} is not writable")
+        raise TorchtrackError(f"{flag} {given}: cannot be written, {probe} is not writable")
 
 
 def check_output_file(path: str | os.PathLike | None, flag: str = "--out") -> None:
@@ -117,7 +117,7 @@ def check_output_file(path: str | os.PathLike | None, flag: str = "--out") -> No
     path = Path(path)
     if path.is_dir():
         raise TorchtrackError(f"{flag} {path}: is a folder; give a file name")
-    _writable_folder(path.parent, flag)
+    _writable_folder(path.parent, flag, path)
 
 
 def _read_marker(folder: Path) -> dict[str, Any] | None:
@@ -208,7 +208,7 @@ class OutputFolder:
             raise TorchtrackError(f"{self.flag} {self.target}: is a file, not a folder")
         if self._real.parent == self._real:
             raise TorchtrackError(f"{self.flag} {self.target}: cannot be an output folder")
-        _writable_folder(self._real.parent, self.flag)
+        _writable_folder(self._real.parent, self.flag, self.target)
 
     def _recover(self) -> None:
         """Finish or undo a commit that was killed half-way, remove a killed run's staging folder."""
