@@ -207,12 +207,18 @@ def test_a_foreign_folder_is_refused_unless_forced(tmp_path, capsys):
     assert main(["track", "--detections", str(det), "--out", str(tmp_path / "empty")]) == 0
 
 
-def test_force_never_replaces_the_current_folder(tmp_path, monkeypatch, capsys):
+def test_force_never_replaces_the_current_folder_nor_the_inputs(tmp_path, monkeypatch, capsys):
     gt, det = _detection_files(tmp_path / "in", 5)
-    monkeypatch.chdir(tmp_path / "in")
+    (tmp_path / "work").mkdir()
+    (tmp_path / "work" / "notes.txt").write_text("mine")
+    monkeypatch.chdir(tmp_path / "work")
     assert main(["track", "--detections", str(det), "--out", ".", "--force"]) == 2
     assert "will not replace the current folder" in capsys.readouterr().err
-    assert (tmp_path / "in" / "det.txt").exists()
+    assert main(["track", "--detections", str(det), "--out", "..", "--force"]) == 2
+    assert main(["track", "--detections", str(det), "--gt", str(gt), "--out", str(tmp_path / "in"), "--force"]) == 2
+    assert f"holds the input {det}" in capsys.readouterr().err
+    assert (tmp_path / "work" / "notes.txt").exists() and sorted(p.name for p in (tmp_path / "in").iterdir()) == [
+        "det.txt", "gt.txt"]
 
 
 @pytest.mark.parametrize("argv", [

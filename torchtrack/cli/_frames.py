@@ -81,9 +81,10 @@ def pipeline_config(args: argparse.Namespace, tracker_options: dict | None) -> P
     return config.replace(**changes)
 
 
-def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: dict | None = None) -> int:
+def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: dict | None = None,
+                     inputs: list[Path | None] = ()) -> int:
     """Run the pipeline for ``--video``/``--frames``/``--sequences`` and print its scores; ``command`` is
-    the one named in the output folder's marker."""
+    the one named in the output folder's marker, ``inputs`` the paths it reads (kept out of it)."""
     if args.detections:
         raise TorchtrackError("give either --detections or one of --video/--frames/--sequences, not both")
     config = pipeline_config(args, tracker_options)
@@ -94,7 +95,7 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
             raise TorchtrackError("--gt does not apply to --sequences: each sequence folder holds its gt.txt")
         compare = (args.trackers or tracker_names()) if args.compare else []
         try:
-            with shared_output(out, command, args.force) as staging:
+            with shared_output(out, command, args.force, inputs) as staging:
                 summary = run_sequences(args.sequences, staging, config, progress=not args.no_progress,
                                         compare=compare)
         finally:
@@ -118,7 +119,7 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
         return 0
     if args.gt and args.truth_csv:
         raise TorchtrackError("give either --gt or --truth-csv, not both")
-    folder = OutputFolder(out, command, args.force)
+    folder = OutputFolder(out, command, args.force, inputs=inputs)
     with folder as staging:
         source = open_frames(args.video or args.frames)
         gt_path = args.gt

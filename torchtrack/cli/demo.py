@@ -44,7 +44,7 @@ def run(args) -> int:
     if args.frames is not None and args.frames < 1:
         raise TorchtrackError(f"--frames must be at least 1, got {args.frames}")
     config = load_pipeline_config(args.config) if args.config else None
-    with OutputFolder(args.out, f"torchtrack {NAME}", args.force) as staging:
+    with OutputFolder(args.out, f"torchtrack {NAME}", args.force, inputs=[args.config]) as staging:
         metrics = run_demo(staging, seed=args.seed, frames=args.frames, truth=args.truth, config=config,
                            progress=not args.no_progress)
     print(format_demo(metrics))

@@ -48,7 +48,7 @@ def run(args) -> int:
         cfg = cfg.replace(frames=args.frames)
     if args.size is not None:
         cfg = cfg.replace(height=args.size[0], width=args.size[1])
-    with OutputFolder(args.out, f"torchtrack {NAME}", args.force) as staging:
+    with OutputFolder(args.out, f"torchtrack {NAME}", args.force, inputs=[args.config]) as staging:
         write_sequence(cfg, torch.Generator().manual_seed(args.seed), staging, args.format, progress=True)
         n_gt = sum(1 for _ in open(staging / "gt.txt"))
     out = args.out

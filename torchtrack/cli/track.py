@@ -95,6 +95,12 @@ def fitted_tracker(args: argparse.Namespace) -> Tracker:
     return tracker
 
 
+def inputs(args: argparse.Namespace) -> list[Path | None]:
+    """The files and folders ``torchtrack track`` reads (none of them may lie in its output folder)."""
+    return [args.detections, args.gt, args.config, args.params, args.pipeline_config, args.video, args.frames,
+            args.sequences, args.weights, args.camera, args.truth_csv]
+
+
 def check_arguments(args: argparse.Namespace) -> None:
     """The argument errors that need no file (before anything is read or written)."""
     if not (math.isfinite(args.threshold) and args.threshold > 0):
@@ -114,11 +120,11 @@ def run(args: argparse.Namespace) -> int:
     fitted = fitted_tracker(args) if args.params is not None else None
     tracker_options = read_tracker_sections(args.config)
     if frame_inputs_given(args):
-        return run_frame_inputs(args, OUTPUT, tracker_options.get(args.tracker))
+        return run_frame_inputs(args, OUTPUT, tracker_options.get(args.tracker), inputs(args))
     if args.benchmark is not None:
         from torchtrack.cli._wpafb_benchmark import run_benchmark
 
-        with OutputFolder(args.out, OUTPUT, args.force) as staging:
+        with OutputFolder(args.out, OUTPUT, args.force, inputs=inputs(args)) as staging:
             payload = run_benchmark(args.benchmark, staging, args.seed, args.trackers, args.config)
         write_json(args.json, payload)
         return 0
@@ -126,7 +132,7 @@ def run(args: argparse.Namespace) -> int:
         raise TorchtrackError("give --detections DET (or --benchmark CONFIG)")
     base = load_pipeline_config(args.pipeline_config) if args.pipeline_config else None
     config = detection_file_config(tracker_options, args.threshold, base)
-    with OutputFolder(args.out, OUTPUT, args.force) as staging:
+    with OutputFolder(args.out, OUTPUT, args.force, inputs=inputs(args)) as staging:
         det = read_mot(args.detections)
         gt = read_mot(args.gt) if args.gt is not None else None
         if args.compare:

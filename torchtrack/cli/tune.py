@@ -135,7 +135,7 @@ def run(args) -> int:
         config.pop("grid", None)
     if args.no_refine:
         config.pop("refine", None)
-    folder = OutputFolder(output_dir(config, args.out), f"torchtrack {NAME}", args.force)
+    folder = OutputFolder(output_dir(config, args.out), f"torchtrack {NAME}", args.force, inputs=[args.config])
     if args.folds is not None:
         from torchtrack.tuning.crossval import cross_validate
 

@@ -21,7 +21,7 @@ import json
 import math
 import os
 import shutil
-from collections.abc import Iterator, Mapping
+from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
 from types import TracebackType
@@ -141,8 +141,9 @@ class OutputFolder:
 
     Before the run (on entering), an existing ``out`` is checked: it must be a folder that is empty or
     holds the marker of the same ``command``; otherwise the run is refused naming ``--force`` (``force``
-    replaces it anyway, except the current folder, an ancestor of it or the home folder). A path that
-    cannot be written (under a file, a read-only folder) is refused too, before any work.
+    replaces it anyway, except the current folder, an ancestor of it or the home folder), and so is an
+    ``out`` holding one of the run's ``inputs`` (the commit would delete it). A path that cannot be written
+    (under a file, a read-only folder) is refused too, before any work.
 
     **Guarantee.** ``out`` only ever holds a complete set: the previous run's, or this run's after the
     commit. After SIGKILL (or a power cut after the data reached the disk) at any moment the folder
@@ -163,8 +164,9 @@ class OutputFolder:
     """
 
     def __init__(self, target: str | os.PathLike, command: str, force: bool = False, commit: bool = True,
-                 flag: str = "--out") -> None:
+                 flag: str = "--out", inputs: Iterable[str | os.PathLike | None] = ()) -> None:
         self.target = Path(target)
+        self.inputs = [Path(p) for p in inputs if p is not None]
         self.command = command
         self.force = force
         self.commit = commit
@@ -209,6 +211,11 @@ class OutputFolder:
         if self._real.parent == self._real:
             raise TorchtrackError(f"{self.flag} {self.target}: cannot be an output folder")
         _writable_folder(self._real.parent, self.flag, self.target)
+        for given in self.inputs:
+            real = Path(os.path.realpath(given))
+            if real == self._real or self._real in real.parents:
+                raise TorchtrackError(f"{self.flag} {self.target}: holds the input {given}, which replacing the "
+                                      f"folder would delete; give another {self.flag}")
 
     def _recover(self) -> None:
         """Finish or undo a commit that was killed half-way, remove a killed run's staging folder."""

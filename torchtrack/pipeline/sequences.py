@@ -21,7 +21,7 @@ from __future__ import annotations
 import os
 import time
 import warnings
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -149,16 +149,18 @@ def _distributed() -> tuple[int, int]:
 
 
 @contextmanager
-def shared_output(out: str | Path, command: str, force: bool = False) -> Iterator[Path]:
+def shared_output(out: str | Path, command: str, force: bool = False,
+                  inputs: Iterable[str | os.PathLike | None] = ()) -> Iterator[Path]:
     """The staging folder of the output folder ``out`` (:class:`~torchtrack.io.outputs.OutputFolder`) for
     every process of a run: one process alone, or every ``torchrun`` rank.
 
     Rank 0 checks and prepares the folder and tells the others (its refusal becomes every rank's error);
     then all ranks write into the same staging folder (``out`` must be on a file system they share) and,
-    once every rank has left the block normally (a barrier), rank 0 commits the set.
+    once every rank has left the block normally (a barrier), rank 0 commits the set. ``inputs``: the paths
+    the run reads (refused inside ``out``).
     """
     rank, world = _distributed()
-    folder = OutputFolder(out, command, force=force, commit=rank == 0)
+    folder = OutputFolder(out, command, force=force, commit=rank == 0, inputs=inputs)
     with ExitStack() as stack:
         refusal: list[str | None] = [None]
         if rank == 0:
