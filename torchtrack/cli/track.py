@@ -40,7 +40,7 @@ Examples:
   torchtrack track --detections det.txt --tracker gmphd --gt gt.txt --out out/track
   torchtrack track --detections det.txt --gt gt.txt --compare --out out/compare
   torchtrack track --detections det.txt --gt gt.txt --params out/tune-gmphd/params.yaml
-  torchtrack track --benchmark wpafb --out out/wpafb
+  torchtrack track --benchmark wpafb --out out/wpafb-benchmark
 """
 
 
