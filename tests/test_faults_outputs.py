@@ -167,6 +167,24 @@ def test_simulate_video_killed_rerun_then_a_shorter_run_leaves_no_stale_frame(tm
     assert len(json.loads((out / "camera.json").read_text())["homographies"]) == 2
 
 
+def test_demo_killed_rerun_keeps_the_previous_set_and_the_next_leaves_nothing_stale(tmp_path):
+    out = tmp_path / "demo"
+    assert main(["demo", "--frames", "3", "--out", str(out), "--no-progress"]) == 0
+    before = _snapshot(out)
+    assert {"tracks.txt", "metrics.json", "scores.png", "trackers/sort.txt", "sequence/frames/000003.png"} < set(before)
+    log = tmp_path / "stderr.txt"
+    status = _interrupt_when_writing(["demo", "--frames", "200", "--out", str(out), "--no-progress"],
+                                     tmp_path / "demo.partial" / "sequence" / "frames" / "000002.png",
+                                     signal.SIGKILL, log)
+    _check_interrupted(out, before, signal.SIGKILL, status, log)
+    assert main(["demo", "--frames", "2", "--out", str(out), "--no-progress"]) == 0
+    assert sorted(p.name for p in (out / "sequence" / "frames").iterdir()) == ["000001.png", "000002.png"]
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["demo"]["frames"] == 2 and not (tmp_path / "demo.partial").exists()
+    for name in ("sort", "greedy"):  # every tracker file is this run's: no frame beyond the second
+        assert set(read_mot(out / "trackers" / f"{name}.txt").frames().tolist()) <= {1, 2}
+
+
 def test_a_failing_rerun_keeps_the_previous_set(tmp_path, capsys):
     gt, det = _detection_files(tmp_path, 40)
     out = tmp_path / "out"
