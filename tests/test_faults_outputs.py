@@ -202,6 +202,27 @@ def test_a_failing_rerun_keeps_the_previous_set(tmp_path, capsys):
     assert _snapshot(out) == before and not (tmp_path / "out.partial").exists()
 
 
+def test_a_failing_video_pipeline_rerun_keeps_the_previous_set(tmp_path, capsys):
+    import cv2
+
+    sequence = tmp_path / "seq"
+    assert main(["simulate-video", "--out", str(sequence), "--frames", "4", "--size", "256", "256"]) == 0
+    out = tmp_path / "out"
+    argv = ["--gt", str(sequence / "gt.txt"), "--out", str(out), "--no-progress"]
+    assert main(["track", "--frames", str(sequence / "frames"), *argv]) == 0
+    before = _snapshot(out)
+    assert {"tracks.txt", "detections.txt", "annotated.mp4", "metrics.json"} < set(before)
+    broken = tmp_path / "broken"
+    broken.mkdir()
+    for k, frame in enumerate(sorted((sequence / "frames").iterdir()), start=1):
+        image = cv2.imread(str(frame), cv2.IMREAD_GRAYSCALE)
+        cv2.imwrite(str(broken / frame.name), image if k != 3 else image[:100])  # frame 3 changes size
+    capsys.readouterr()
+    assert main(["track", "--frames", str(broken), *argv]) == 2
+    assert "000003.png: frame size" in capsys.readouterr().err
+    assert _snapshot(out) == before and not (tmp_path / "out.partial").exists()
+
+
 def test_a_foreign_folder_is_refused_unless_forced(tmp_path, capsys):
     gt, det = _detection_files(tmp_path / "in", 20)
     out = tmp_path / "out"
