@@ -146,8 +146,7 @@ class OutputFolder:
     (under a file, a read-only folder) is refused too, before any work.
 
     **Guarantee.** ``out`` only ever holds a complete set: the previous run's, or this run's after the
-    commit. After SIGKILL (or a power cut after the data reached the disk) at any moment the folder
-    holds one of: the previous set and possibly ``OUT.partial`` (killed before the commit); no ``out``
+    commit. After SIGKILL at any moment the parent folder holds one of: the previous set and possibly ``OUT.partial`` (killed before the commit); no ``out``
     but ``OUT.replaced`` (previous set) and a complete ``OUT.partial`` (killed between the two renames of
     the commit); the new set and possibly ``OUT.replaced``. The next run on ``out`` repairs each case on
     entering — it finishes an interrupted commit, removes ``OUT.replaced`` and a stale ``OUT.partial`` —
@@ -155,6 +154,8 @@ class OutputFolder:
 
     **Limits.** The commit is two renames, not one: for that instant ``out`` does not exist (above).
     Two runs into the same ``out`` at the same time are not supported (they share ``OUT.partial``).
+    The names ``OUT.partial`` and ``OUT.replaced`` belong to the run on ``out``: a non-empty
+    ``OUT.partial`` without a marker is refused, but an ``OUT.replaced`` is always removed.
     Nothing is fsync'ed, so after a power cut the operating system decides what reached the disk.
     ``out`` is renamed as a whole: a mount point cannot be an output folder.
 
