@@ -146,9 +146,10 @@ class OutputFolder:
     (under a file, a read-only folder) is refused too, before any work.
 
     **Guarantee.** ``out`` only ever holds a complete set: the previous run's, or this run's after the
-    commit. After SIGKILL at any moment the parent folder holds one of: the previous set and possibly ``OUT.partial`` (killed before the commit); no ``out``
-    but ``OUT.replaced`` (previous set) and a complete ``OUT.partial`` (killed between the two renames of
-    the commit); the new set and possibly ``OUT.replaced``. The next run on ``out`` repairs each case on
+    commit. After SIGKILL at any moment the parent folder holds one of: the previous set and possibly
+    ``OUT.partial`` (killed before the commit); no ``out`` but ``OUT.replaced`` (previous set) and a
+    complete ``OUT.partial`` (killed between the two renames of the commit); the new set and possibly
+    ``OUT.replaced``. The next run on ``out`` repairs each case on
     entering — it finishes an interrupted commit, removes ``OUT.replaced`` and a stale ``OUT.partial`` —
     before it starts; a reader can do the same by hand.
 
