@@ -34,7 +34,8 @@ def test_recorder_keeps_in_memory_what_it_writes_and_flushes_each_frame(tmp_path
     with TrackRecorder(path) as rec:
         for k, ids, pos in given:
             rec.record(k, ids, pos)
-            assert read_mot(path).frame.max() == k        # on disk as soon as recorded
+            assert read_mot(tmp_path / "tracks.partial.txt").frame.max() == k  # on disk as soon as recorded
+            assert not path.exists()                                        # the final name: when complete
     tracks = rec.tracks()
     np.testing.assert_array_equal(tracks.frame, np.concatenate([np.full(len(i), k) for k, i, _ in given]))
     np.testing.assert_array_equal(tracks.id, np.concatenate([i for _, i, _ in given]))

@@ -98,5 +98,5 @@ def test_tune_command_folds_runs_every_fold_and_writes_the_summary(tmp_path, cap
     assert all((tmp_path / "cv" / f"fold-{k}" / "params.yaml").exists() for k in (1, 2, 3))
     out = capsys.readouterr().out
     assert "3-fold cross-validation" in out and "mean" in out
-    assert main(["tune", "--config", str(kalman_config(tmp_path)), "--out", str(tmp_path), "--folds", "9"]) == 2
+    assert main(["tune", "--config", str(kalman_config(tmp_path)), "--out", str(tmp_path / "cv9"), "--folds", "9"]) == 2
     assert "folds must be an integer from 2" in capsys.readouterr().err

@@ -2,9 +2,11 @@
 MOTChallenge file as they come.
 
 A :class:`TrackRecorder` takes one frame at a time (frame coordinates). Each frame also goes to its file
-(when it has one) in one write followed by a flush, so an interrupted run leaves a file complete up to the
-last frame recorded; :meth:`TrackRecorder.tracks` builds the :class:`~torchtrack.io.mot.MOTData` of the
-whole run once, which is what the run is scored on (the file is an output, never read back).
+(when it has one, through :class:`~torchtrack.io.mot.MOTWriter`: under its partial name until the recorder
+is closed after a normal finish, so an interrupted run leaves ``NAME.partial.txt`` complete up to the last
+frame recorded and never a short file under the final name); :meth:`TrackRecorder.tracks` builds the
+:class:`~torchtrack.io.mot.MOTData` of the whole run once, which is what the run is scored on (the file is
+an output, never read back).
 """
 
 from __future__ import annotations
@@ -73,11 +75,13 @@ class TrackRecorder:
         return self._data
 
     def close(self) -> None:
+        """Finish the file under its final name."""
         if self._writer is not None:
             self._writer.close()
 
     def __enter__(self) -> TrackRecorder:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self._writer is not None:
+            self._writer.__exit__(exc_type, exc, tb)

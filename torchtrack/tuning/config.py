@@ -31,6 +31,7 @@ from torch import nn
 
 from torchtrack.config import from_mapping, read_mapping
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import write_yaml
 from torchtrack.tuning.parameters import get_raw, get_values, set_raw, set_values, tunable_parameters
 
 
@@ -114,10 +115,7 @@ def save_params(module: nn.Module, path: str | os.PathLike, filter_name: str,
                 model: Mapping[str, Any] | None = None, names: Iterable[str] | None = None,
                 extra: Mapping[str, Any] | None = None) -> Path:
     """Write the fitted-parameter file (floats written with full precision, so reading is exact)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(params_document(module, filter_name, model, names, extra), sort_keys=False))
-    return path
+    return write_yaml(path, params_document(module, filter_name, model, names, extra))
 
 
 def read_params_file(path: str | os.PathLike, filters: Iterable[str], where: str) -> dict:

@@ -24,11 +24,11 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 from torch import nn
 
 from torchtrack.config import read_mapping
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import write_yaml
 from torchtrack.tuning.config import load_params, read_tune_config, save_params
 from torchtrack.tuning.losses import exact_gospa, sinkhorn_gospa
 from torchtrack.tuning.parameters import get_values, select_trainable, tunable_parameters
@@ -166,8 +166,7 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     exported = tunable.export(module)
     if exported is not None:
         path = out_dir / exported[0]
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(yaml.safe_dump(exported[1], sort_keys=False))
+        write_yaml(path, exported[1])
         report["output"][exported[0].split(".")[0]] = str(path)
     plot_loss_curve(result, plot_path, f"torchtrack tune {tunable.name} ({loss})")
     return report
