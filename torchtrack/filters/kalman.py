@@ -24,12 +24,15 @@ from torch import Tensor, nn
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters import kalman_lanes as lanes
 from torchtrack.gaussian import (
-    LOG_2PI,
-    chol_solve,
+    KalmanGain,
+    chi2_quantile,
     cholesky,
-    log_det_from_cholesky,
+    innovation_cov,
+    innovation_likelihood,
+    joseph_cov,
+    kalman_gain,
+    mahalanobis_sq,
     matmul,
-    solve_lower,
     symmetrize,
 )
 from torchtrack.models.measurement import MeasurementModel
@@ -69,13 +72,6 @@ def _check_state(state: GaussianState, n: int, who: str) -> None:
         raise TorchtrackError(f"{who}: state cov must have shape (*, {n}, {n}); got {tuple(state.cov.shape)}")
 
 
-def joseph_cov(P: Tensor, K: Tensor, H: Tensor, R: Tensor) -> Tensor:
-    """Joseph-form posterior covariance ``(I − K H) P (I − K H)ᵀ + K R Kᵀ`` (symmetrised)."""
-    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
-    A = eye - K @ H
-    return symmetrize(A @ P @ A.transpose(-1, -2) + K @ matmul(R, K.transpose(-1, -2)))
-
-
 def _presence(z: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
     """Presence mask ``(*,)`` and ``z`` with missing rows zero-filled (so NaN never propagates)."""
     present = ~torch.isnan(z).any(-1)
@@ -113,9 +109,10 @@ class _GaussianFilter(nn.Module):
                check: bool = True) -> tuple[GaussianState, UpdateInfo]:
         """Measurement update with ``z (*, m)``; ``mask (*,)`` bool, ``True`` where a measurement exists.
 
-        Gain from the cross-covariance ``C`` and ``S`` (``K = C S⁻¹`` by Cholesky solve);
-        covariance ``P⁺ = P⁻ − K S Kᵀ`` (equal to the Joseph form for the optimal gain; for the
-        linear filter the Joseph form itself is used).
+        The shared update of :mod:`torchtrack.gaussian` (:func:`~torchtrack.gaussian.kalman_gain`,
+        :func:`~torchtrack.gaussian.innovation_likelihood`) on this filter's moments: gain from the
+        cross-covariance ``C`` and ``S``; covariance ``P⁺ = P⁻ − W Wᵀ`` (``= P⁻ − K S Kᵀ``, equal to
+        the Joseph form for the optimal gain; for the linear filter the Joseph form itself is used).
         """
         m = self.measurement.meas_dim
         if z.shape[-1] != m:
@@ -123,14 +120,11 @@ class _GaussianFilter(nn.Module):
         _check_state(state, self.state_dim, self.name)
         present, z = _presence(z, mask)
         z_hat, S, C = self._moments(state)
-        L = cholesky(S, f"{self.name}: innovation covariance S", check=check)
+        gain = kalman_gain(S, C, f"{self.name}: innovation covariance S", check=check)
         nu = self.measurement.residual(z, z_hat)
-        K = chol_solve(L, C.transpose(-1, -2)).transpose(-1, -2)
-        mean = state.mean + (K @ nu.unsqueeze(-1)).squeeze(-1)
-        cov = self._posterior_cov(state, K, S)
-        white = solve_lower(L, nu.unsqueeze(-1)).squeeze(-1)
-        nis = white.pow(2).sum(-1)
-        loglik = -0.5 * (nis + log_det_from_cholesky(L) + m * LOG_2PI)
+        mean = state.mean + (gain.gain @ nu.unsqueeze(-1)).squeeze(-1)
+        cov = self._posterior_cov(state, gain)
+        nis, loglik = innovation_likelihood(gain.chol, nu)
         keep = present.unsqueeze(-1)
         mean = torch.where(keep, mean, state.mean)
         cov = torch.where(keep.unsqueeze(-1), cov, state.cov)
@@ -138,8 +132,9 @@ class _GaussianFilter(nn.Module):
         info = UpdateInfo(nu, S, torch.where(present, nis, zero), torch.where(present, loglik, zero), present)
         return GaussianState(mean, cov), info
 
-    def _posterior_cov(self, state: GaussianState, K: Tensor, S: Tensor) -> Tensor:
-        return symmetrize(state.cov - K @ S @ K.transpose(-1, -2))
+    def _posterior_cov(self, state: GaussianState, gain: KalmanGain) -> Tensor:
+        W = gain.white_cross
+        return symmetrize(state.cov - W @ W.transpose(-1, -2))
 
     def forward(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
                 predict_first: bool = True) -> FilterResult:
@@ -192,13 +187,11 @@ class KalmanFilter(_GaussianFilter):
 
     def _moments(self, state):
         H = self.measurement.matrix()
-        R = self.measurement.noise_cov()
-        C = state.cov @ H.transpose(-1, -2)
-        S = symmetrize(matmul(H, C) + R)
+        C, S = innovation_cov(state.cov, H, self.measurement.noise_cov())
         return matmul(H, state.mean.unsqueeze(-1)).squeeze(-1), S, C
 
-    def _posterior_cov(self, state, K, S):
-        return joseph_cov(state.cov, K, self.measurement.matrix(), self.measurement.noise_cov())
+    def _posterior_cov(self, state, gain):
+        return joseph_cov(state.cov, gain.gain, self.measurement.matrix(), self.measurement.noise_cov())
 
     def _small(self) -> bool:
         """Whether the model is small enough for the unrolled per-lane arithmetic of the lanes path."""
@@ -339,13 +332,11 @@ class ExtendedKalmanFilter(_GaussianFilter):
         return GaussianState(mean, symmetrize(F @ state.cov @ F.transpose(-1, -2) + Q))
 
     def _moments(self, state):
-        H = self.measurement.jacobian(state.mean)
-        R = self.measurement.noise_cov()
-        C = state.cov @ H.transpose(-1, -2)
-        return self.measurement.measure(state.mean), symmetrize(H @ C + R), C
+        C, S = innovation_cov(state.cov, self.measurement.jacobian(state.mean), self.measurement.noise_cov())
+        return self.measurement.measure(state.mean), S, C
 
-    def _posterior_cov(self, state, K, S):
-        return joseph_cov(state.cov, K, self.measurement.jacobian(state.mean), self.measurement.noise_cov())
+    def _posterior_cov(self, state, gain):
+        return joseph_cov(state.cov, gain.gain, self.measurement.jacobian(state.mean), self.measurement.noise_cov())
 
 
 class UnscentedKalmanFilter(_GaussianFilter):
@@ -404,16 +395,13 @@ class UnscentedKalmanFilter(_GaussianFilter):
 
 def nees(state: GaussianState, truth: Tensor) -> Tensor:
     """Normalised estimation error squared ``(x − x̂)ᵀ P⁻¹ (x − x̂)``, shape ``(*,)``."""
-    L = cholesky(state.cov, "state covariance")
-    return solve_lower(L, (truth - state.mean).unsqueeze(-1)).squeeze(-1).pow(2).sum(-1)
+    return mahalanobis_sq(truth, state.mean, cholesky(state.cov, "state covariance"))
 
 
 def chi2_bounds(dof: int, runs: int, prob: float = 0.95) -> tuple[float, float]:
     """Two-sided ``prob`` interval for the average of ``runs`` χ²(``dof``) values (consistency tests)."""
-    from scipy.stats import chi2
-
     a = (1 - prob) / 2
-    return chi2.ppf(a, dof * runs) / runs, chi2.ppf(1 - a, dof * runs) / runs
+    return chi2_quantile(a, dof * runs) / runs, chi2_quantile(1 - a, dof * runs) / runs
 
 
 __all__ = [
