@@ -25,8 +25,8 @@ import torch
 
 from torchtrack.bench._timing import report
 from torchtrack.cli._common import add_common_options
-from torchtrack.filters.gmphd import chi2_quantile
 from torchtrack.filters.multitarget import make_tracker
+from torchtrack.gaussian import chi2_quantile
 
 NAME = "gmphd"
 HELP = "GM-PHD steps/s (Stone Soup tutorial setting and a WPAFB-scale frame) vs a per-component NumPy GM-PHD"

@@ -59,7 +59,7 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.gaussian import LOG_2PI
+from torchtrack.gaussian import LOG_2PI, chi2_quantile
 from torchtrack.models import ConstantVelocity, LinearPosition, MeasurementModel, MotionModel
 from torchtrack.params import Positive, Probability
 
@@ -444,17 +444,6 @@ class GMPHD(nn.Module):
         cov = torch.diag_embed(std.pow(2))
         return MixtureState(log_weight, mean, cov, label, torch.ones(label.shape[0], dtype=torch.bool,
                                                                     device=label.device))
-
-
-def chi2_quantile(p: float, dof: int) -> float:
-    """Quantile of the χ² distribution (closed form for 2 dof, scipy otherwise); ``inf`` for ``p = 1``."""
-    if p >= 1.0:
-        return float("inf")
-    if dof == 2:
-        return -2.0 * math.log1p(-p)
-    from scipy.stats import chi2
-
-    return float(chi2.ppf(p, dof))
 
 
 def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, Tensor]:

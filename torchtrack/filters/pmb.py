@@ -48,12 +48,12 @@ import math
 from typing import NamedTuple
 
 import torch
-from scipy.stats import chi2
 from torch import Tensor, nn
 
 from torchtrack.association.lbp import LBPResult, lbp_marginals
 from torchtrack.errors import TorchtrackError
 from torchtrack.gaussian import (
+    chi2_quantile,
     innovation_cov,
     innovation_likelihood,
     kalman_gain,
@@ -223,7 +223,7 @@ class PMBFilter(nn.Module):
         self.register_buffer("birth_cov", bc)
         self.capacity = capacity
         self.poisson_capacity = poisson_capacity
-        self.gate_d2 = float(chi2.ppf(gate, measurement.meas_dim)) if gate < 1 else float("inf")
+        self.gate_d2 = chi2_quantile(gate, measurement.meas_dim)
         self.lbp_iterations = lbp_iterations
         self.lbp_tol = lbp_tol
         self.prune_existence = prune_existence
