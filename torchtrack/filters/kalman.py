@@ -22,6 +22,7 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters import kalman_axes
 from torchtrack.filters import kalman_lanes as lanes
 from torchtrack.gaussian import (
     KalmanGain,
@@ -35,8 +36,8 @@ from torchtrack.gaussian import (
     matmul,
     symmetrize,
 )
-from torchtrack.models.measurement import MeasurementModel
-from torchtrack.models.motion import MotionModel
+from torchtrack.models.measurement import LinearPosition, MeasurementModel
+from torchtrack.models.motion import ConstantVelocity, MotionModel
 
 
 class GaussianState(NamedTuple):
@@ -142,12 +143,13 @@ class _GaussianFilter(nn.Module):
         return self.run(measurements, init, dt, mask, predict_first)
 
     def run(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
-            predict_first: bool = True) -> FilterResult:
+            predict_first: bool = True, history: bool = True) -> FilterResult:
         """Filter a whole sequence ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` = missing).
 
         With ``predict_first`` the prior ``init`` is for time 0 and each step predicts then updates;
-        otherwise the first step only updates. Returns stacked posteriors and the total
-        log-likelihood ``Σ_k log p(z_k | z_{1:k-1})`` — differentiable in every model parameter.
+        otherwise the first step only updates. Returns stacked posteriors (only the last, ``T = 1``,
+        without ``history``) and the total log-likelihood ``Σ_k log p(z_k | z_{1:k-1})`` —
+        differentiable in every model parameter.
         """
         if measurements.dim() < 2:
             raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, m); got "
@@ -155,13 +157,15 @@ class _GaussianFilter(nn.Module):
         state = init
         means, covs, nis = [], [], []
         total = 0.0
-        for k in range(measurements.shape[0]):
+        T = measurements.shape[0]
+        for k in range(T):
             if predict_first or k > 0:
                 state = self.predict(state, dt)
             state, info = self.update(state, measurements[k], None if mask is None else mask[k])
-            means.append(state.mean)
-            covs.append(state.cov)
-            nis.append(info.nis)
+            if history or k == T - 1:
+                means.append(state.mean)
+                covs.append(state.cov)
+                nis.append(info.nis)
             total = total + info.log_likelihood
         return FilterResult(torch.stack(means), torch.stack(covs), torch.stack(nis), total)
 
@@ -226,35 +230,76 @@ class KalmanFilter(_GaussianFilter):
         return post, info
 
     def _shared_matrices(self, dt) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
-        """``(F, Q, H, R)`` when all are shared 2-D matrices of a small model (the lanes path), else None."""
+        """``(F, Q, H, R)`` when all are shared 2-D matrices of a small model (the lanes engine), else None."""
         if not self._small():
             return None
         mats = (self.motion.transition_matrix(dt), self.motion.process_noise(dt), self.measurement.matrix(),
                 self.measurement.noise_cov())
         return mats if all(M.dim() == 2 for M in mats) else None
 
-    def run(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
-            predict_first: bool = True, compile: bool = False) -> FilterResult:
-        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` = missing); see
-        :meth:`_GaussianFilter.run`.
+    def _axes_parameters(self, dt) -> tuple[float, float, float, float]:
+        """``(q₁₁, q₁₂, q₂₂, r)`` of the axis-decoupled engine, or a clear error where it does not apply."""
+        motion, meas = self.motion, self.measurement
+        if not isinstance(motion, ConstantVelocity) or not isinstance(meas, LinearPosition) or isinstance(dt, Tensor):
+            raise TorchtrackError("Kalman filter engine 'axes' needs ConstantVelocity motion, LinearPosition "
+                                  "measurements and a number dt")
+        if meas.meas_dim != motion.ndim or meas.state_dim != motion.state_dim:
+            raise TorchtrackError("Kalman filter engine 'axes' needs position measurements of every axis")
+        sigma = meas.sigma().detach()
+        if sigma.numel() != 1 and not bool((sigma == sigma.flatten()[0]).all()):
+            raise TorchtrackError("Kalman filter engine 'axes' needs isotropic measurement noise")
+        Q = motion.process_noise(dt).detach()
+        d = motion.ndim
+        return float(Q[0, 0]), float(Q[0, d]), float(Q[d, d]), float(sigma.flatten()[0] ** 2)
 
-        With shared model matrices (``dt`` a number) and a small model, the sequence is filtered in
-        the batch-last layout of :mod:`~torchtrack.filters.kalman_lanes` (the same equations); the
-        returned ``mean``/``cov`` are then views of batch-last storage (not contiguous). A failed
-        factorisation of ``S`` raises :class:`TorchtrackError` naming the step (checked once, after
-        the last step, so the loop never waits on the host). ``compile=True`` runs each step through
-        ``torch.compile`` when no gradient is needed (one fused loop over the tracks; compiled once
-        per process for each model size, dtype and with/without missing measurements; falls back to
-        eager where unavailable).
+    def run(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
+            predict_first: bool = True, compile: bool = False, engine: str = "auto",
+            history: bool = True) -> FilterResult:
+        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` = missing); see
+        :meth:`_GaussianFilter.run`. Without ``history`` only the last posterior is returned (``T = 1``).
+
+        ``engine`` chooses how the same equations (the shared update of :mod:`torchtrack.gaussian`) are
+        laid out; all agree to rounding:
+
+        * ``"batch"``: the batch-first predict/update loop; any linear model, ``dt`` may be a tensor.
+        * ``"lanes"``: the batch-last layout of :mod:`~torchtrack.filters.kalman_lanes`; needs shared
+          2-D model matrices (``dt`` a number), state size ≤ 8 and measurement size ≤ 4. The returned
+          ``mean``/``cov`` are views of batch-last storage (not contiguous).
+        * ``"axes"``: the axis-decoupled engine of :mod:`~torchtrack.filters.kalman_axes`; needs
+          ``ConstantVelocity`` motion, ``LinearPosition`` measurements of every axis with isotropic
+          noise, a number ``dt`` and a prior without cross-axis covariance; NaN marks missing
+          measurements per axis. Differentiable in the state, not in the noise parameters (they
+          enter as numbers). The fastest for that model.
+        * ``"auto"`` (default): ``"lanes"`` where it applies, otherwise ``"batch"``.
+
+        A failed factorisation of ``S`` raises :class:`TorchtrackError` naming the step (lanes: checked
+        once, after the last step, so the loop never waits on the host). ``compile=True`` runs each
+        step of ``"lanes"`` and ``"axes"`` through ``torch.compile`` when no gradient is needed (one
+        fused loop over the tracks; compiled once per process for each model size, dtype and
+        with/without missing measurements; falls back to eager where unavailable).
         """
-        mats = self._shared_matrices(dt) if measurements.dim() >= 2 else None
-        if mats is None:
-            return super().run(measurements, init, dt, mask, predict_first)
+        if engine not in ("auto", "batch", "lanes", "axes"):
+            raise TorchtrackError(f"{self.name}: engine must be auto, batch, lanes or axes; got {engine!r}")
+        if measurements.dim() < 2:
+            raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, m); got "
+                                  f"{tuple(measurements.shape)}")
         n, m = self.state_dim, self.measurement.meas_dim
         _check_state(init, n, self.name)
         if measurements.shape[-1] != m:
             raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, {m}); got "
                                   f"{tuple(measurements.shape)}")
+        if engine == "axes":
+            z = measurements if mask is None else torch.where(mask.to(torch.bool).unsqueeze(-1), measurements,
+                                                              float("nan"))
+            mean, cov, nis, total = kalman_axes.run(z, init.mean, init.cov, float(dt), self._axes_parameters(dt),
+                                                    predict_first, compile, history)
+            return FilterResult(mean, cov, nis, total)
+        mats = None if engine == "batch" else self._shared_matrices(dt)
+        if mats is None:
+            if engine == "lanes":
+                raise TorchtrackError(f"{self.name}: engine 'lanes' needs shared 2-D model matrices, a number dt, "
+                                      f"state size <= {lanes.MAX_STATE} and measurement size <= {lanes.MAX_MEAS}")
+            return super().run(measurements, init, dt, mask, predict_first, history)
         T = measurements.shape[0]
         shapes = [measurements.shape[1:-1], init.mean.shape[:-1], init.cov.shape[:-2]]
         if mask is not None:
@@ -278,16 +323,17 @@ class KalmanFilter(_GaussianFilter):
         needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x, P, z, *mats))
         if compile and not needs_grad:
             mean, cov, nis, total, ok = self._run_compiled(x, P, z, None if all_present else present, mats,
-                                                           predict_first)
+                                                           predict_first, history)
         else:
             means, covs, nis_list, oks = [], [], [], []
             total = torch.zeros(B, dtype=z.dtype, device=z.device)
             for k in range(T):
                 fn = lanes.step if predict_first or k > 0 else lanes.update_only
                 x, P, nis_k, ll_k, ok_k = fn(x, P, z[k], None if all_present else present[k], *mats)
-                means.append(x)
-                covs.append(P)
-                nis_list.append(nis_k)
+                if history or k == T - 1:
+                    means.append(x)
+                    covs.append(P)
+                    nis_list.append(nis_k)
                 oks.append(ok_k)
                 total = total + ll_k
             mean, cov, nis, ok = torch.stack(means), torch.stack(covs), torch.stack(nis_list), torch.stack(oks)
@@ -296,26 +342,33 @@ class KalmanFilter(_GaussianFilter):
             k = int(failed.any(-1).nonzero()[0])
             raise TorchtrackError(f"{self.name}: innovation covariance S is not positive definite at step {k} "
                                   f"({int(failed[k].sum())} of {B} matrices failed Cholesky factorisation)")
-        return FilterResult(mean.permute(0, 2, 1).reshape(T, *batch, n),
-                            cov.permute(0, 3, 1, 2).reshape(T, *batch, n, n), nis.reshape(T, *batch),
+        Tk = mean.shape[0]
+        return FilterResult(mean.permute(0, 2, 1).reshape(Tk, *batch, n),
+                            cov.permute(0, 3, 1, 2).reshape(Tk, *batch, n, n), nis.reshape(Tk, *batch),
                             total.reshape(batch))
 
     @staticmethod
-    def _run_compiled(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, mats, predict_first: bool):
+    def _run_compiled(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, mats, predict_first: bool,
+                      history: bool = True):
         """The time loop through the compiled :func:`~torchtrack.filters.kalman_lanes.fused_step`, which
-        writes each posterior straight into the batch-last history (no autograd)."""
+        writes each posterior straight into the batch-last history (no autograd); without ``history``
+        two slots are used in turn and the last is returned."""
         (n, B), T = x.shape, z.shape[0]
-        mean = x.new_empty(T, n, B)
-        cov = P.new_empty(T, n, n, B)
-        nis = x.new_empty(T, B)
+        slots = T if history else 2
+        mean = x.new_empty(slots, n, B)
+        cov = P.new_empty(slots, n, n, B)
+        nis = x.new_empty(slots, B)
         ok = torch.empty(T, B, dtype=torch.bool, device=x.device)
         total = x.new_zeros(B)
         step = lanes.compiled_step()
         pattern = tuple(lanes.structure(M) for M in mats)
         for k in range(T):
-            prev = (x, P) if k == 0 else (mean[k - 1], cov[k - 1])
-            step(*prev, z[k], None if present is None else present[k], *mats, mean[k], cov[k], nis[k], total,
-                 ok[k], predict_first or k > 0, pattern)
+            prev = (x, P) if k == 0 else (mean[(k - 1) % slots], cov[(k - 1) % slots])
+            step(*prev, z[k], None if present is None else present[k], *mats, mean[k % slots], cov[k % slots],
+                 nis[k % slots], total, ok[k], predict_first or k > 0, pattern)
+        if not history:
+            last = (T - 1) % slots
+            mean, cov, nis = mean[last:last + 1], cov[last:last + 1], nis[last:last + 1]
         return mean, cov, nis, total, ok
 
 
