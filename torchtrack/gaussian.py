@@ -209,24 +209,42 @@ class KalmanGain(NamedTuple):
     """Result of :func:`kalman_gain`."""
 
     chol: Tensor      # (*, m, m) L, S = L Lᵀ
+    chol_inv: Tensor  # (*, m, m) L⁻¹ (triangular), the whitening: |L⁻¹ ν|² = νᵀ S⁻¹ ν
     white_cross: Tensor  # (*, n, m) W = C L⁻ᵀ, so that K S Kᵀ = W Wᵀ
-    gain: Tensor      # (*, n, m) K = C S⁻¹
+    gain: Tensor      # (*, n, m) K = C S⁻¹ = W L⁻¹
 
 
 def kalman_gain(S: Tensor, C: Tensor, what: str = "innovation covariance S", check: bool = True) -> KalmanGain:
-    """Cholesky factor ``L`` of ``S (*, m, m)``, ``W = C L⁻ᵀ`` and the gain ``K = W L⁻¹ = C S⁻¹``
-    for ``C (*, n, m)`` (two triangular solves, never an inverse); a failed factorisation raises
-    :class:`TorchtrackError` naming ``what`` (with ``check``)."""
-    L = cholesky(S, what, check=check)
-    batch = torch.broadcast_shapes(L.shape[:-2], C.shape[:-2])
-    L = L.expand(*batch, *L.shape[-2:])
-    Wt = solve_lower(L, C.transpose(-1, -2).expand(*batch, *C.shape[-1:], C.shape[-2]))
-    if _is_small(L, Wt):
-        Le = _entries(L)
-        Kt = torch.stack(solve_upper_t_entries(Le, _rows(Wt)), -2)
-    else:
-        Kt = torch.linalg.solve_triangular(L.transpose(-1, -2), Wt, upper=True)
-    return KalmanGain(L, Wt.transpose(-1, -2), Kt.transpose(-1, -2))
+    """Cholesky factor ``L`` of ``S (*, m, m)``, its triangular inverse (one triangular solve per
+    factor), ``W = C L⁻ᵀ`` and the gain ``K = W L⁻¹ = C S⁻¹`` for ``C (*, n, m)``; a failed
+    factorisation raises :class:`TorchtrackError` naming ``what`` (with ``check``)."""
+    return gain_from_cholesky(cholesky(S, what, check=check), C)
+
+
+def gain_from_cholesky(L: Tensor, C: Tensor) -> KalmanGain:
+    """:func:`kalman_gain` from an existing factor ``L`` of ``S`` (e.g. its leading block, the factor
+    of ``S``'s leading block)."""
+    Linv = solve_lower(L, torch.eye(L.shape[-1], dtype=L.dtype, device=L.device).expand_as(L))
+    W = small_matmul(C, Linv.transpose(-1, -2))
+    return KalmanGain(L, Linv, W, small_matmul(W, Linv))
+
+
+def small_matmul(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B`` (batches broadcast); for many matrices with a short inner dimension (≤ ``SMALL_N``) the
+    sum over it is unrolled into elementwise products (batched GEMMs of tiny matrices are slow)."""
+    batch = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
+    if A.shape[-1] > SMALL_N or math.prod(batch) < SMALL_BATCH:
+        return A @ B
+    out = A[..., :, 0:1] * B[..., 0:1, :]
+    for k in range(1, A.shape[-1]):
+        out = out + A[..., :, k:k + 1] * B[..., k:k + 1, :]
+    return out
+
+
+def posterior_cov(P: Tensor, gain: KalmanGain) -> Tensor:
+    """``P⁺ = P − W Wᵀ`` (``= P − K S Kᵀ``, the posterior of the optimal gain), symmetrised."""
+    W = gain.white_cross
+    return symmetrize(P - small_matmul(W, W.transpose(-1, -2)))
 
 
 def innovation_likelihood(L: Tensor, nu: Tensor) -> tuple[Tensor, Tensor]:
@@ -234,6 +252,17 @@ def innovation_likelihood(L: Tensor, nu: Tensor) -> tuple[Tensor, Tensor]:
     (batches broadcast: insert a dimension in ``L`` for many innovations per factor)."""
     nis = mahalanobis_sq(nu, torch.zeros_like(nu[..., :1]), L)
     return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(L), nu.shape[-1])
+
+
+def innovations_likelihood(gain: KalmanGain, nu: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`innovation_likelihood` for many innovations per factor: ``ν (*, k, m)`` against the
+    factors of ``gain`` ``(*, m, m)`` → NIS and log ℓ ``(*, k)``; the whitening ``L⁻¹`` is applied to
+    all ``k`` innovations by one batched GEMM."""
+    white = nu @ gain.chol_inv.transpose(-1, -2)
+    nis = white[..., 0] * white[..., 0]
+    for k in range(1, white.shape[-1]):
+        nis = nis + white[..., k] * white[..., k]
+    return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol).unsqueeze(-1), nu.shape[-1])
 
 
 def joseph_cov(P: Tensor, K: Tensor, H: Tensor, R: Tensor) -> Tensor:

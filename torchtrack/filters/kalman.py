@@ -34,6 +34,7 @@ from torchtrack.gaussian import (
     kalman_gain,
     mahalanobis_sq,
     matmul,
+    posterior_cov,
     symmetrize,
 )
 from torchtrack.models.measurement import LinearPosition, MeasurementModel
@@ -134,8 +135,7 @@ class _GaussianFilter(nn.Module):
         return GaussianState(mean, cov), info
 
     def _posterior_cov(self, state: GaussianState, gain: KalmanGain) -> Tensor:
-        W = gain.white_cross
-        return symmetrize(state.cov - W @ W.transpose(-1, -2))
+        return posterior_cov(state.cov, gain)
 
     def forward(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
                 predict_first: bool = True) -> FilterResult:

@@ -55,10 +55,12 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.gaussian import (
     chi2_quantile,
     innovation_cov,
-    innovation_likelihood,
+    innovations_likelihood,
     kalman_gain,
     matmul,
     moment_match,
+    posterior_cov,
+    small_matmul,
     symmetrize,
 )
 from torchtrack.models.measurement import MeasurementModel
@@ -137,15 +139,6 @@ class _Hypotheses(NamedTuple):
     cov: Tensor       # (*, C, n, n) Kalman-updated covariance (the same for every z_j)
 
 
-def _small_mm(A: Tensor, B: Tensor) -> Tensor:
-    """``A @ B`` for batches of tiny matrices: a sum over the (2 or 4) inner index unrolled into
-    elementwise products, since batched BLAS and reductions over a tiny axis are slow at this size."""
-    out = A[..., :, 0:1] * B[..., 0:1, :]
-    for k in range(1, A.shape[-1]):
-        out = out + A[..., :, k:k + 1] * B[..., k:k + 1, :]
-    return out
-
-
 def _small_mv(A: Tensor, x: Tensor) -> Tensor:
     """``A_c x_cm`` for ``A (*, C, p, q)`` and ``x (*, C, M, q)`` → ``(*, C, M, p)``, unrolled over ``q``."""
     out = A[..., :, 0].unsqueeze(-2) * x[..., 0:1]
@@ -165,11 +158,9 @@ def _kalman_all_pairs(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor
     """
     PHt, S = innovation_cov(cov, H, R.unsqueeze(-3))                 # (*, C, n, d), (*, C, d, d)
     gain = kalman_gain(S, PHt, what)
-    nu = z.unsqueeze(-3) - matmul(H, mean.unsqueeze(-1)).transpose(-1, -2)   # (*, C, M, d)
-    d2, log_lik = innovation_likelihood(gain.chol.unsqueeze(-3), nu)   # (*, C, M)
-    W = gain.white_cross
-    upd_cov = symmetrize(cov - _small_mm(W, W.transpose(-1, -2)))
-    return _Hypotheses(log_lik, d2, nu, gain.gain, upd_cov)
+    nu = z.unsqueeze(-3) - (mean @ H.transpose(-1, -2)).unsqueeze(-2)   # (*, C, M, d)
+    d2, log_lik = innovations_likelihood(gain, nu)                   # (*, C, M)
+    return _Hypotheses(log_lik, d2, nu, gain.gain, posterior_cov(cov, gain))
 
 
 class PMBFilter(nn.Module):
@@ -398,7 +389,7 @@ class PMBFilter(nn.Module):
         inner = V / denom[..., None, None] - c.unsqueeze(-1) * c.unsqueeze(-2)
         mean_post = state.mean + _small_mv(trk.gain, c.unsqueeze(-2)).squeeze(-2)
         cov_post = ((a0[..., None, None] * state.cov + a_det[..., None, None] * trk.cov) / denom[..., None, None]
-                    + _small_mm(_small_mm(trk.gain, inner), trk.gain.transpose(-1, -2)))
+                    + small_matmul(small_matmul(trk.gain, inner), trk.gain.transpose(-1, -2)))
         r_new = torch.where(zmask, marg.new * r_new_hyp, torch.zeros_like(r_new_hyp))
         new_label = torch.where(zmask, state.next_label.unsqueeze(-1) + torch.cumsum(zmask.long(), -1) - 1,
                                 torch.full_like(zmask, -1, dtype=torch.long))
