@@ -111,10 +111,12 @@ def _cholesky_unrolled(P: Tensor) -> tuple[Tensor, Tensor]:
 
 
 def _rows(B: Tensor) -> list[Tensor]:
+    """The rows ``B[..., i, :]`` of ``B (*, n, k)``, as :func:`solve_lower_entries` takes them."""
     return [B[..., i, :] for i in range(B.shape[-2])]
 
 
 def _entries(L: Tensor) -> list[list[Tensor]]:
+    """The lower-triangular entries ``L[..., i, j, None]`` of ``L (*, n, n)`` (broadcasting against rows)."""
     return [[L[..., i, j, None] for j in range(i + 1)] for i in range(L.shape[-1])]
 
 
@@ -190,12 +192,16 @@ def log_prob(x: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
 # eq. 5.2.3-9 … 5.2.3-18; the maneuver paper, eq. 5–7):
 #
 #     C = P⁻ Hᵀ,  S = H C + R = L Lᵀ                  innovation_cov, cholesky
-#     K = C S⁻¹ = W L⁻¹,  W = C L⁻ᵀ                     kalman_gain (solved, never inverted)
+#     W = C L⁻ᵀ,  K = C S⁻¹ = W L⁻¹                     kalman_gain
 #     x⁺ = x⁻ + K ν
 #     P⁺ = P⁻ − W Wᵀ  (= P⁻ − K S Kᵀ)  or the Joseph form (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ
-#     NIS = |L⁻¹ ν|²,  log ℓ = −½ (NIS + log |S| + m log 2π)          innovation_likelihood
+#                                                        posterior_cov, joseph_cov
+#     NIS = |L⁻¹ ν|²,  log ℓ = −½ (NIS + log |S| + m log 2π)       innovation(s)_likelihood
 #
-# For an EKF or UKF ``C`` is the cross-covariance of state and measurement and ``S`` its own.
+# S is never inverted: L⁻¹ is one triangular solve per factor, applied by (small) matrix products to
+# C and to any number of innovations. For an EKF or UKF ``C`` is the cross-covariance of state and
+# measurement and ``S`` its own. Engines with their own layout (kalman_lanes, kalman_axes, imm_cv)
+# write the same steps on entries with cholesky_entries / solve_lower_entries.
 
 
 def innovation_cov(cov: Tensor, H: Tensor, R: Tensor) -> tuple[Tensor, Tensor]:
@@ -248,8 +254,8 @@ def posterior_cov(P: Tensor, gain: KalmanGain) -> Tensor:
 
 
 def innovation_likelihood(L: Tensor, nu: Tensor) -> tuple[Tensor, Tensor]:
-    """NIS ``νᵀ S⁻¹ ν`` and ``log N(ν; 0, S)`` from ``L = chol(S) (*, m, m)`` and ``ν (*, m)``
-    (batches broadcast: insert a dimension in ``L`` for many innovations per factor)."""
+    """NIS ``νᵀ S⁻¹ ν`` and ``log N(ν; 0, S)`` from ``L = chol(S) (*, m, m)`` and ``ν (*, m)``, batches
+    broadcast (for many innovations per factor :func:`innovations_likelihood` is faster)."""
     nis = mahalanobis_sq(nu, torch.zeros_like(nu[..., :1]), L)
     return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(L), nu.shape[-1])
 

@@ -152,9 +152,9 @@ class _Buffers:
         return total
 
 
-def _iterate_inplace(a: Tensor, a0: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
+def _iterate_inplace(a: Tensor, a0: Tensor, iterations: int, tol: float | None,
+                     buf: _Buffers) -> tuple[Tensor, int, bool]:
     """The same iteration in preallocated buffers (no autograd); returns ``a_ij ν_ji``."""
-    buf = _Buffers(a)
     prod = a.clone()
     mu = torch.empty_like(a)
     last = None
@@ -204,8 +204,8 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
         _, s = _sum_of_others(mu, 1.0, -2)
         return LBPResult(prod / t, (a0 / t).squeeze(-1), 1.0 / s.squeeze(-2), mu / s, it, converged)
     a = a.contiguous()
-    prod, it, converged = _iterate_inplace(a, a0, iterations, tol)
     buf = _Buffers(a)
+    prod, it, converged = _iterate_inplace(a, a0, iterations, tol, buf)
     mu = torch.empty_like(a)
     t = buf.others(prod, a0, -1, mu)
     torch.div(a, mu, out=mu)
