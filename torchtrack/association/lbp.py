@@ -88,16 +88,20 @@ def scaled_weights(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> tuple[Te
     weight at all gets ``a_i0 = 1`` (it misses).
     """
     log_new = log_new.clamp_min(LOG_NEW_FLOOR.get(log_new.dtype, LOG_NEW_FLOOR[torch.float32]))
-    log_ratio = log_w - log_new.unsqueeze(-2)                                   # log(w_ij / λ_j)
-    batch = torch.broadcast_shapes(log_ratio.shape[:-2], log_miss.shape[:-1])
-    log_ratio = log_ratio.expand(*batch, *log_ratio.shape[-2:])
-    log_miss = log_miss.expand(*batch, log_miss.shape[-1])
+    log_ratio = log_w - log_new.unsqueeze(-2)                                   # log(w_ij / λ_j), a new tensor
     with torch.no_grad():
-        log_c = log_miss if log_ratio.shape[-1] == 0 else torch.maximum(log_miss, log_ratio.amax(-1))
+        log_c = log_ratio.amax(-1) if log_ratio.shape[-1] else log_ratio.new_full(log_ratio.shape[:-1], float("-inf"))
+        log_c = torch.maximum(log_miss, log_c)
         finite = torch.isfinite(log_c)
         log_c = torch.where(finite, log_c, torch.zeros_like(log_c))
-    log_a0 = torch.where(finite, log_miss - log_c, torch.zeros_like(log_c))
-    return torch.exp(log_ratio - log_c.unsqueeze(-1)), torch.exp(log_a0).unsqueeze(-1)
+    log_a0 = torch.where(finite, log_miss.expand_as(log_c) - log_c, torch.zeros_like(log_c))
+    batch = log_c.shape[:-1]
+    if torch.is_grad_enabled() and log_ratio.requires_grad:
+        a = torch.exp(log_ratio - log_c.unsqueeze(-1))
+    else:                                                       # in place: one buffer, two passes
+        a = log_ratio.sub_(log_c.unsqueeze(-1)).exp_() if log_ratio.shape[:-2] == batch else \
+            torch.exp(log_ratio - log_c.unsqueeze(-1))
+    return a, torch.exp(log_a0).unsqueeze(-1)
 
 
 def _sum_of_others(v: Tensor, floor: Tensor | float, dim: int) -> tuple[Tensor, Tensor]:
@@ -137,18 +141,20 @@ class _Buffers:
     """Preallocated ``(*, n, m)`` buffers for :func:`_sum_of_others` in place (no autograd)."""
 
     def __init__(self, a: Tensor):
-        self.step = torch.empty_like(a)
+        self.keep = torch.empty_like(a)
         self.work = torch.empty_like(a)
         self.tiny = torch.finfo(a.dtype).tiny
 
     def others(self, v: Tensor, floor: Tensor | float, dim: int, out: Tensor) -> Tensor:
-        """:func:`_sum_of_others` with the remainders written into ``out`` (not ``v``); returns the full sum."""
+        """:func:`_sum_of_others` with the remainders written into ``out`` (not ``v``); returns the full sum.
+        (``keep = 1 − step``: ``v`` times it is the non-dominant terms; ``lerp`` from ``rest`` to
+        ``total − v`` by it selects exactly.)"""
         total = v.sum(dim, keepdim=True).add_(floor).clamp_min_(self.tiny)
-        torch.gt(v, total * 0.5, out=self.step)
-        torch.addcmul(v, v, self.step, value=-1, out=self.work)
+        torch.le(v, total * 0.5, out=self.keep)
+        torch.mul(v, self.keep, out=self.work)
         rest = self.work.sum(dim, keepdim=True).add_(floor).clamp_min_(self.tiny)
         torch.sub(total, v, out=out)
-        torch.lerp(out, rest.expand_as(out), self.step, out=out)
+        torch.lerp(rest.expand_as(out), out, self.keep, out=out)
         return total
 
 
@@ -197,7 +203,7 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     n, m = log_w.shape[-2:]
     a, a0 = scaled_weights(log_w, log_miss, log_new)
     a, a0 = a.expand(*batch, n, m), a0.expand(*batch, n, 1)
-    if torch.is_grad_enabled() and a.requires_grad:
+    if torch.is_grad_enabled() and (a.requires_grad or a0.requires_grad):
         prod, it, converged = _iterate_functional(a, a0, iterations, tol)
         others, t = _sum_of_others(prod, a0, -1)
         mu = a / others                                             # μ from the final ν
