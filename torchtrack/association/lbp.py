@@ -32,7 +32,7 @@ term (a track almost sure of one measurement), so the term that is more than hal
 most one per row and per column — takes its remainder from a second, masked sum instead
 (:func:`_sum_of_others`); every other term is at most half the sum, which bounds the subtraction's
 relative error by ``2 ε``. The iteration is therefore elementwise passes and reductions over the
-``n × m`` matrix, with no loop over tracks; without autograd it writes into preallocated buffers.
+``n × m`` matrix, with no loop over tracks; without autograd it writes into two preallocated buffers.
 
 Weights come in the **log domain**; ``-inf`` marks a pair outside the gate, padding tracks have
 all their ``w_ij = -inf`` and padding measurements all their ``w_ij = -inf`` (their outputs are
@@ -137,37 +137,28 @@ def _iterate_functional(a: Tensor, a0: Tensor, iterations: int, tol: float | Non
     return prod, iterations, False
 
 
-class _Buffers:
-    """Preallocated ``(*, n, m)`` buffers for :func:`_sum_of_others` in place (no autograd)."""
-
-    def __init__(self, a: Tensor):
-        self.keep = torch.empty_like(a)
-        self.work = torch.empty_like(a)
-        self.tiny = torch.finfo(a.dtype).tiny
-
-    def others(self, v: Tensor, floor: Tensor | float, dim: int, out: Tensor) -> Tensor:
-        """:func:`_sum_of_others` with the remainders written into ``out`` (not ``v``); returns the full sum.
-        (``keep = 1 − step``: ``v`` times it is the non-dominant terms; ``lerp`` from ``rest`` to
-        ``total − v`` by it selects exactly.)"""
-        total = v.sum(dim, keepdim=True).add_(floor).clamp_min_(self.tiny)
-        torch.le(v, total * 0.5, out=self.keep)
-        torch.mul(v, self.keep, out=self.work)
-        rest = self.work.sum(dim, keepdim=True).add_(floor).clamp_min_(self.tiny)
-        torch.sub(total, v, out=out)
-        torch.lerp(rest.expand_as(out), out, self.keep, out=out)
-        return total
+def _others_inplace(v: Tensor, floor: Tensor | float, dim: int, out: Tensor) -> Tensor:
+    """:func:`_sum_of_others` without autograd and without a buffer of its own: the remainders go to
+    ``out``, ``v`` is overwritten (with ``total − v``); returns the full sum. ``out`` first holds the
+    0/1 ``keep = 1 − step``, whose dot product with ``v`` is the remainder of a dominant term."""
+    tiny = torch.finfo(v.dtype).tiny
+    total = v.sum(dim, keepdim=True).add_(floor).clamp_min_(tiny)
+    torch.le(v, total * 0.5, out=out)
+    rest = torch.linalg.vecdot(v, out, dim=dim).unsqueeze(dim).add_(floor).clamp_min_(tiny)
+    torch.sub(total, v, out=v)
+    torch.lerp(rest.expand_as(out), v, out, out=out)
+    return total
 
 
-def _iterate_inplace(a: Tensor, a0: Tensor, iterations: int, tol: float | None,
-                     buf: _Buffers) -> tuple[Tensor, int, bool]:
-    """The same iteration in preallocated buffers (no autograd); returns ``a_ij ν_ji``."""
+def _iterate_inplace(a: Tensor, a0: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
+    """The same iteration in two buffers (no autograd); returns ``a_ij ν_ji``."""
     prod = a.clone()
     mu = torch.empty_like(a)
     last = None
     for it in range(1, iterations + 1):
-        t = buf.others(prod, a0, -1, mu)
+        t = _others_inplace(prod, a0, -1, mu)
         torch.div(a, mu, out=mu)
-        s = buf.others(mu, 1.0, -2, prod)
+        s = _others_inplace(mu, 1.0, -2, prod)
         torch.div(a, prod, out=prod)
         if tol is not None and (it % 2 == 0 or it == iterations):
             stat = torch.cat([(a0 / t).flatten(), s.flatten().reciprocal()])
@@ -203,17 +194,18 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     n, m = log_w.shape[-2:]
     a, a0 = scaled_weights(log_w, log_miss, log_new)
     a, a0 = a.expand(*batch, n, m), a0.expand(*batch, n, 1)
+    tiny = torch.finfo(a.dtype).tiny
     if torch.is_grad_enabled() and (a.requires_grad or a0.requires_grad):
         prod, it, converged = _iterate_functional(a, a0, iterations, tol)
         others, t = _sum_of_others(prod, a0, -1)
         mu = a / others                                             # μ from the final ν
-        _, s = _sum_of_others(mu, 1.0, -2)
+        s = (mu.sum(-2, keepdim=True) + 1.0).clamp_min(tiny)
         return LBPResult(prod / t, (a0 / t).squeeze(-1), 1.0 / s.squeeze(-2), mu / s, it, converged)
-    a = a.contiguous()
-    buf = _Buffers(a)
-    prod, it, converged = _iterate_inplace(a, a0, iterations, tol, buf)
-    mu = torch.empty_like(a)
-    t = buf.others(prod, a0, -1, mu)
+    prod, it, converged = _iterate_inplace(a.contiguous(), a0, iterations, tol)
+    t = (prod.sum(-1, keepdim=True) + a0).clamp_min_(tiny)
+    assoc = prod / t
+    mu = torch.empty_like(prod)
+    _others_inplace(prod, a0, -1, mu)                              # prod is overwritten
     torch.div(a, mu, out=mu)
-    s = buf.others(mu, 1.0, -2, buf.work)
-    return LBPResult(prod.div_(t), (a0 / t).squeeze(-1), s.reciprocal().squeeze(-2), mu.div_(s), it, converged)
+    s = mu.sum(-2, keepdim=True).add_(1.0).clamp_min_(tiny)
+    return LBPResult(assoc, (a0 / t).squeeze(-1), s.reciprocal().squeeze(-2), mu.div_(s), it, converged)
