@@ -265,9 +265,7 @@ def innovations_likelihood(gain: KalmanGain, nu: Tensor) -> tuple[Tensor, Tensor
     factors of ``gain`` ``(*, m, m)`` → NIS and log ℓ ``(*, k)``; the whitening ``L⁻¹`` is applied to
     all ``k`` innovations by one batched GEMM."""
     white = nu @ gain.chol_inv.transpose(-1, -2)
-    nis = white[..., 0] * white[..., 0]
-    for k in range(1, white.shape[-1]):
-        nis = nis + white[..., k] * white[..., k]
+    nis = (white * white).sum(-1)
     return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol).unsqueeze(-1), nu.shape[-1])
 
 
