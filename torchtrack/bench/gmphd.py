@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import report
-from torchtrack.filters.gmphd import chi2_quantile
 from torchtrack.filters.multitarget import make_tracker
+from torchtrack.gaussian import chi2_quantile
 
 NAME = "gmphd"
 HELP = "GM-PHD steps/s (Stone Soup tutorial setting and a WPAFB-scale frame) vs a per-component NumPy GM-PHD"

@@ -29,7 +29,7 @@ import torch
 from torchtrack.association.assignment import assign
 from torchtrack.association.gating import (
     Gate,
-    chi2_threshold,
+    check_alpha,
     density_gate,
     ellipsoid_volume,
     ellipsoidal_gate,
@@ -39,7 +39,7 @@ from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_bank import BankState, ClassConditionedIMM
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
-from torchtrack.gaussian import moment_match
+from torchtrack.gaussian import chi2_quantile, moment_match
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
 from torchtrack.models import LinearPosition, ModeControlInput
@@ -122,7 +122,7 @@ def _cc_ellipse_gate(bank: ClassConditionedIMM, state: BankState, z, z_class, z_
     it is the ellipsoidal gate of the class-conditioned mixture, with an unlikely report it shrinks
     (or vanishes). Volume: the ellipse area averaged over the report classes.
     """
-    thr = chi2_threshold(alpha, z.shape[-1])
+    thr = chi2_quantile(1.0 - check_alpha(alpha), z.shape[-1])
     mask = dist = None
     volumes = []
     for c in range(bank.num_classes):
