@@ -155,3 +155,53 @@ def test_scenario_configs_refuse_wrong_types_and_unknown_keys_naming_the_key(sce
     bad.write_text(yaml.safe_dump(doc))
     assert main(["scenario", scenario, "--config", str(bad), "--runs", "1"]) == 2
     assert f"unknown key(s) ['{section}.typo']" in capsys.readouterr().err
+
+
+def _random_frames(rng, n_frames=6, n=300, size=400.0):
+    start = rng.uniform(0, size, (n, 2))
+    velocity = rng.normal(0, 2, (n, 2))
+    return [start + k * velocity + rng.normal(0, 0.5, (n, 2)) for k in range(n_frames)]
+
+
+def test_sort_on_gated_pairs_equals_the_dense_assignment(monkeypatch):
+    import torch
+
+    import torchtrack.filters.baselines as baselines
+
+    frames = _random_frames(np.random.default_rng(1))
+
+    def run():
+        tracker = baselines.SORT(max_distance=6.0, min_hits=1)
+        return [tuple(t.tolist() for t in tracker.step(k + 1, torch.as_tensor(z))) for k, z in enumerate(frames)]
+
+    dense = run()
+    monkeypatch.setattr(baselines, "DENSE_PAIRS", 0)       # every frame through the k-d tree and components
+    assert run() == dense
+
+
+def test_greedy_on_gated_pairs_equals_the_brute_force_rule():
+    import torch
+
+    from torchtrack.filters.baselines import GreedyTracker
+
+    frames = _random_frames(np.random.default_rng(2))
+    tracker = GreedyTracker(max_distance=5.0, max_age=1)
+    pos, ids, age, next_id = np.empty((0, 2)), np.empty(0, np.int64), np.empty(0, np.int64), 1
+    for k, z in enumerate(frames):
+        got, _ = tracker.step(k + 1, torch.as_tensor(z))
+        # brute force: detections in order take the nearest free track within the gate (ties: earlier track)
+        want, taken = np.zeros(len(z), np.int64), np.zeros(len(pos), bool)
+        for i, p in enumerate(z):
+            d = np.where(taken, np.inf, np.hypot(*(pos - p).T) if len(pos) else np.zeros(0))
+            d[d > 5.0] = np.inf
+            if len(d) and np.isfinite(d.min()):
+                j = int(np.argmin(d))
+                taken[j], want[i] = True, ids[j]
+        new = want == 0
+        want[new] = np.arange(next_id, next_id + new.sum())
+        next_id += int(new.sum())
+        keep = age[~taken] + 1 <= 1
+        pos = np.concatenate([z, pos[~taken][keep]])
+        ids, age = np.concatenate([want, ids[~taken][keep]]), np.concatenate([np.zeros(len(z), np.int64),
+                                                                              (age[~taken] + 1)[keep]])
+        assert got.tolist() == want.tolist()

@@ -18,7 +18,7 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.association.assignment import hungarian
+from torchtrack.association.assignment import by_component, gated_pairs, hungarian
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd_input import InputAwareGMPHD
 from torchtrack.filters.gmphd_tracker import GMPHDTracker
@@ -60,6 +60,17 @@ def pmb(config: PMBConfig | Mapping | None = None):
 
 
 _SORT, _GREEDY = SORTConfig(), GreedyConfig()   # keyword defaults below (one source: tracker_config)
+
+
+DENSE_PAIRS = 1 << 20
+"""SORT builds the dense track × detection distance matrix up to this many pairs; beyond, only the pairs within
+``max_distance`` (k-d trees), assigned per connected component, so memory follows the gated pairs."""
+
+
+def _hungarian_block(costs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`hungarian` on a dense block whose NaN entries are pairs outside the gate."""
+    rows, cols = hungarian(np.nan_to_num(costs, nan=np.inf))
+    return rows.numpy(), cols.numpy()
 
 
 def _as_points(positions, dtype) -> Tensor:
@@ -111,9 +122,14 @@ class SORT:
             cov = symmetrize(F @ self.cov @ F.T + Q)
             T, M = mean.shape[0], z.shape[0]
             ti_t = di_t = torch.zeros(0, dtype=torch.long)
-            if T and M:
+            if T and M and T * M <= DENSE_PAIRS:
                 dist = torch.cdist(mean[:, :2], z)
                 ti_t, di_t = hungarian(dist, dist <= self.max_distance)
+            elif T and M:          # many tracks and detections: only the gated pairs, solved per component
+                i, j, d = gated_pairs(mean[:, :2].numpy(), z.numpy(), self.max_distance)
+                ti, di, _ = by_component(T, M, i, j, d, _hungarian_block)
+                order = np.argsort(ti)
+                ti_t, di_t = torch.as_tensor(ti[order]), torch.as_tensor(di[order])
             if ti_t.numel():
                 upd = kalman_update(mean[ti_t], cov[ti_t], z[di_t], self.H, self.R)
                 mean[ti_t], cov[ti_t] = upd.mean, upd.cov
@@ -170,15 +186,18 @@ class GreedyTracker:
         M, T = p.shape[0], self.pos.shape[0]
         ids = np.zeros(M, dtype=np.int64)
         taken = np.zeros(T, dtype=bool)
-        if T:
-            dist = np.sqrt(((back[:, None, :] - self.pos[None, :, :]) ** 2).sum(-1))
-            dist[:, :] = np.where(dist <= self.max_distance, dist, np.inf)
+        if T and M:
+            # each detection's candidates within the gate, nearest first (ties: the earlier track)
+            di, tj, d = gated_pairs(back, self.pos, self.max_distance)
+            order = np.lexsort((tj, d, di))
+            di, tj = di[order], tj[order]
+            starts = np.searchsorted(di, np.arange(M + 1))
             for i in range(M):
-                row = np.where(taken, np.inf, dist[i])
-                j = int(np.argmin(row))
-                if np.isfinite(row[j]):
-                    taken[j] = True
-                    ids[i] = self.ids[j]
+                for j in tj[starts[i]:starts[i + 1]]:
+                    if not taken[j]:
+                        taken[j] = True
+                        ids[i] = self.ids[j]
+                        break
         new = ids == 0
         ids[new] = np.arange(self.next_id, self.next_id + int(new.sum()))
         self.next_id += int(new.sum())

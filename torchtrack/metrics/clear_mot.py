@@ -41,10 +41,9 @@ from __future__ import annotations
 
 import numpy as np
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
+from torchtrack.association.assignment import by_component
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData
 
@@ -131,38 +130,10 @@ def _match_dense(dist: np.ndarray, masked_rows: np.ndarray, masked_cols: np.ndar
     return r, k, dist[r, k]
 
 
-def _sparse_assignment(n: int, m: int, i: np.ndarray, j: np.ndarray, d: np.ndarray, solve):
-    """Assignment over the sparse pairs ``(i, j)`` with values ``d``, solved per connected component.
-
-    ``solve`` maps a dense (rows, cols) block, NaN where no pair, to matched (rows, cols) of the block;
-    a component that is a single pair is matched directly. Returns matched (i, j, d).
-    """
-    if i.size == 0:
-        return i, j, d
-    graph = coo_matrix((np.ones(i.size), (i, n + j)), shape=(n + m, n + m))
-    _, label = connected_components(graph, directed=False)
-    comp = label[i]
-    single = np.bincount(comp)[comp] == 1  # an isolated pair is its own optimum
-    rows, cols, dists = [i[single]], [j[single]], [d[single]]
-    multi = np.flatnonzero(~single)
-    order = multi[np.argsort(comp[multi], kind="stable")]
-    bounds = np.flatnonzero(np.diff(comp[order])) + 1
-    for idx in np.split(order, bounds) if order.size else []:  # one small dense problem per component
-        ui, ii = np.unique(i[idx], return_inverse=True)
-        uj, jj = np.unique(j[idx], return_inverse=True)
-        sub = np.full((ui.size, uj.size), np.nan)
-        sub[ii, jj] = d[idx]
-        r, k = solve(sub)
-        rows.append(ui[r])
-        cols.append(uj[k])
-        dists.append(sub[r, k])
-    return np.concatenate(rows), np.concatenate(cols), np.concatenate(dists)
-
-
 def _match_sparse(n: int, m: int, i: np.ndarray, j: np.ndarray, d: np.ndarray,
                   masked_rows: np.ndarray, masked_cols: np.ndarray):
     keep = ~masked_rows[i] & ~masked_cols[j]
-    return _sparse_assignment(n, m, i[keep], j[keep], d[keep], _lsa_with_gaps)
+    return by_component(n, m, i[keep], j[keep], d[keep], _lsa_with_gaps)
 
 
 def _max_weight(weights: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -182,7 +153,7 @@ def _idtp(keys: np.ndarray, n_hyp: int) -> int:
         weights[ro, rh] = counts
         r, k = linear_sum_assignment(weights, maximize=True)
         return int(weights[r, k].sum())
-    _, _, w = _sparse_assignment(uo.size, uh.size, ro, rh, counts.astype(np.float64), _max_weight)
+    _, _, w = by_component(uo.size, uh.size, ro, rh, counts.astype(np.float64), _max_weight)
     return int(np.nansum(w))
 
 
@@ -217,7 +188,7 @@ def drop_ignored(gt: MOTData, pred: MOTData, ignore: np.ndarray, threshold: floa
             r, k = _lsa_with_gaps(metric.dense(gf[a:b], pf[c:e]))
         else:
             pi, pj, pd = metric.pairs(gf[a:b], pf[c:e])
-            r, k, _ = _sparse_assignment(n, m, pi, pj, pd, _lsa_with_gaps)
+            r, k, _ = by_component(n, m, pi, pj, pd, _lsa_with_gaps)
         keep[c + k[ignore[a + r]]] = False
     return gt.select(~ignore), pred.select(keep)
 
