@@ -125,7 +125,7 @@ def run_jtc(config: Path, runs: int, seed: int, *, speed_constraints: bool = Tru
     """The scenario YAML ``config``: ``runs`` runs filtered by the bank with and without speed likelihoods
     (``speed_constraints``: the main result's setting), then the time per update of one run; ``particles``
     per class (None: the config's) on ``threads`` torch threads (restored afterwards)."""
-    with torch_threads(None):
+    with torch_threads(threads):
         cfg = load_config(config)
         if particles is not None:
             cfg["filter"]["particles"] = particles
@@ -135,7 +135,6 @@ def run_jtc(config: Path, runs: int, seed: int, *, speed_constraints: bool = Tru
         true_class = int(cfg["true_class"])
         if true_class not in (1, 2):
             raise TorchtrackError(f"{config}: true_class must be 1 or 2")
-        torch.set_num_threads(threads)
         t = cfg["trajectory"]
         traj = jtc_trajectory(t["scans"], t["dt"], t["speed"], t["start"], t["heading_deg"])
         gen = torch.Generator().manual_seed(seed)
