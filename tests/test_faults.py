@@ -114,3 +114,44 @@ def test_binary_wpafb_csv_and_absurd_clutter_are_one_error(tmp_path, capsys):
     truth = from_points([1, 2], [1, 1], [5.0, 6.0], [5.0, 5.0])
     with pytest.raises(TorchtrackError, match="clutter 1e\\+09 per frame over 2 frames"):
         simulate_detections(truth, pd=0.9, sigma=1.0, clutter=1e9, image_size=(100, 100))
+
+
+def test_sparse_frame_numbers_are_crossed_in_one_step(tmp_path):
+    from torchtrack.pipeline.frame_detections import MAX_GAP, stream_frames
+
+    det = from_points([1, 4, 4 + MAX_GAP + 2, 10**9, 10**9 + 1], [-1] * 5, [10.0, 11, 12, 50, 51], [10.0] * 5)
+    frames = stream_frames(det)
+    # short gaps are frames where nothing was detected; the long ones are crossed (the trackers predict by dt)
+    assert frames.tolist() == [1, 2, 3, 4, 4 + MAX_GAP + 2, 10**9, 10**9 + 1]
+    gt = from_points([1, 2, 3, 10**9, 10**9 + 1], [1, 1, 1, 2, 2], [10.0, 11, 12, 50, 51], [10.0] * 5)
+    write_motdata(tmp_path / "det.txt", from_points([1, 2, 3, 10**9, 10**9 + 1], [-1] * 5, [10.0, 11, 12, 50, 51],
+                                                     [10.0] * 5))
+    write_motdata(tmp_path / "gt.txt", gt)
+    assert main(["track", "--detections", str(tmp_path / "det.txt"), "--gt", str(tmp_path / "gt.txt"),
+                 "--tracker", "greedy", "--out", str(tmp_path / "out")]) == 0
+    tracks = read_mot(tmp_path / "out" / "tracks.txt")
+    assert tracks.frames().tolist() == [1, 2, 3, 10**9, 10**9 + 1]
+    assert clear_mot(gt, tracks)["MOTA"] == 1.0
+
+
+@pytest.mark.parametrize("scenario, section, key", [("maneuver", "stationary", "sigma"),
+                                                    ("formation", "scenario", "dt"),
+                                                    ("jtc", "trajectory", "speed"), ("pedestrian", "scene", "dt")])
+def test_scenario_configs_refuse_wrong_types_and_unknown_keys_naming_the_key(scenario, section, key, tmp_path,
+                                                                             capsys):
+    import yaml
+
+    from torchtrack.config import preset_path
+
+    doc = yaml.safe_load(preset_path(scenario).read_text())
+    doc[section][key] = "abc"
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(yaml.safe_dump(doc))
+    assert main(["scenario", scenario, "--config", str(bad), "--runs", "1"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"torchtrack scenario: error: {bad}: {section}.{key} must be a number; got 'abc'"]
+    doc[section][key] = "1e-1"                  # PyYAML reads this as a string: taken as the number
+    doc[section]["typo"] = 1
+    bad.write_text(yaml.safe_dump(doc))
+    assert main(["scenario", scenario, "--config", str(bad), "--runs", "1"]) == 2
+    assert f"unknown key(s) ['{section}.typo']" in capsys.readouterr().err

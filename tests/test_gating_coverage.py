@@ -6,7 +6,6 @@ import pytest
 import torch
 
 from torchtrack.association.gating import (
-    chi2_threshold,
     class_conditioned_gate,
     density_gate,
     ellipsoidal_gate,
@@ -18,7 +17,7 @@ from torchtrack.association.gating import (
     sample_mixture,
 )
 from torchtrack.errors import TorchtrackError
-from torchtrack.gaussian import sample
+from torchtrack.gaussian import chi2_quantile, sample
 from torchtrack.models import RangeBearing
 
 ALPHA = 0.05
@@ -49,7 +48,7 @@ def test_ellipsoidal_gate_coverage_and_volume():
     z_hat, S, g = _gaussians()
     cov, gate = _self_coverage(lambda z, m, s: ellipsoidal_gate(z, m, s, ALPHA), z_hat, S, g)
     assert (cov - (1 - ALPHA)).abs().max() < _tol(20000)
-    vol = math.pi * chi2_threshold(ALPHA, 2) * torch.linalg.det(S).sqrt()
+    vol = math.pi * chi2_quantile(1 - ALPHA, 2) * torch.linalg.det(S).sqrt()
     torch.testing.assert_close(gate.volume.squeeze(-1), vol)
 
 

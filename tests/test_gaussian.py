@@ -1,8 +1,19 @@
 """The batched Gaussian core against torch.distributions and closed forms."""
 
+import pytest
 import torch
 
-from torchtrack.gaussian import cholesky, kalman_update, log_prob, mahalanobis_sq, moment_match, sample
+from torchtrack.errors import TorchtrackError
+from torchtrack.gaussian import (
+    chi2_quantile,
+    cholesky,
+    kalman_gain,
+    kalman_update,
+    log_prob,
+    mahalanobis_sq,
+    moment_match,
+    sample,
+)
 
 
 def _spd(gen, *batch, n):
@@ -64,3 +75,32 @@ def test_sampling_is_reproducible_with_a_generator():
     a = sample(torch.zeros(2, dtype=torch.float64), cov, torch.Generator().manual_seed(5), (3,))
     b = sample(torch.zeros(2, dtype=torch.float64), cov, torch.Generator().manual_seed(5), (3,))
     torch.testing.assert_close(a, b)
+
+
+@pytest.mark.parametrize("dof", [1, 2, 3, 4, 6])
+def test_chi2_quantile_matches_scipy(dof):
+    from scipy.stats import chi2
+
+    for p in (0.5, 0.9, 0.99, 0.999, 0.9999):
+        assert chi2_quantile(p, dof) == pytest.approx(float(chi2.ppf(p, dof)), rel=1e-12)
+    assert chi2_quantile(1.0, dof) == float("inf")
+    with pytest.raises(TorchtrackError, match="probability"):
+        chi2_quantile(0.0, dof)
+
+
+@pytest.mark.parametrize("batch", [3, 200])          # the LAPACK and the unrolled small-matrix paths
+@pytest.mark.parametrize("m", [1, 2, 3])
+def test_kalman_gain_against_a_dense_solve(batch, m):
+    g = torch.Generator().manual_seed(batch + m)
+    n = 4
+    A = torch.randn(batch, m, m, generator=g, dtype=torch.float64)
+    S = A @ A.transpose(-1, -2) + 0.5 * torch.eye(m, dtype=torch.float64)
+    C = torch.randn(batch, n, m, generator=g, dtype=torch.float64)
+    gain = kalman_gain(S, C)
+    K = torch.linalg.solve(S, C.transpose(-1, -2)).transpose(-1, -2)
+    torch.testing.assert_close(gain.gain, K, rtol=1e-12, atol=1e-12)
+    torch.testing.assert_close(gain.chol @ gain.chol.transpose(-1, -2), S, rtol=1e-12, atol=1e-12)
+    W = gain.white_cross
+    torch.testing.assert_close(W @ W.transpose(-1, -2), K @ S @ K.transpose(-1, -2), rtol=1e-12, atol=1e-12)
+    with pytest.raises(TorchtrackError, match="innovation covariance S"):
+        kalman_gain(-S, C)

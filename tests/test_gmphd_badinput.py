@@ -90,5 +90,5 @@ def test_non_positive_definite_innovation_covariance_is_a_clear_error():
     phd = GMPHD()
     state = MixtureState(torch.zeros(2), torch.zeros(2, 4), -10.0 * torch.eye(4).expand(2, 4, 4),
                          torch.arange(2), torch.ones(2, dtype=torch.bool))
-    with pytest.raises(TorchtrackError, match="not positive definite for 2 components"):
+    with pytest.raises(TorchtrackError, match=r"GMPHD update: innovation covariance S is not positive definite \(2 of"):
         phd.update(state, torch.zeros(1, 2), phd.matrices(1.0))

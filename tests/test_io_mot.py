@@ -59,12 +59,21 @@ def test_writer_flushes_each_frame_and_accepts_tensors(tmp_path):
     w = MOTWriter(p)
     w.write_frame(1, torch.tensor([3, 4]), torch.tensor([1.0, 2.0]), torch.tensor([5.0, 6.0]))
     w.write_frame(2, [], [], [])
-    # not closed yet: an interrupted run still leaves the completed frames readable
-    d = read_mot(p)
+    # not closed yet: nothing under the final name, the completed frames readable under the partial one
+    assert not p.exists()
+    d = read_mot(tmp_path / "w.partial.txt")
     np.testing.assert_array_equal(d.id, [3, 4])
     w.write_frame(3, [7], [1.0], [1.0])
     w.close()
-    assert read_mot(p).size == 3
+    assert read_mot(p).size == 3 and not (tmp_path / "w.partial.txt").exists()
+
+
+def test_writer_left_by_an_exception_keeps_only_the_partial_file(tmp_path):
+    with pytest.raises(KeyboardInterrupt), MOTWriter(tmp_path / "w.txt") as w:
+        w.write_frame(1, [3], [1.0], [5.0])
+        raise KeyboardInterrupt
+    assert not (tmp_path / "w.txt").exists()
+    np.testing.assert_array_equal(read_mot(tmp_path / "w.partial.txt").id, [3])
 
 
 def test_tens_of_thousands_in_one_frame(tmp_path):

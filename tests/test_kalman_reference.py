@@ -10,7 +10,6 @@ from torchtrack.filters.kalman import (
     KalmanFilter,
     UnscentedKalmanFilter,
 )
-from torchtrack.filters.kalman_fast import run_cv_fast
 from torchtrack.models import (
     ConstantVelocity,
     CoordinatedTurnRate,
@@ -79,19 +78,6 @@ def test_ekf_and_ukf_equal_kf_on_linear_models():
         torch.testing.assert_close(res.mean, ref.mean, rtol=0, atol=1e-9)
         torch.testing.assert_close(res.cov, ref.cov, rtol=0, atol=1e-9)
         torch.testing.assert_close(res.log_likelihood, ref.log_likelihood, rtol=0, atol=1e-9)
-
-
-def test_fast_path_equals_general_path_including_missing_measurements():
-    kf, z, init = _cv_problem(batch=(4, 3), T=20)
-    z = z.clone()
-    z[5, 1, 2] = float("nan")
-    z[6:9, 0, 0] = float("nan")
-    ref = kf.run(z, init)
-    for compile in (False,):
-        fast = run_cv_fast(kf, z, init, compile=compile)
-        torch.testing.assert_close(fast.mean, ref.mean, rtol=0, atol=1e-10)
-        torch.testing.assert_close(fast.cov, ref.cov, rtol=0, atol=1e-10)
-        torch.testing.assert_close(fast.log_likelihood, ref.log_likelihood, rtol=0, atol=1e-9)
 
 
 def _numpy_ekf(z, x0, P0, motion, meas, dt):

@@ -175,3 +175,74 @@ def test_empty_problems():
     torch.testing.assert_close(res.miss, torch.ones(4))
     res = lbp_marginals(torch.zeros(0, 3), torch.zeros(0), torch.zeros(3))
     torch.testing.assert_close(res.new, torch.ones(3))
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_two_pairs_of_one_track_keep_their_ratio(dtype):
+    """One track, likelihoods 1 and 2, clutter 0.1 each, miss weight 0: exactly [1/3, 2/3] (a cap on
+    log ψ made both pairs equal)."""
+    log_w = torch.tensor([[1.0, 2.0]], dtype=torch.float64).log()
+    log_miss = torch.tensor([NEG], dtype=torch.float64)
+    log_new = torch.tensor([0.1, 0.1], dtype=torch.float64).log()
+    assoc, miss, new = exact_marginals(log_w, log_miss, log_new)
+    torch.testing.assert_close(assoc, torch.tensor([[1 / 3, 2 / 3]], dtype=torch.float64), atol=1e-15, rtol=0)
+    res = lbp_marginals(log_w.to(dtype), log_miss.to(dtype), log_new.to(dtype))
+    tol = 1e-6 if dtype == torch.float32 else 1e-14
+    torch.testing.assert_close(res.assoc.double(), assoc, atol=tol, rtol=0)
+    torch.testing.assert_close(res.meas_assoc.double(), assoc, atol=tol, rtol=0)
+    torch.testing.assert_close(res.miss.double(), miss, atol=tol, rtol=0)
+    torch.testing.assert_close(res.new.double(), new, atol=tol, rtol=0)
+
+
+def test_float32_pedestrian_magnitudes_match_enumeration():
+    """The pedestrian config's magnitudes (miss 0.1, clutter density 6.25e-5, likelihoods 1.44 and 0.72),
+    in float32 as ``bench pmb --dtype float32`` runs them."""
+    log_w = torch.tensor([[1.44, 0.72]], dtype=torch.float64).log()
+    log_miss = torch.tensor([0.1], dtype=torch.float64).log()
+    log_new = torch.tensor([6.25e-5, 6.25e-5], dtype=torch.float64).log()
+    assoc, miss, new = exact_marginals(log_w, log_miss, log_new)
+    res = lbp_marginals(log_w.float(), log_miss.float(), log_new.float())
+    assert res.assoc.dtype == torch.float32
+    torch.testing.assert_close(res.assoc.double(), assoc, atol=1e-6, rtol=0)
+    torch.testing.assert_close(res.meas_assoc.double(), assoc, atol=1e-6, rtol=0)
+    torch.testing.assert_close(res.miss.double(), miss, rtol=1e-5, atol=0)
+    torch.testing.assert_close(res.new.double(), new, atol=1e-6, rtol=0)
+
+
+def _relative_close(actual: torch.Tensor, expected: torch.Tensor, rtol: float) -> None:
+    """Every probability to ``rtol`` of itself (the small ones too), zeros exact."""
+    torch.testing.assert_close(actual.double(), expected, rtol=rtol, atol=0)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_forest_at_extreme_magnitudes(dtype):
+    """A tree (track 0 - z0 - track 1, track 0 - z1) where track 0 is e^40 times surer of z0 than of
+    anything else: the remainder of its dominant term is 2e-35 of the sum, below float64's epsilon,
+    and track 1's marginals hinge on it. Every marginal, small ones included, to a few rounding errors."""
+    log_w = torch.tensor([[40.0, 0.0], [40.0, NEG]], dtype=torch.float64)
+    log_miss = torch.tensor([0.0, 0.0], dtype=torch.float64)
+    log_new = torch.tensor([0.0, 0.0], dtype=torch.float64)
+    assoc, miss, new = exact_marginals(log_w, log_miss, log_new)
+    assert 0.3 < float(assoc[1, 0]) < 0.7                   # the answer is not saturated
+    res = lbp_marginals(log_w.to(dtype), log_miss.to(dtype), log_new.to(dtype), iterations=20)
+    rtol = 1e-5 if dtype == torch.float32 else 1e-12
+    _relative_close(res.assoc, assoc, rtol)
+    _relative_close(res.meas_assoc, assoc, rtol)
+    _relative_close(res.miss, miss, rtol)
+    _relative_close(res.new, new, rtol)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("seed", range(4))
+def test_random_forests_at_large_magnitudes(dtype, seed):
+    """Cycle-free problems with log weights spread over ±60 and some zero miss weights: exact."""
+    g = torch.Generator().manual_seed(200 + seed)
+    log_w, log_miss, log_new = tree_problem(g, 3, 4)
+    log_w = log_w * 15
+    log_miss = torch.where(torch.rand(3, generator=g) < 0.3, torch.full_like(log_miss, NEG), log_miss * 15)
+    log_new = log_new * 15
+    assoc, miss, new = exact_marginals(log_w, log_miss, log_new)
+    res = lbp_marginals(log_w.to(dtype), log_miss.to(dtype), log_new.to(dtype), iterations=20)
+    tol = 1e-5 if dtype == torch.float32 else 1e-12
+    for got, want in ((res.assoc, assoc), (res.meas_assoc, assoc), (res.miss, miss), (res.new, new)):
+        torch.testing.assert_close(got.double(), want, atol=tol, rtol=0)

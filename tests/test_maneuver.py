@@ -9,17 +9,18 @@ import torch
 from torchtrack import TorchtrackError
 from torchtrack.cli import main
 from torchtrack.filters.kalman import KalmanFilter
-from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter, chi2_threshold, two_point_init
+from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter, two_point_init
+from torchtrack.gaussian import chi2_quantile
 from torchtrack.models import ConstantVelocity, LinearPosition
 from torchtrack.sim.maneuver import maneuvering
 
 
 def test_chi2_threshold_matches_the_paper():
     # the paper: threshold 10 "corresponds to a probability of 0.99" for 2 degrees of freedom
-    assert chi2_threshold(0.99, 2) == pytest.approx(-2 * math.log(0.01))
-    assert chi2_threshold(0.99, 2) < 10 < chi2_threshold(0.995, 2)
+    assert chi2_quantile(0.99, 2) == pytest.approx(-2 * math.log(0.01))
+    assert chi2_quantile(0.99, 2) < 10 < chi2_quantile(0.995, 2)
     with pytest.raises(TorchtrackError, match="probability"):
-        chi2_threshold(1.5, 2)
+        chi2_quantile(1.5, 2)
 
 
 def test_two_point_init_is_differencing():
@@ -60,7 +61,7 @@ def test_detects_each_maneuver_and_resets_independently_per_run():
 def test_false_alarm_rate_matches_the_chi_square_tail():
     gen = torch.Generator().manual_seed(1)
     seq = maneuvering(200, 200, 10.0, [], [], 3, 1.0, 0.0001, 1.0, gen)
-    detecting, _ = _filters(threshold=chi2_threshold(0.95, 2))
+    detecting, _ = _filters(threshold=chi2_quantile(0.95, 2))
     with torch.no_grad():
         res = detecting.run(seq.measurements)
     rate = res.detected[20:].double().mean()

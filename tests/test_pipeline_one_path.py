@@ -22,7 +22,7 @@ from torchtrack.io.mot import read_mot
 from torchtrack.metrics.table import TABLE1_HEADER, format_table1, table1_row
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.detection_file import detection_file_config
-from torchtrack.pipeline.frame_detections import frame_range, mot_frames
+from torchtrack.pipeline.frame_detections import mot_frames, stream_frames
 from torchtrack.pipeline.recorder import TrackRecorder
 from torchtrack.pipeline.replay import run_tracker
 
@@ -34,7 +34,8 @@ def test_recorder_keeps_in_memory_what_it_writes_and_flushes_each_frame(tmp_path
     with TrackRecorder(path) as rec:
         for k, ids, pos in given:
             rec.record(k, ids, pos)
-            assert read_mot(path).frame.max() == k        # on disk as soon as recorded
+            assert read_mot(tmp_path / "tracks.partial.txt").frame.max() == k  # on disk as soon as recorded
+            assert not path.exists()                                        # the final name: when complete
     tracks = rec.tracks()
     np.testing.assert_array_equal(tracks.frame, np.concatenate([np.full(len(i), k) for k, i, _ in given]))
     np.testing.assert_array_equal(tracks.id, np.concatenate([i for _, i, _ in given]))
@@ -48,7 +49,7 @@ def test_recorder_keeps_in_memory_what_it_writes_and_flushes_each_frame(tmp_path
 def test_detection_file_stream_equals_stepping_the_tracker_by_hand(tmp_path, name):
     gt_path, det_path = scene(tmp_path, seed=2)
     det = read_mot(det_path)
-    frames = frame_range(det, read_mot(gt_path))
+    frames = stream_frames(det, read_mot(gt_path))
     expected = []
     tracker = make_tracker(name, None)
     centres, velocity = det.centers(), det.velocity()
@@ -81,7 +82,7 @@ def test_a_pipeline_config_gate_applies_to_a_detection_file(tmp_path):
     speed = np.hypot(det.vx, det.vy)
     for base, reaching in ((None, det.size), (PipelineConfig(min_speed=2.0, output_lag=0), int((speed >= 2).sum()))):
         tracker = _Recording()
-        run_tracker(tracker, detection_file_config(base=base), mot_frames(det, frame_range(det)))
+        run_tracker(tracker, detection_file_config(base=base), mot_frames(det, stream_frames(det)))
         given = np.concatenate([v for _, v in tracker.given])
         assert len(given) == reaching
         if base is not None:

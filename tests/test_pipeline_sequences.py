@@ -12,6 +12,7 @@ import torch
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import read_mot
+from torchtrack.io.outputs import MARKER
 from torchtrack.metrics import clear_mot
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.sequences import concatenate, find_sequences, run_sequences
@@ -116,9 +117,10 @@ def test_single_process_and_torchrun_agree(root, tmp_path):
         f"sys.path.insert(0, {str(root)!r})\n"
         "from helper import PeakDetector\n"
         "from torchtrack.pipeline.config import PipelineConfig\n"
-        "from torchtrack.pipeline.sequences import destroy, run_sequences\n"
+        "from torchtrack.pipeline.sequences import destroy, run_sequences, shared_output\n"
         "warnings.simplefilter('ignore')\n"
-        f"run_sequences({str(root)!r}, {str(tmp_path / 'two')!r}, "
+        f"with shared_output({str(tmp_path / 'two')!r}, 'torchtrack track') as staging:\n"
+        f"    run_sequences({str(root)!r}, staging, "
         "PipelineConfig(tracker='greedy', video=False, min_speed=0.0, min_motion=0.0),"
         " detector=PeakDetector(), progress=False)\n"
         "destroy()\n")
@@ -131,6 +133,9 @@ def test_single_process_and_torchrun_agree(root, tmp_path):
     assert two["world_size"] == 2 and set(two["sequences"]) == {"a_seq", "b_seq", "c_seq"}
     for k in ("MOTA", "IDS", "FP", "FN", "TP", "IDF1"):
         assert two["aggregate"][k] == pytest.approx(single["aggregate"][k]), k
+    # Both ranks wrote into one staging folder, committed by rank 0 as one set.
+    assert json.loads((tmp_path / "two" / MARKER).read_text()) == {"command": "torchtrack track", "complete": True}
+    assert not (tmp_path / "two.partial").exists()
     # Each rank wrote the outputs of its own shard (a, c on rank 0; b on rank 1), all of them complete.
     for n in ("a_seq", "b_seq", "c_seq"):
         assert (tmp_path / "two" / n / "metrics.json").exists()

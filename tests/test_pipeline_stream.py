@@ -106,7 +106,8 @@ def test_interrupted_run_leaves_consistent_tracks(tmp_path, sequence, monkeypatc
         _run(tmp_path, sequence, monkeypatch, OracleDetector(sequence, stop_at=4), output_lag=lag)
     # Frames 1-3 were completed; with an output lag L only frames 1..3-L were final.
     final = tuple(range(1, 4 - lag))
-    tracks = read_mot(tmp_path / "tracks.txt")
+    assert not (tmp_path / "tracks.txt").exists()  # the final name only ever holds a whole run
+    tracks = read_mot(tmp_path / "tracks.partial.txt")
     assert set(tracks.frames().tolist()) == set(final)
     for k, idx in zip(final, tracks.split(final)):
         assert len(idx) == len(sequence[k - 1].xy)
@@ -158,7 +159,8 @@ def test_size_change_mid_run_names_the_file_and_leaves_no_complete_results(tmp_p
         tv.track_video(FolderSource(frames), out, PipelineConfig(min_speed=0.0, min_motion=0.0, output_lag=1),
                        detector=OnePoint(), progress=False)
     assert not (out / "metrics.json").exists() and not (out / "annotated.mp4").exists()
-    assert read_mot(out / "tracks.txt").frames().tolist() == [1]  # complete up to the last final frame
+    assert not (out / "tracks.txt").exists()  # no short file under the final name: the partial one
+    assert read_mot(out / "tracks.partial.txt").frames().tolist() == [1]  # complete up to the last final frame
 
 
 def test_truth_beyond_the_frames_is_refused_before_writing(tmp_path, sequence, monkeypatch):

@@ -9,8 +9,8 @@ import yaml
 
 from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
-from torchtrack.tune import fit, get_tunable, get_values, load_filter, load_params, save_params
 from torchtrack.tuning.parameters import get_raw
+from torchtrack.tuning.tune import fit, get_tunable, get_values, load_filter, load_params, save_params
 
 
 @pytest.mark.parametrize("dtype", ["float64", "float32"])
@@ -97,11 +97,12 @@ def test_tune_command_writes_params_plot_and_json(tmp_path, capsys):
 
 
 def test_tune_command_reports_bad_configs(tmp_path, capsys):
-    assert main(["tune", "--config", str(_config(tmp_path, trainable=["motion.x"])), "--out", str(tmp_path)]) == 2
+    out = str(tmp_path / "out")
+    assert main(["tune", "--config", str(_config(tmp_path, trainable=["motion.x"])), "--out", out]) == 2
     assert "valid names: measurement.sigma, motion.q" in capsys.readouterr().err
-    assert main(["tune", "--config", str(_config(tmp_path, optimiser={})), "--out", str(tmp_path)]) == 2
+    assert main(["tune", "--config", str(_config(tmp_path, optimiser={})), "--out", out]) == 2
     assert "unknown key(s) ['optimiser']" in capsys.readouterr().err
-    assert main(["tune", "--config", str(_config(tmp_path, loss="mse")), "--out", str(tmp_path)]) == 2
+    assert main(["tune", "--config", str(_config(tmp_path, loss="mse")), "--out", out]) == 2
     assert "unknown loss 'mse'" in capsys.readouterr().err
 
 

@@ -13,9 +13,9 @@ from test_tune_gmphd import draws_config
 
 from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
-from torchtrack.tune import load_filter
 from torchtrack.tuning.crossval import cross_validate, fold_config
 from torchtrack.tuning.registry import fold_bounds, get_tunable, split_items
+from torchtrack.tuning.tune import load_filter
 
 
 @pytest.mark.parametrize("n, folds", [(10, 3), (512, 4), (7, 7), (5, 2)])
@@ -98,5 +98,5 @@ def test_tune_command_folds_runs_every_fold_and_writes_the_summary(tmp_path, cap
     assert all((tmp_path / "cv" / f"fold-{k}" / "params.yaml").exists() for k in (1, 2, 3))
     out = capsys.readouterr().out
     assert "3-fold cross-validation" in out and "mean" in out
-    assert main(["tune", "--config", str(kalman_config(tmp_path)), "--out", str(tmp_path), "--folds", "9"]) == 2
+    assert main(["tune", "--config", str(kalman_config(tmp_path)), "--out", str(tmp_path / "cv9"), "--folds", "9"]) == 2
     assert "folds must be an integer from 2" in capsys.readouterr().err

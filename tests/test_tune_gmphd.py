@@ -9,8 +9,8 @@ import torch
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import from_points, write_motdata
-from torchtrack.tune import fit, get_tunable, get_values, select_trainable
 from torchtrack.tuning.parameters import get_raw, set_raw, set_values, tunable_parameters
+from torchtrack.tuning.tune import fit, get_tunable, get_values, select_trainable
 
 AREA = 300.0 * 300.0
 
@@ -124,8 +124,8 @@ def test_grid_search_scores_every_point_and_keeps_the_best(tmp_path):
 def test_exported_tracker_options_are_accepted_by_track(tmp_path):
     import yaml
 
-    from torchtrack.filters.tracker_config import read_tracker_sections
     from torchtrack.filters.multitarget import make_tracker
+    from torchtrack.filters.tracker_config import read_tracker_sections
 
     tun, tracker, _ = problem(tmp_path, frames=30)
     set_values(tracker, {"phd.p_detection": 0.77, "birth.birth_weight": 0.03})
@@ -275,7 +275,7 @@ def test_held_out_draws_simulate_the_held_out_frames_anew_per_seed(tmp_path):
 
 
 def test_tune_scores_the_tuned_filter_and_the_grid_on_every_draw(tmp_path):
-    from torchtrack.tune import load_filter, tune
+    from torchtrack.tuning.tune import load_filter, tune
 
     cfg = draws_config(tmp_path, [5, 6])
     report = tune(cfg, progress=False)

@@ -2,9 +2,9 @@
 
 import torch
 
-from torchtrack.tune import fit, get_tunable, get_values, select_trainable
 from torchtrack.tuning.parameters import tunable_parameters
 from torchtrack.tuning.trainer import Reparametrised
+from torchtrack.tuning.tune import fit, get_tunable, get_values, select_trainable
 
 
 def problem(runs=2, steps=15, seed=0):

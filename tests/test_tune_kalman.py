@@ -6,9 +6,9 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.tune import fit, get_tunable, get_values, select_trainable
 from torchtrack.tuning.parameters import get_raw, set_raw, tunable_parameters
 from torchtrack.tuning.registry import TuneData
+from torchtrack.tuning.tune import fit, get_tunable, get_values, select_trainable
 
 
 def small_problem(q=1.0, sigma=2.0, sequences=6, steps=30, seed=0, **model):

@@ -11,8 +11,8 @@ import torch
 from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import from_points, read_mot, write_motdata
-from torchtrack.tune import get_tunable, save_params
 from torchtrack.tuning.parameters import get_raw, set_values
+from torchtrack.tuning.tune import get_tunable, save_params
 
 AREA = 200.0 * 200.0
 
@@ -49,7 +49,7 @@ def test_track_params_reproduces_the_fitted_tracker_exactly(tmp_path):
 
     from torchtrack.cli.track import fitted_tracker
     from torchtrack.pipeline.detection_file import detection_file_config
-    from torchtrack.pipeline.frame_detections import frame_range, mot_frames
+    from torchtrack.pipeline.frame_detections import mot_frames, stream_frames
     from torchtrack.pipeline.replay import run_tracker
 
     det_path = detections_file(tmp_path)
@@ -61,7 +61,7 @@ def test_track_params_reproduces_the_fitted_tracker_exactly(tmp_path):
     loaded = fitted_tracker(args)
     module.reset()
     steps = 0
-    for f in mot_frames(det, frame_range(det)):
+    for f in mot_frames(det, stream_frames(det)):
         z, v = torch.from_numpy(f.positions), None if np.isnan(f.velocities).any() else torch.from_numpy(f.velocities)
         (ia, pa), (ib, pb) = module.step(f.index, z, v), loaded.step(f.index, z, v)
         assert torch.equal(ia, ib) and torch.equal(pa, pb)
@@ -69,7 +69,7 @@ def test_track_params_reproduces_the_fitted_tracker_exactly(tmp_path):
     assert steps > 20
     # and the command writes the same tracks file
     module.reset()
-    run_tracker(module, detection_file_config(), mot_frames(det, frame_range(det)), tmp_path / "expected.txt")
+    run_tracker(module, detection_file_config(), mot_frames(det, stream_frames(det)), tmp_path / "expected.txt")
     out = tmp_path / "out"
     assert main(["track", "--detections", str(det_path), "--params", str(params), "--tracker", "labelled-gmphd",
                  "--out", str(out)]) == 0

@@ -4,8 +4,8 @@ gradient is unbiased for the exact (Kalman) score on a linear-Gaussian model."""
 import pytest
 import torch
 
-from torchtrack.tune import get_tunable, select_trainable
 from torchtrack.tuning.parameters import get_raw, set_raw, tunable_parameters
+from torchtrack.tuning.tune import get_tunable, select_trainable
 
 
 def problem(sequences=2, steps=8, **opts):

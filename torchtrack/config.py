@@ -168,9 +168,38 @@ def _dotted(prefix: str, key: Any) -> str:
     return f"{prefix}.{key}" if prefix else str(key)
 
 
-def load_sections(path: str | Path, expected: set[str]) -> dict:
-    """Read a YAML config that must consist of exactly the ``expected`` top-level sections."""
-    cfg = read_mapping(path, "--config")
-    if set(cfg) != expected:
-        raise TorchtrackError(f"{path}: expected exactly the sections {sorted(expected)}")
-    return cfg
+def load_sections(path: str | Path, preset: str) -> dict:
+    """Read a scenario YAML that stands in for the shipped ``preset``: the same sections and keys, each value
+    of the preset's kind (:func:`conform`)."""
+    reference = read_mapping(preset_path(preset), "preset")
+    return conform(read_mapping(path, "--config"), reference, str(path))
+
+
+def conform(values: Any, reference: Any, source: str, key: str = "") -> Any:
+    """``values`` checked against ``reference``, the shipped preset it replaces: mappings with the same keys
+    (none unknown, none missing), numbers where the reference has numbers (numeric strings — PyYAML reads
+    ``1e-4`` as one — become numbers), true/false, strings and lists where it has those (list items against
+    the reference's items); ``null`` in the reference takes anything. A one-line error naming ``source`` and
+    the dotted key otherwise."""
+    if isinstance(reference, Mapping):
+        if not isinstance(values, Mapping):
+            raise _bad(source, key or "the config", values, "a mapping")
+        for problem, names in (("unknown", set(values) - set(reference)), ("missing", set(reference) - set(values))):
+            if names:
+                raise TorchtrackError(f"{source}: {problem} key(s) {sorted(_dotted(key, k) for k in names)}; "
+                                      f"expected: {sorted(reference)}")
+        return {k: conform(v, reference[k], source, _dotted(key, k)) for k, v in values.items()}
+    if isinstance(reference, list):
+        if not isinstance(values, list):
+            raise _bad(source, key, values, "a list")
+        if not reference:
+            return values
+        return [conform(v, reference[min(i, len(reference) - 1)], source, f"{key}[{i}]") for i, v in enumerate(values)]
+    if isinstance(reference, bool) or isinstance(reference, str):
+        return convert(values, type(reference), source, key)
+    if isinstance(reference, (int, float)):
+        if isinstance(values, (int, float)) and not isinstance(values, bool):
+            return values
+        number = convert(values, float, source, key)
+        return int(number) if isinstance(reference, int) and number.is_integer() else number
+    return values

@@ -21,9 +21,30 @@ from torchtrack.errors import TorchtrackError
 LOG_2PI = math.log(2.0 * math.pi)
 
 
-def symmetrize(P: Tensor) -> Tensor:
-    """``(P + Pᵀ) / 2`` over the last two dimensions."""
-    return 0.5 * (P + P.transpose(-1, -2))
+class GaussianState(NamedTuple):
+    """A batch of Gaussian densities: ``mean (*, n)``, ``cov (*, n, n)``."""
+
+    mean: Tensor
+    cov: Tensor
+
+
+def symmetrize(P: Tensor, dims: tuple[int, int] = (-1, -2)) -> Tensor:
+    """``(P + Pᵀ) / 2`` over the matrix dimensions ``dims`` (the last two; ``(0, 1)`` for batch-last storage)."""
+    return 0.5 * (P + P.transpose(*dims))
+
+
+def chi2_quantile(p: float, dof: int) -> float:
+    """The ``p`` quantile of χ²(``dof``): closed form ``−2 log(1 − p)`` for 2 dof, scipy otherwise;
+    ``inf`` for ``p = 1``. Raises :class:`TorchtrackError` unless ``0 < p <= 1``."""
+    if not 0.0 < p <= 1.0:
+        raise TorchtrackError(f"chi-square quantile: probability must lie in (0, 1]; got {p!r}")
+    if p == 1.0:
+        return float("inf")
+    if dof == 2:
+        return -2.0 * math.log1p(-p)
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(p, dof))
 
 
 # Below this size, many small factorisations and triangular solves are done as unrolled
@@ -37,50 +58,73 @@ def _is_small(A: Tensor, B: Tensor | None = None) -> bool:
     return A.shape[-1] <= SMALL_N and batch >= SMALL_BATCH
 
 
-def _cholesky_unrolled(P: Tensor) -> tuple[Tensor, Tensor]:
-    """Cholesky–Banachiewicz on ``(*, n, n)`` for small ``n``, elementwise over the batch."""
-    n = P.shape[-1]
-    L: list[list[Tensor | None]] = [[None] * n for _ in range(n)]
-    ok = torch.ones(P.shape[:-2], dtype=torch.bool, device=P.device)
-    for j in range(n):
-        s = P[..., j, j]
+def cholesky_entries(S) -> tuple[list[list[Tensor]], Tensor]:
+    """Cholesky–Banachiewicz, unrolled for a small ``m``: ``S[i][j]`` are tensors of one shape (the
+    batch, elementwise: entries of an ``(m, m, *)`` tensor, nested lists, or ``P[..., i, j]``).
+
+    Returns the rows of per-entry factors ``L[i][j]``, ``j ≤ i``, and ``ok`` (the pivots were > 0); a
+    failed pivot is replaced by 1 so that no NaN is produced (the caller raises).
+    """
+    m = len(S)
+    L: list[list[Tensor]] = [[] for _ in range(m)]
+    ok = torch.ones_like(S[0][0], dtype=torch.bool)
+    for j in range(m):
+        s = S[j][j]
         for k in range(j):
-            s = s - L[j][k] ** 2
+            s = s - L[j][k] * L[j][k]
         ok = ok & (s > 0)
         d = torch.sqrt(torch.where(s > 0, s, torch.ones_like(s)))
-        L[j][j] = d
-        for i in range(j + 1, n):
-            t = P[..., i, j]
+        for i in range(j, m):
+            if i == j:
+                L[j].append(d)
+                continue
+            t = S[i][j]
             for k in range(j):
                 t = t - L[i][k] * L[j][k]
-            L[i][j] = t / d
+            L[i].append(t / d)
+    return L, ok
+
+
+def solve_lower_entries(L: list[list[Tensor]], rows: list[Tensor]) -> list[Tensor]:
+    """Forward substitution ``L Y = B`` with ``L`` from :func:`cholesky_entries` and ``B`` given as
+    its ``m`` rows (broadcasting against the entries of ``L``)."""
+    out: list[Tensor] = []
+    for i, b in enumerate(rows):
+        for j in range(i):
+            b = b - L[i][j] * out[j]
+        out.append(b / L[i][i])
+    return out
+
+
+def solve_upper_t_entries(L: list[list[Tensor]], rows: list[Tensor]) -> list[Tensor]:
+    """Back substitution ``Lᵀ X = Y`` with ``Y`` given as its rows."""
+    m = len(rows)
+    out: list[Tensor] = [rows[0]] * m
+    for i in reversed(range(m)):
+        b = rows[i]
+        for j in range(i + 1, m):
+            b = b - L[j][i] * out[j]
+        out[i] = b / L[i][i]
+    return out
+
+
+def _cholesky_unrolled(P: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`cholesky_entries` on ``(*, n, n)``, stacked back into ``(*, n, n)``, and ``info`` (0 = ok)."""
+    n = P.shape[-1]
+    L, ok = cholesky_entries([[P[..., i, j] for j in range(n)] for i in range(n)])
     zero = torch.zeros_like(P[..., 0, 0])
     rows = [torch.stack([L[i][j] if j <= i else zero for j in range(n)], -1) for i in range(n)]
     return torch.stack(rows, -2), (~ok).to(torch.int32)
 
 
-def _solve_lower_unrolled(L: Tensor, B: Tensor) -> Tensor:
-    """Forward substitution ``L X = B`` for small ``n``; ``L (*, n, n)``, ``B (*, n, k)``."""
-    n = L.shape[-1]
-    X: list[Tensor] = []
-    for i in range(n):
-        t = B[..., i, :]
-        for j in range(i):
-            t = t - L[..., i, j, None] * X[j]
-        X.append(t / L[..., i, i, None])
-    return torch.stack(X, -2)
+def _rows(B: Tensor) -> list[Tensor]:
+    """The rows ``B[..., i, :]`` of ``B (*, n, k)``, as :func:`solve_lower_entries` takes them."""
+    return [B[..., i, :] for i in range(B.shape[-2])]
 
 
-def _solve_upper_t_unrolled(L: Tensor, B: Tensor) -> Tensor:
-    """Back substitution ``Lᵀ X = B`` for small ``n``."""
-    n = L.shape[-1]
-    X: list[Tensor | None] = [None] * n
-    for i in reversed(range(n)):
-        t = B[..., i, :]
-        for j in range(i + 1, n):
-            t = t - L[..., j, i, None] * X[j]
-        X[i] = t / L[..., i, i, None]
-    return torch.stack(X, -2)
+def _entries(L: Tensor) -> list[list[Tensor]]:
+    """The lower-triangular entries ``L[..., i, j, None]`` of ``L (*, n, n)`` (broadcasting against rows)."""
+    return [[L[..., i, j, None] for j in range(i + 1)] for i in range(L.shape[-1])]
 
 
 def cholesky(P: Tensor, what: str = "covariance", check: bool = True) -> Tensor:
@@ -100,14 +144,15 @@ def cholesky(P: Tensor, what: str = "covariance", check: bool = True) -> Tensor:
 def solve_lower(L: Tensor, B: Tensor) -> Tensor:
     """``L⁻¹ B`` for lower-triangular ``L (*, n, n)`` and ``B (*, n, k)`` (batch dims broadcast)."""
     if _is_small(L, B):
-        return _solve_lower_unrolled(L, B)
+        return torch.stack(solve_lower_entries(_entries(L), _rows(B)), -2)
     return torch.linalg.solve_triangular(L, B, upper=False)
 
 
 def chol_solve(L: Tensor, B: Tensor) -> Tensor:
     """``P⁻¹ B`` from the Cholesky factor ``L`` of ``P``; ``B (*, n, k)``."""
     if _is_small(L, B):
-        return _solve_upper_t_unrolled(L, _solve_lower_unrolled(L, B))
+        Le = _entries(L)
+        return torch.stack(solve_upper_t_entries(Le, solve_lower_entries(Le, _rows(B))), -2)
     return torch.cholesky_solve(B, L)
 
 
@@ -135,15 +180,107 @@ def mahalanobis_sq(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
     return y.squeeze(-1).pow(2).sum(-1)
 
 
+def gaussian_log_likelihood(nis: Tensor, log_det: Tensor, m: int) -> Tensor:
+    """``log N(ν; 0, S) = −½ (νᵀ S⁻¹ ν + log |S| + m log 2π)`` from the NIS and ``log |S|`` (broadcast)."""
+    return -0.5 * (nis + log_det + m * LOG_2PI)
+
+
 def log_prob_from_cholesky(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
     """``log N(x; μ, P)`` with ``L = chol(P)``; broadcasting shapes as :func:`mahalanobis_sq`."""
-    n = x.shape[-1]
-    return -0.5 * (mahalanobis_sq(x, mean, L) + log_det_from_cholesky(L) + n * LOG_2PI)
+    return gaussian_log_likelihood(mahalanobis_sq(x, mean, L), log_det_from_cholesky(L), x.shape[-1])
 
 
 def log_prob(x: Tensor, mean: Tensor, cov: Tensor) -> Tensor:
     """``log N(x; μ, Σ)``; ``x, mean (*, n)``, ``cov (*, n, n)``, broadcasting; result ``(*,)``."""
     return log_prob_from_cholesky(x, mean, cholesky(cov, "covariance"))
+
+
+# The Kalman measurement update, in pieces that every filter shares (Bar-Shalom et al. 2001,
+# eq. 5.2.3-9 … 5.2.3-18; the maneuver paper, eq. 5–7):
+#
+#     C = P⁻ Hᵀ,  S = H C + R = L Lᵀ                  innovation_cov, cholesky
+#     W = C L⁻ᵀ,  K = C S⁻¹ = W L⁻¹                     kalman_gain
+#     x⁺ = x⁻ + K ν
+#     P⁺ = P⁻ − W Wᵀ  (= P⁻ − K S Kᵀ)  or the Joseph form (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ
+#                                                        posterior_cov, joseph_cov
+#     NIS = |L⁻¹ ν|²,  log ℓ = −½ (NIS + log |S| + m log 2π)       innovation(s)_likelihood
+#
+# S is never inverted: L⁻¹ is one triangular solve per factor, applied by (small) matrix products to
+# C and to any number of innovations. For an EKF or UKF ``C`` is the cross-covariance of state and
+# measurement and ``S`` its own. Engines with their own layout (kalman_lanes, kalman_axes, imm_cv)
+# write the same steps on entries with cholesky_entries / solve_lower_entries.
+
+
+def innovation_cov(cov: Tensor, H: Tensor, R: Tensor) -> tuple[Tensor, Tensor]:
+    """``C = P Hᵀ (*, n, m)`` and the symmetrised ``S = H C + R (*, m, m)``; ``cov (*, n, n)``,
+    ``H (*, m, n)`` (a shared 2-D ``H`` runs as one GEMM), ``R (*, m, m)``, batches broadcast."""
+    C = cov @ H.transpose(-1, -2)
+    return C, symmetrize(matmul(H, C) + R)
+
+
+class KalmanGain(NamedTuple):
+    """Result of :func:`kalman_gain`."""
+
+    chol: Tensor      # (*, m, m) L, S = L Lᵀ
+    chol_inv: Tensor  # (*, m, m) L⁻¹ (triangular), the whitening: |L⁻¹ ν|² = νᵀ S⁻¹ ν
+    white_cross: Tensor  # (*, n, m) W = C L⁻ᵀ, so that K S Kᵀ = W Wᵀ
+    gain: Tensor      # (*, n, m) K = C S⁻¹ = W L⁻¹
+
+
+def kalman_gain(S: Tensor, C: Tensor, what: str = "innovation covariance S", check: bool = True) -> KalmanGain:
+    """Cholesky factor ``L`` of ``S (*, m, m)``, its triangular inverse (one triangular solve per
+    factor), ``W = C L⁻ᵀ`` and the gain ``K = W L⁻¹ = C S⁻¹`` for ``C (*, n, m)``; a failed
+    factorisation raises :class:`TorchtrackError` naming ``what`` (with ``check``)."""
+    return gain_from_cholesky(cholesky(S, what, check=check), C)
+
+
+def gain_from_cholesky(L: Tensor, C: Tensor) -> KalmanGain:
+    """:func:`kalman_gain` from an existing factor ``L`` of ``S`` (e.g. its leading block, the factor
+    of ``S``'s leading block)."""
+    Linv = solve_lower(L, torch.eye(L.shape[-1], dtype=L.dtype, device=L.device).expand_as(L))
+    W = small_matmul(C, Linv.transpose(-1, -2))
+    return KalmanGain(L, Linv, W, small_matmul(W, Linv))
+
+
+def small_matmul(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B`` (batches broadcast); for many matrices with a short inner dimension (≤ ``SMALL_N``) the
+    sum over it is unrolled into elementwise products (batched GEMMs of tiny matrices are slow)."""
+    batch = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
+    if A.shape[-1] > SMALL_N or math.prod(batch) < SMALL_BATCH:
+        return A @ B
+    out = A[..., :, 0:1] * B[..., 0:1, :]
+    for k in range(1, A.shape[-1]):
+        out = out + A[..., :, k:k + 1] * B[..., k:k + 1, :]
+    return out
+
+
+def posterior_cov(P: Tensor, gain: KalmanGain) -> Tensor:
+    """``P⁺ = P − W Wᵀ`` (``= P − K S Kᵀ``, the posterior of the optimal gain), symmetrised."""
+    W = gain.white_cross
+    return symmetrize(P - small_matmul(W, W.transpose(-1, -2)))
+
+
+def innovation_likelihood(L: Tensor, nu: Tensor) -> tuple[Tensor, Tensor]:
+    """NIS ``νᵀ S⁻¹ ν`` and ``log N(ν; 0, S)`` from ``L = chol(S) (*, m, m)`` and ``ν (*, m)``, batches
+    broadcast (for many innovations per factor :func:`innovations_likelihood` is faster)."""
+    nis = mahalanobis_sq(nu, torch.zeros_like(nu[..., :1]), L)
+    return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(L), nu.shape[-1])
+
+
+def innovations_likelihood(gain: KalmanGain, nu: Tensor) -> tuple[Tensor, Tensor]:
+    """:func:`innovation_likelihood` for many innovations per factor: ``ν (*, k, m)`` against the
+    factors of ``gain`` ``(*, m, m)`` → NIS and log ℓ ``(*, k)``; the whitening ``L⁻¹`` is applied to
+    all ``k`` innovations by one batched GEMM."""
+    white = nu @ gain.chol_inv.transpose(-1, -2)
+    nis = (white * white).sum(-1)
+    return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol).unsqueeze(-1), nu.shape[-1])
+
+
+def joseph_cov(P: Tensor, K: Tensor, H: Tensor, R: Tensor) -> Tensor:
+    """Joseph-form posterior covariance ``(I − K H) P (I − K H)ᵀ + K R Kᵀ`` (symmetrised); valid for
+    any gain. ``P (*, n, n)``, ``K (*, n, m)``, ``H (*, m, n)``, ``R (*, m, m)``."""
+    A = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device) - K @ H
+    return symmetrize(A @ P @ A.transpose(-1, -2) + K @ matmul(R, K.transpose(-1, -2)))
 
 
 class KalmanUpdate(NamedTuple):
@@ -160,35 +297,18 @@ class KalmanUpdate(NamedTuple):
 
 def kalman_update(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor,
                   z_pred: Tensor | None = None, check: bool = True) -> KalmanUpdate:
-    """Kalman measurement update through a Cholesky factor of ``S``.
+    """Kalman measurement update through a Cholesky factor of ``S`` (the equations above; Joseph form).
 
-    Equations (Bar-Shalom et al. 2001, eq. 5.2.3-9 … 5.2.3-15; Joseph form eq. 5.2.3-18)::
-
-        ν = z − ẑ,  ẑ = H x⁻ (or ``z_pred`` for an EKF)
-        S = H P⁻ Hᵀ + R
-        K = P⁻ Hᵀ S⁻¹                       (solved, never inverted)
-        x⁺ = x⁻ + K ν
-        P⁺ = (I − K H) P⁻ (I − K H)ᵀ + K R Kᵀ
-
-    Shapes: ``mean (*, n)``, ``cov (*, n, n)``, ``z (*, m)``, ``H (*, m, n)``, ``R (*, m, m)``; all
-    batch dimensions broadcast.
+    ``ẑ = H x⁻``, or ``z_pred`` for an EKF. Shapes: ``mean (*, n)``, ``cov (*, n, n)``, ``z (*, m)``,
+    ``H (*, m, n)``, ``R (*, m, m)``; all batch dimensions broadcast.
     """
-    z_hat = z_pred if z_pred is not None else (H @ mean.unsqueeze(-1)).squeeze(-1)
+    z_hat = z_pred if z_pred is not None else matmul(H, mean.unsqueeze(-1)).squeeze(-1)
     nu = z - z_hat
-    PHt = cov @ H.transpose(-1, -2)
-    S = symmetrize(H @ PHt + R)
-    L = cholesky(S, "innovation covariance S", check=check)
-    # K = P Hᵀ S⁻¹  ⇔  S Kᵀ = H P
-    K = chol_solve(L, PHt.transpose(-1, -2)).transpose(-1, -2)
-    new_mean = mean + (K @ nu.unsqueeze(-1)).squeeze(-1)
-    n = cov.shape[-1]
-    I_KH = torch.eye(n, dtype=cov.dtype, device=cov.device) - K @ H
-    new_cov = symmetrize(I_KH @ cov @ I_KH.transpose(-1, -2) + K @ R @ K.transpose(-1, -2))
-    white = solve_lower(L, nu.unsqueeze(-1)).squeeze(-1)
-    nis = white.pow(2).sum(-1)
-    m = nu.shape[-1]
-    loglik = -0.5 * (nis + log_det_from_cholesky(L) + m * LOG_2PI)
-    return KalmanUpdate(new_mean, new_cov, nu, S, nis, loglik, K)
+    C, S = innovation_cov(cov, H, R)
+    g = kalman_gain(S, C, check=check)
+    new_mean = mean + (g.gain @ nu.unsqueeze(-1)).squeeze(-1)
+    nis, loglik = innovation_likelihood(g.chol, nu)
+    return KalmanUpdate(new_mean, joseph_cov(cov, g.gain, H, R), nu, S, nis, loglik, g.gain)
 
 
 def moment_match(log_weight: Tensor, mean: Tensor, cov: Tensor, dim: int = -1) -> tuple[Tensor, Tensor]:

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.gaussian import LOG_2PI, cholesky, log_det_from_cholesky, moment_match
+from torchtrack.gaussian import LOG_2PI, chi2_quantile, cholesky, log_det_from_cholesky, moment_match
 
 
 class Gate(NamedTuple):
@@ -57,13 +57,6 @@ def rectangular_threshold(alpha: float, n: int) -> float:
     from scipy.stats import norm
 
     return float(norm.ppf(1.0 - check_alpha(alpha) / (2 * n)))
-
-
-def chi2_threshold(alpha: float, n: int) -> float:
-    """``χ²_n⁻¹(1 − α)`` (eq. 6)."""
-    from scipy.stats import chi2
-
-    return float(chi2.ppf(1.0 - check_alpha(alpha), n))
 
 
 def ellipsoid_volume(threshold: Tensor | float, log_det: Tensor, n: int) -> Tensor:
@@ -113,7 +106,7 @@ def ellipsoidal_gate(z: Tensor, z_hat: Tensor, S: Tensor, alpha: float | None = 
     if threshold is None:
         if alpha is None:
             raise TorchtrackError("ellipsoidal_gate needs alpha or threshold")
-        threshold = chi2_threshold(alpha, n)
+        threshold = chi2_quantile(1.0 - check_alpha(alpha), n)   # χ²_n⁻¹(1 − α), eq. 6
     L = cholesky(S, "gate innovation covariance S")
     nis = _whitened_sq(z, z_hat, L)                                      # (*, T, Mz)
     thr = torch.as_tensor(threshold, dtype=z.dtype, device=z.device)
@@ -224,7 +217,7 @@ def nonlinear_gate(z: Tensor, state_samples: Tensor, measurement, alpha: float, 
 
 
 __all__ = [
-    "Gate", "check_alpha", "chi2_threshold", "class_conditioned_gate", "density_gate", "density_threshold",
+    "Gate", "check_alpha", "class_conditioned_gate", "density_gate", "density_threshold",
     "ellipsoid_volume", "ellipsoidal_gate", "mixture_gate", "mixture_log_density", "nonlinear_gate",
     "rectangular_gate", "rectangular_threshold", "sample_gate", "sample_mixture",
 ]

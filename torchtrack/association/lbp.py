@@ -6,34 +6,41 @@ track, otherwise it is a new target or clutter (weight ``λ_j``). A joint associ
 weight ``Π_i w_{i,a(i)} · Π_{j unused} λ_j`` and we want the marginals ``p_i(j)``, ``p_i(0)`` and
 ``p_j(new)``.
 
-Williams & Lau (2014) pass messages between track and measurement nodes. Dividing
-row ``i`` by ``w_i0`` and column ``j`` by ``λ_j`` (the marginals are invariant to this) leaves one
-ratio matrix ``ψ_ij = w_ij / (w_i0 λ_j)`` and the iteration::
+Williams & Lau (2014) pass messages between track and measurement nodes. Dividing column ``j`` by
+``λ_j`` and row ``i`` by any ``c_i > 0`` (the marginals are invariant to both) leaves the scaled
+weights ``a_ij = w_ij / (c_i λ_j)``, ``a_i0 = w_i0 / c_i`` and the iteration::
 
-    μ_ij = ψ_ij / (1 + Σ_{j'≠j} ψ_ij' ν_j'i)      (track i → measurement j)
-    ν_ji = 1 / (1 + Σ_{i'≠i} μ_i'j)               (measurement j → track i)
+    μ_ij = a_ij / (a_i0 + Σ_{j'≠j} a_ij' ν_j'i)      (track i → measurement j)
+    ν_ji = 1 / (1 + Σ_{i'≠i} μ_i'j)                 (measurement j → track i)
 
-started from ``ν = 1``. Each sum is formed once per iteration and the own term is subtracted
-("total minus own"); the iteration carries ``ψ_ij ν_ji`` and ``μ_ij``, so it is four elementwise
-passes and two reductions over the ``n × m`` matrix and no loop over tracks; without autograd the
-passes write into two preallocated buffers. The marginals are::
+started from ``ν = 1``; ``μ`` and ``ν`` do not depend on ``c_i``. (Williams & Lau take
+``c_i = w_i0``, i.e. ``a_i0 = 1``; a zero miss weight then makes every ratio infinite.) Here ``c_i``
+is the track's largest weight, ``c_i = max(w_i0, max_j w_ij / λ_j)``, taken in the log domain, so
+every ``a ≤ 1``, the largest is 1, and the ratios between a track's options are kept exactly at
+any magnitude. The marginals are::
 
-    p_i(j) = ψ_ij ν_ji / (1 + Σ_j' ψ_ij' ν_j'i),  p_i(0) = 1 / (1 + Σ_j' ψ_ij' ν_j'i)
-    p_j(i) = μ_ij / (1 + Σ_i' μ_i'j),             p_j(new) = 1 / (1 + Σ_i' μ_i'j)
+    p_i(j) = a_ij ν_ji / t_i,   p_i(0) = a_i0 / t_i,   t_i = a_i0 + Σ_j' a_ij' ν_j'i
+    p_j(i) = μ_ij / s_j,        p_j(new) = 1 / s_j,      s_j = 1 + Σ_i' μ_i'j
 
 so rows ``(p_i(0), p_i(·))`` and columns ``(p_j(new), p_j(·))`` are distributions by
 construction; at a fixed point ``p_i(j) = p_j(i)``. On a graph without cycles (no two tracks
-competing for one measurement) the result is exact.
+competing for two measurements) the result is exact.
+
+Each sum is formed once per pass and the sums "over all but one" come from it: ``t_i − a_ij ν_ji``
+and ``s_j − μ_ij``. That subtraction loses the digits of a small remainder under one dominant
+term (a track almost sure of one measurement), so the term that is more than half its sum — at
+most one per row and per column — takes its remainder from a second, masked sum instead
+(:func:`_sum_of_others`); every other term is at most half the sum, which bounds the subtraction's
+relative error by ``2 ε``. The iteration is therefore elementwise passes and reductions over the
+``n × m`` matrix, with no loop over tracks; without autograd it writes into two preallocated buffers.
 
 Weights come in the **log domain**; ``-inf`` marks a pair outside the gate, padding tracks have
 all their ``w_ij = -inf`` and padding measurements all their ``w_ij = -inf`` (their outputs are
-then ``p_i(0) = 1`` / ``p_j(new) = 1``). ``log ψ`` is clamped above at ``LOG_RATIO_MAX[dtype]``
-(25 in float64, 12 in float32), so that a zero miss or new-target weight (``p_D = 1``, no clutter)
-gives finite messages, and so that "total minus own" cannot cancel below the floor of 1 that every
-denominator has (the rounding error of the subtraction is about ``eps · ψ_max``: 1e-5 in float64,
-2e-2 in float32, relative to that floor). The marginals then differ from the exact ones by at most
-about ``e^{-LOG_RATIO_MAX}`` where the cap bites: a pair ``e^12`` times likelier than both its
-alternatives is, to float32 accuracy, certain anyway.
+then ``p_i(0) = 1`` / ``p_j(new) = 1``). A zero new-target weight (``p_D = 1``, no clutter) is
+raised to ``LOG_NEW_FLOOR[dtype]`` (twice the log of the smallest normal number: ``e^-1416`` in
+float64, ``e^-175`` in float32), so that the scaled weights stay finite; a zero miss weight needs
+nothing. A remainder that is exactly 0 (a track whose only option is one measurement) is raised
+to the smallest normal number, so that ``μ`` stays finite.
 """
 
 from __future__ import annotations
@@ -45,7 +52,8 @@ from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
 
-LOG_RATIO_MAX = {torch.float64: 25.0, torch.float32: 12.0, torch.float16: 6.0, torch.bfloat16: 4.0}
+LOG_NEW_FLOOR = {dt: 2.0 * float(torch.log(torch.tensor(torch.finfo(dt).tiny, dtype=torch.float64)))
+                 for dt in (torch.float64, torch.float32, torch.float16, torch.bfloat16)}
 
 
 class LBPResult(NamedTuple):
@@ -72,57 +80,88 @@ def _check(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> None:
             raise TorchtrackError(f"lbp: {name} contains NaN or +inf")
 
 
-def log_ratios(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> Tensor:
-    """``ψ_ij = w_ij / (w_i0 λ_j)`` from log weights, clamped above at ``e^LOG_RATIO_MAX``; ``(*, n, m)``.
+def scaled_weights(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> tuple[Tensor, Tensor]:
+    """``a_ij = w_ij / (c_i λ_j)`` ``(*, n, m)`` and ``a_i0 = w_i0 / c_i`` ``(*, n, 1)`` with
+    ``c_i = max(w_i0, max_j w_ij / λ_j)`` (module docstring), batch dimensions broadcast.
 
-    A zero miss or new-target weight (``-inf``) is replaced by the most negative finite value first, so
-    that a gated-out pair (``w_ij = 0``) stays at ``ψ = 0`` instead of ``exp(-inf + inf) = NaN`` and
-    any other pair with it saturates at the cap. Without autograd the result is built in one buffer.
+    ``c_i`` is a constant for autograd (the marginals do not depend on it); a track with no finite
+    weight at all gets ``a_i0 = 1`` (it misses).
     """
-    floor = torch.finfo(log_w.dtype).min / 4
-    log_miss = log_miss.clamp_min(floor)
-    log_new = log_new.clamp_min(floor)
-    cap = LOG_RATIO_MAX.get(log_w.dtype, 12.0)
-    if torch.is_grad_enabled() and (log_w.requires_grad or log_miss.requires_grad or log_new.requires_grad):
-        return torch.exp((log_w - log_miss.unsqueeze(-1) - log_new.unsqueeze(-2)).clamp(max=cap))
-    batch = torch.broadcast_shapes(log_w.shape[:-2], log_miss.shape[:-1], log_new.shape[:-1])
-    out = torch.empty(*batch, *log_w.shape[-2:], dtype=log_w.dtype, device=log_w.device)
-    torch.sub(log_w, log_miss.unsqueeze(-1), out=out)
-    out.sub_(log_new.unsqueeze(-2)).clamp_(max=cap)
-    return out.exp_()
+    log_new = log_new.clamp_min(LOG_NEW_FLOOR.get(log_new.dtype, LOG_NEW_FLOOR[torch.float32]))
+    log_ratio = log_w - log_new.unsqueeze(-2)                                   # log(w_ij / λ_j), a new tensor
+    with torch.no_grad():
+        log_c = log_ratio.amax(-1) if log_ratio.shape[-1] else log_ratio.new_full(log_ratio.shape[:-1], float("-inf"))
+        log_c = torch.maximum(log_miss, log_c)
+        finite = torch.isfinite(log_c)
+        log_c = torch.where(finite, log_c, torch.zeros_like(log_c))
+    log_a0 = torch.where(finite, log_miss.expand_as(log_c) - log_c, torch.zeros_like(log_c))
+    batch = log_c.shape[:-1]
+    if torch.is_grad_enabled() and log_ratio.requires_grad:
+        a = torch.exp(log_ratio - log_c.unsqueeze(-1))
+    else:                                                       # in place: one buffer, two passes
+        a = log_ratio.sub_(log_c.unsqueeze(-1)).exp_() if log_ratio.shape[:-2] == batch else \
+            torch.exp(log_ratio - log_c.unsqueeze(-1))
+    return a, torch.exp(log_a0).unsqueeze(-1)
 
 
-def _iterate_functional(psi: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
-    """``ψ_ij ν_ji`` after the iterations, differentiable (new tensors each pass)."""
-    prod = psi                                                      # ν = 1
+def _sum_of_others(v: Tensor, floor: Tensor | float, dim: int) -> tuple[Tensor, Tensor]:
+    """``floor + Σ_{k≠j} v_k`` along ``dim`` for every ``j`` (``v ≥ 0``), and the full sum ``floor + Σ_k v_k``.
+
+    ``total − v_j``, except for a term above half the total (at most one per line), whose remainder
+    is summed without it (no cancellation). The choice is arithmetic, with a 0/1 ``step`` and
+    ``lerp`` (exact at weights 0 and 1), which is several times faster than boolean masks. The sums
+    are floored at the smallest normal number, so that every remainder is > 0 (a line whose sum is 0
+    has no feasible option). Differentiable.
+    """
+    tiny = torch.finfo(v.dtype).tiny
+    total = (v.sum(dim, keepdim=True) + floor).clamp_min(tiny)
+    step = torch.gt(v, 0.5 * total).to(v.dtype).detach()
+    rest = ((v - v * step).sum(dim, keepdim=True) + floor).clamp_min(tiny)
+    return torch.lerp(total - v, rest.expand_as(v), step), total
+
+
+def _iterate_functional(a: Tensor, a0: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
+    """``a_ij ν_ji`` after the iterations, differentiable (new tensors each pass)."""
+    prod = a                                                        # ν = 1
     last = None
     for it in range(1, iterations + 1):
-        total = 1.0 + prod.sum(-1, keepdim=True)                    # 1 + Σ_j' ψ_ij' ν_j'i
-        mu = psi / (total - prod)                                   # track → measurement
-        col = 1.0 + mu.sum(-2, keepdim=True)                        # 1 + Σ_i' μ_i'j
-        prod = psi / (col - mu)                                     # ψ_ij ν_ji, measurement → track
+        others, t = _sum_of_others(prod, a0, -1)
+        mu = a / others                                             # track → measurement
+        others, s = _sum_of_others(mu, 1.0, -2)
+        prod = a / others                                           # a_ij ν_ji, measurement → track
         if tol is not None and (it % 2 == 0 or it == iterations):
-            stat = torch.cat([1.0 / total.flatten(), 1.0 / col.flatten()]).detach()
+            stat = torch.cat([(a0 / t).flatten(), s.flatten().reciprocal()]).detach()
             if last is not None and (stat.numel() == 0 or float((stat - last).abs().amax()) < tol):
                 return prod, it, True
             last = stat
     return prod, iterations, False
 
 
-def _iterate_inplace(psi: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
-    """The same iteration in two buffers (no autograd): four elementwise passes and two reductions."""
-    prod = psi.clone()
-    mu = torch.empty_like(psi)
+def _others_inplace(v: Tensor, floor: Tensor | float, dim: int, out: Tensor) -> Tensor:
+    """:func:`_sum_of_others` without autograd and without a buffer of its own: the remainders go to
+    ``out``, ``v`` is overwritten (with ``total − v``); returns the full sum. ``out`` first holds the
+    0/1 ``keep = 1 − step``, whose dot product with ``v`` is the remainder of a dominant term."""
+    tiny = torch.finfo(v.dtype).tiny
+    total = v.sum(dim, keepdim=True).add_(floor).clamp_min_(tiny)
+    torch.le(v, total * 0.5, out=out)
+    rest = torch.linalg.vecdot(v, out, dim=dim).unsqueeze(dim).add_(floor).clamp_min_(tiny)
+    torch.sub(total, v, out=v)
+    torch.lerp(rest.expand_as(out), v, out, out=out)
+    return total
+
+
+def _iterate_inplace(a: Tensor, a0: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
+    """The same iteration in two buffers (no autograd); returns ``a_ij ν_ji``."""
+    prod = a.clone()
+    mu = torch.empty_like(a)
     last = None
     for it in range(1, iterations + 1):
-        total = prod.sum(-1, keepdim=True).add_(1.0)
-        torch.sub(total, prod, out=mu)
-        torch.div(psi, mu, out=mu)
-        col = mu.sum(-2, keepdim=True).add_(1.0)
-        torch.sub(col, mu, out=prod)
-        torch.div(psi, prod, out=prod)
+        t = _others_inplace(prod, a0, -1, mu)
+        torch.div(a, mu, out=mu)
+        s = _others_inplace(mu, 1.0, -2, prod)
+        torch.div(a, prod, out=prod)
         if tol is not None and (it % 2 == 0 or it == iterations):
-            stat = torch.cat([total.flatten().reciprocal(), col.flatten().reciprocal()])
+            stat = torch.cat([(a0 / t).flatten(), s.flatten().reciprocal()])
             if last is not None and (stat.numel() == 0 or float((stat - last).abs().amax()) < tol):
                 return prod, it, True
             last = stat
@@ -153,20 +192,20 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
         raise TorchtrackError(f"lbp: iterations must be >= 1; got {iterations}")
     batch = torch.broadcast_shapes(log_w.shape[:-2], log_miss.shape[:-1], log_new.shape[:-1])
     n, m = log_w.shape[-2:]
-    psi = log_ratios(log_w, log_miss, log_new).expand(*batch, n, m)
-    if torch.is_grad_enabled() and psi.requires_grad:
-        prod, it, converged = _iterate_functional(psi, iterations, tol)
-        denom = 1.0 + prod.sum(-1, keepdim=True)
-        assoc = prod / denom                                        # track side
-        mu = psi / (denom - prod)                                   # μ from the final ν
-        col = 1.0 + mu.sum(-2, keepdim=True)
-        meas_assoc = mu / col                                       # measurement side
-    else:
-        prod, it, converged = _iterate_inplace(psi.contiguous(), iterations, tol)
-        denom = prod.sum(-1, keepdim=True).add_(1.0)
-        mu = torch.sub(denom, prod)
-        torch.div(psi, mu, out=mu)
-        col = mu.sum(-2, keepdim=True).add_(1.0)
-        meas_assoc = mu.div_(col)
-        assoc = prod.div_(denom)
-    return LBPResult(assoc, 1.0 / denom.squeeze(-1), 1.0 / col.squeeze(-2), meas_assoc, it, converged)
+    a, a0 = scaled_weights(log_w, log_miss, log_new)
+    a, a0 = a.expand(*batch, n, m), a0.expand(*batch, n, 1)
+    tiny = torch.finfo(a.dtype).tiny
+    if torch.is_grad_enabled() and (a.requires_grad or a0.requires_grad):
+        prod, it, converged = _iterate_functional(a, a0, iterations, tol)
+        others, t = _sum_of_others(prod, a0, -1)
+        mu = a / others                                             # μ from the final ν
+        s = (mu.sum(-2, keepdim=True) + 1.0).clamp_min(tiny)
+        return LBPResult(prod / t, (a0 / t).squeeze(-1), 1.0 / s.squeeze(-2), mu / s, it, converged)
+    prod, it, converged = _iterate_inplace(a.contiguous(), a0, iterations, tol)
+    t = (prod.sum(-1, keepdim=True) + a0).clamp_min_(tiny)
+    assoc = prod / t
+    mu = torch.empty_like(prod)
+    _others_inplace(prod, a0, -1, mu)                              # prod is overwritten
+    torch.div(a, mu, out=mu)
+    s = mu.sum(-2, keepdim=True).add_(1.0).clamp_min_(tiny)
+    return LBPResult(assoc, (a0 / t).squeeze(-1), s.reciprocal().squeeze(-2), mu.div_(s), it, converged)

@@ -22,8 +22,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.kalman import GaussianState
-from torchtrack.gaussian import LOG_2PI, chol_solve, cholesky, log_det_from_cholesky, solve_lower, symmetrize
+from torchtrack.gaussian import GaussianState, innovation_cov, innovation_likelihood, kalman_gain, matmul, symmetrize
 
 
 class PDAResult(NamedTuple):
@@ -45,15 +44,12 @@ def pda_update(state: GaussianState, z: Tensor, gate_mask: Tensor, H: Tensor, R:
     if bool((lam <= 0).any()):
         raise TorchtrackError("clutter_density must be > 0")
     x, P = state.mean, state.cov
-    m = z.shape[-1]
-    PHt = P @ H.transpose(-1, -2)
-    S = symmetrize(H @ PHt + R)
-    L = cholesky(S, "PDA innovation covariance S")
-    K = chol_solve(L, PHt.transpose(-1, -2)).transpose(-1, -2)                  # (*, T, n, m)
-    z_hat = (H @ x.unsqueeze(-1)).squeeze(-1)
+    PHt, S = innovation_cov(P, H, R)
+    gain = kalman_gain(S, PHt, "PDA innovation covariance S")
+    K = gain.gain                                                                  # (*, T, n, m)
+    z_hat = matmul(H, x.unsqueeze(-1)).squeeze(-1)
     nu = z.unsqueeze(-3) - z_hat.unsqueeze(-2)                                    # (*, T, Mz, m)
-    white = solve_lower(L, nu.transpose(-1, -2)).transpose(-1, -2)
-    log_n = -0.5 * (white.pow(2).sum(-1) + log_det_from_cholesky(L).unsqueeze(-1) + m * LOG_2PI)
+    _, log_n = innovation_likelihood(gain.chol.unsqueeze(-3), nu)                 # log N(ν_j; 0, S)
     log_l = math.log(p_detect) + log_n - torch.log(lam)
     log_l = torch.where(gate_mask, log_l, torch.full_like(log_l, -math.inf))
     miss = 1.0 - p_detect * p_gate
@@ -66,8 +62,8 @@ def pda_update(state: GaussianState, z: Tensor, gate_mask: Tensor, H: Tensor, R:
     mean = x + (K @ nu_c.unsqueeze(-1)).squeeze(-1)
     outer = (bj[..., None, None] * nu.unsqueeze(-1) * nu.unsqueeze(-2)).sum(-3)
     spread = outer - nu_c.unsqueeze(-1) * nu_c.unsqueeze(-2)
-    KSK = K @ S @ K.transpose(-1, -2)
-    cov = P - (1 - b0)[..., None, None] * KSK + K @ spread @ K.transpose(-1, -2)
+    W = gain.white_cross                                                          # K S Kᵀ = W Wᵀ
+    cov = P - (1 - b0)[..., None, None] * (W @ W.transpose(-1, -2)) + K @ spread @ K.transpose(-1, -2)
     return PDAResult(GaussianState(mean, symmetrize(cov)), beta, norm)
 
 

@@ -23,8 +23,8 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import BenchResult, format_result
-from torchtrack.filters.gmphd import chi2_quantile
 from torchtrack.filters.multitarget import make_tracker
+from torchtrack.gaussian import chi2_quantile
 
 WORKLOADS = {
     # targets, steps, clutter per scan, region side (px), speed std (px/step), p_D, sigma, q

@@ -3,8 +3,9 @@
 Workload: 2-D nearly-constant-velocity targets (state ``[x, y, vx, vy]``), position measurements,
 float32, ``--tracks`` tracks × ``--steps`` steps. Timed in the same run:
 
-* **ours** — the axis-decoupled fast path (:mod:`torchtrack.filters.kalman_fast`, compiled);
-* **general path** — :meth:`KalmanFilter.run` with full 4×4 matrices, any linear model (reported as
+* **ours** — :meth:`KalmanFilter.run` with ``engine="axes"`` (the axis-decoupled engine,
+  :mod:`torchtrack.filters.kalman_axes`, compiled; final posterior only, ``history=False``);
+* **general path** — :meth:`KalmanFilter.run`'s default engine (lanes) with full 4×4 matrices (reported as
   extras: ``general_path_per_s`` compiled unless ``--no-compile``, ``general_path_eager_per_s``,
   ``general_path_per_cpu_s``; ``batch_first_loop_per_s`` is the batch-first predict/update loop that
   was the general path before the batch-last layout);
@@ -22,8 +23,7 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import best_time, report
-from torchtrack.filters.kalman import GaussianState, KalmanFilter, _GaussianFilter
-from torchtrack.filters.kalman_fast import run_cv_fast
+from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 NAME = "kf"
@@ -90,15 +90,16 @@ def run(args) -> int:
     compile = not args.no_compile
     with torch.no_grad():
         t0 = time.perf_counter()
-        run_cv_fast(kf, z, init, DT, compile=compile, history=False)
+        kf.run(z, init, DT, compile=compile, engine="axes", history=False)
         warmup_s = time.perf_counter() - t0
-        ours_s = best_time(lambda: run_cv_fast(kf, z, init, DT, compile=compile, history=False), repeats=3, warmup=0)
+        ours_s = best_time(lambda: kf.run(z, init, DT, compile=compile, engine="axes", history=False), repeats=3,
+                           warmup=0)
         Tg = min(args.general_steps, T)
         t0 = time.perf_counter()
         kf.run(z[:Tg], init, DT, compile=compile)
         general_warmup_s = time.perf_counter() - t0
         general_s = best_time(lambda: kf.run(z[:Tg], init, DT, compile=compile), repeats=5, warmup=0)
-        batch_first_s = best_time(lambda: _GaussianFilter.run(kf, z[:Tg], init, DT), repeats=1, warmup=0)
+        batch_first_s = best_time(lambda: kf.run(z[:Tg], init, DT, engine="batch"), repeats=1, warmup=0)
         general_cpu_s = min(_cpu_seconds(lambda: kf.run(z[:Tg], init, DT, compile=compile)) for _ in range(3))
         general_eager_s = (best_time(lambda: kf.run(z[:Tg], init, DT), repeats=1, warmup=0) if compile
                            else general_s)

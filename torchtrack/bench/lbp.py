@@ -15,7 +15,7 @@ from collections.abc import Callable
 import numpy as np
 import torch
 
-from torchtrack.association.lbp import LOG_RATIO_MAX, lbp_marginals
+from torchtrack.association.lbp import LOG_NEW_FLOOR, lbp_marginals
 from torchtrack.bench._timing import best_time, report
 from torchtrack.errors import TorchtrackError
 from torchtrack.metrics.table import format_table
@@ -38,30 +38,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats, best is kept (default 5)")
 
 
+def _np_sum_of_others(v: np.ndarray, floor, axis: int) -> tuple[np.ndarray, np.ndarray]:
+    total = v.sum(axis, keepdims=True) + floor
+    dominant = v > 0.5 * total
+    rest = np.where(dominant, 0.0, v).sum(axis, keepdims=True) + floor
+    return np.where(dominant, rest, total - v), total
+
+
 def numpy_lbp(log_w: np.ndarray, log_miss: np.ndarray, log_new: np.ndarray, iterations: int,
               tol: float | None = None):
-    """The reference: Williams & Lau (2014) message passing in NumPy, same normalisation, passes and
+    """The reference: Williams & Lau (2014) message passing in NumPy, same per-track scaling, passes and
     stopping rule (largest change of a miss or new-target marginal below ``tol``, checked every second
     iteration)."""
-    lr = log_w - log_miss[:, None] - log_new[None, :]
-    lr = np.where(np.isneginf(log_w), -np.inf, lr)
-    psi = np.exp(np.minimum(lr, LOG_RATIO_MAX[torch.float32 if log_w.dtype == np.float32 else torch.float64]))
-    nu = np.ones_like(psi)
+    torch_dtype = torch.float32 if log_w.dtype == np.float32 else torch.float64
+    lr = log_w - np.maximum(log_new, LOG_NEW_FLOOR[torch_dtype])[None, :]
+    log_c = np.maximum(log_miss, lr.max(-1, initial=-np.inf))
+    finite = np.isfinite(log_c)
+    log_c = np.where(finite, log_c, 0.0)
+    a = np.exp(lr - log_c[:, None])
+    a0 = np.exp(np.where(finite, log_miss - log_c, 0.0))[:, None]
+    tiny = np.finfo(a.dtype).tiny
+    prod = a
     last = None
     for it in range(1, iterations + 1):
-        prod = psi * nu
-        total = 1.0 + prod.sum(-1, keepdims=True)
-        mu = psi / (total - prod)
-        col = 1.0 + mu.sum(-2, keepdims=True)
-        nu = 1.0 / (col - mu)
+        others, total = _np_sum_of_others(prod, a0, -1)
+        mu = a / np.maximum(others, tiny)
+        others, col = _np_sum_of_others(mu, 1.0, -2)
+        prod = a / others
         if tol is not None and (it % 2 == 0 or it == iterations):
-            stat = np.concatenate([1.0 / total.ravel(), 1.0 / col.ravel()])
+            stat = np.concatenate([(a0 / total).ravel(), 1.0 / col.ravel()])
             if last is not None and (stat.size == 0 or np.abs(stat - last).max() < tol):
                 break
             last = stat
-    prod = psi * nu
-    denom = 1.0 + prod.sum(-1, keepdims=True)
-    return prod / denom, 1.0 / denom[:, 0]
+    total = prod.sum(-1, keepdims=True) + a0
+    return prod / total, (a0 / total)[:, 0]
 
 
 def best_cpu_time(fn: Callable[[], object], repeats: int = 3) -> float:

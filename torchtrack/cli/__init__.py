@@ -21,6 +21,7 @@ from pathlib import Path
 from types import ModuleType
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import check_output_file
 
 
 def _literal(tree: ast.Module, name: str) -> str | None:
@@ -93,6 +94,7 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser(argv).parse_args(argv)
     try:
+        check_output_file(getattr(args, "json", None), "--json")
         return int(args._run(args) or 0)
     except TorchtrackError as exc:
         print(f"torchtrack {args.command}: error: {exc}", file=sys.stderr)

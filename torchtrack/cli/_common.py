@@ -9,6 +9,12 @@ from torchtrack.config import preset_path
 from torchtrack.errors import TorchtrackError
 
 
+def add_force_option(parser: argparse.ArgumentParser) -> None:
+    """``--force`` of the commands that write an output folder (:class:`torchtrack.io.outputs.OutputFolder`)."""
+    parser.add_argument("--force", action="store_true",
+                        help="replace --out even when it holds something other than this command's output")
+
+
 def add_common_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:
     """``--seed`` and ``--json PATH``, which every command takes."""
     parser.add_argument("--seed", type=int, default=seed, help=f"random seed (default {seed})")

@@ -2,8 +2,10 @@
 
 ``torchtrack/cli/track.py`` calls :func:`add_frame_options` on its parser and, when one of them was given,
 :func:`run_frame_inputs` with its parsed arguments (it also reads ``--tracker``, ``--gt``, ``--out``,
-``--json``, ``--threads``, ``--compare`` and ``--trackers`` of ``torchtrack track``); the tracker's options
-come from ``torchtrack track --config`` through ``tracker_options``.
+``--force``, ``--json``, ``--threads``, ``--compare`` and ``--trackers`` of ``torchtrack track``); the
+tracker's options come from ``torchtrack track --config`` through ``tracker_options``. The output folder is
+written as one set (:class:`~torchtrack.io.outputs.OutputFolder`; under ``torchrun`` every rank writes into
+the same staging folder, :func:`~torchtrack.pipeline.sequences.shared_output`).
 """
 
 from __future__ import annotations
@@ -11,14 +13,15 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from torchtrack.cli._common import config_file
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
 from torchtrack.io.frames import open_frames
 from torchtrack.io.mot import read_mot
-from torchtrack.io.outputs import write_json
+from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.metrics.table import format_table, format_table1
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
-from torchtrack.pipeline.sequences import destroy, run_sequences
+from torchtrack.pipeline.sequences import destroy, run_sequences, shared_output
 from torchtrack.pipeline.track_video import track_video
 from torchtrack.pipeline.truth import wpafb_truth
 from torchtrack.sim.video import read_camera
@@ -36,7 +39,7 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
                      help="evaluate every sequence folder in DIR and aggregate (shards over torchrun ranks)")
     # --compare and --trackers of torchtrack track also apply to --sequences: the detector runs once per
     # sequence and every tracker runs on its detections.
-    g.add_argument("--pipeline-config", type=Path, metavar="YAML", default=None,
+    g.add_argument("--pipeline-config", type=config_file, metavar="YAML", default=None,
                    help="pipeline settings (configs/pipeline.yaml); default: the embedded ones, which write "
                         "tracks.txt 3 frames behind the video (fixed-lag output); configs/pipeline-online.yaml "
                         "writes each frame at once; configs/pipeline-fewer-switches.yaml trades a point of MOTA "
@@ -78,8 +81,10 @@ def pipeline_config(args: argparse.Namespace, tracker_options: dict | None) -> P
     return config.replace(**changes)
 
 
-def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = None) -> int:
-    """Run the pipeline for ``--video``/``--frames``/``--sequences`` and print its scores."""
+def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: dict | None = None,
+                     inputs: list[Path | None] = ()) -> int:
+    """Run the pipeline for ``--video``/``--frames``/``--sequences`` and print its scores; ``command`` is
+    the one named in the output folder's marker, ``inputs`` the paths it reads (kept out of it)."""
     if args.detections:
         raise TorchtrackError("give either --detections or one of --video/--frames/--sequences, not both")
     config = pipeline_config(args, tracker_options)
@@ -90,7 +95,9 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
             raise TorchtrackError("--gt does not apply to --sequences: each sequence folder holds its gt.txt")
         compare = (args.trackers or tracker_names()) if args.compare else []
         try:
-            summary = run_sequences(args.sequences, out, config, progress=not args.no_progress, compare=compare)
+            with shared_output(out, command, args.force, inputs) as staging:
+                summary = run_sequences(args.sequences, staging, config, progress=not args.no_progress,
+                                        compare=compare)
         finally:
             destroy()
         if summary is None:  # a torchrun rank other than 0
@@ -110,18 +117,20 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
                   f"{summary['registration_error_px']['median_of_sequence_medians']:.3f} px")
         write_json(args.json, summary)
         return 0
-    source = open_frames(args.video or args.frames)
-    gt_path = args.gt
-    gt = read_mot(gt_path) if gt_path else None
-    ignore = None
-    if args.truth_csv:
-        if gt is not None:
-            raise TorchtrackError("give either --gt or --truth-csv, not both")
-        gt, ignore = wpafb_truth(args.truth_csv, len(source))
-        gt_path = args.truth_csv
-    camera = read_camera(args.camera) if args.camera else None
-    result = track_video(source, out, config, gt=gt, gt_path=str(gt_path), ignore=ignore, camera=camera,
-                         progress=not args.no_progress)
+    if args.gt and args.truth_csv:
+        raise TorchtrackError("give either --gt or --truth-csv, not both")
+    folder = OutputFolder(out, command, args.force, inputs=inputs)
+    with folder as staging:
+        source = open_frames(args.video or args.frames)
+        gt_path = args.gt
+        gt = read_mot(gt_path) if gt_path else None
+        ignore = None
+        if args.truth_csv:
+            gt, ignore = wpafb_truth(args.truth_csv, len(source))
+            gt_path = args.truth_csv
+        camera = read_camera(args.camera) if args.camera else None
+        result = track_video(source, staging, config, gt=gt, gt_path=str(gt_path), ignore=ignore, camera=camera,
+                             progress=not args.no_progress)
     m = result.metrics
     print(format_table(header, [_score_row(Path(source.path).name, m.get("clear_mot"), m["fps"]["end_to_end"])],
                        floatfmt=".3f"))
@@ -129,6 +138,6 @@ def run_frame_inputs(args: argparse.Namespace, tracker_options: dict | None = No
     print(f"{m['frames']} frames, tracker {config.tracker}: {timings}")
     if "registration_error_px" in m:
         print(f"registration error vs camera truth: median {m['registration_error_px']['median']:.3f} px")
-    print("wrote " + ", ".join(str(p) for p in result.files.values()))
+    print("wrote " + ", ".join(str(folder.final(p)) for p in result.files.values()))
     write_json(args.json, m)
     return 0

@@ -5,10 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import yaml
-
-from torchtrack.config import preset_path
-from torchtrack.errors import TorchtrackError
+from torchtrack.config import preset_path, read_mapping
 from torchtrack.filters.tracker_config import read_tracker_sections
 from torchtrack.io.datasets import WPAFB, wpafb_truth_csv
 from torchtrack.io.outputs import write_json
@@ -34,10 +31,7 @@ def run_benchmark(name_or_path: str | Path, out: Path, seed: int, trackers: list
     from torchtrack.pipeline.wpafb_benchmark import run_benchmark as run
 
     path = preset_path(PRESETS.get(str(name_or_path), name_or_path))
-    try:
-        raw = yaml.safe_load(path.read_text()) or {}
-    except (OSError, yaml.YAMLError) as exc:
-        raise TorchtrackError(f"cannot read benchmark config {path}: {exc}") from None
+    raw = read_mapping(path, "benchmark config")
     config = BenchmarkConfig.from_mapping(raw, f"benchmark config {name_or_path}")
     tracker_options = read_tracker_sections(tracker_config or config.tracker_config)
     found = run(config, read_wpafb_csv(truth_csv(raw)), out, seed, tracker_options, trackers)

@@ -9,7 +9,7 @@ import numpy as np
 
 from torchtrack.cli._common import add_common_options
 from torchtrack.io.mot import POINT_BOX_SIZE, write_motdata
-from torchtrack.io.outputs import write_json
+from torchtrack.io.outputs import check_output_file, write_json
 from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
 from torchtrack.metrics.table import format_table
 
@@ -19,7 +19,8 @@ DESCRIPTION = f"""Convert the WPAFB 2009 truth CSV to MOTChallenge text (frame,i
 
 The CSV's px is the image row and py the column; objects at (0, 0) are absent; the trailing all-zero
 row is skipped. Each vehicle becomes a {POINT_BOX_SIZE:g} x {POINT_BOX_SIZE:g} px box centred on it
-(--box). Frames are renumbered from 1 unless --keep-frame-numbers.
+(--box). Frames are renumbered from 1 unless --keep-frame-numbers. The file appears whole (written under
+a .partial name, then renamed).
 
 example:
   torchtrack data fetch wpafb
@@ -38,6 +39,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_file(args.out)
     truth = read_wpafb_csv(args.csv, keep_frame_numbers=args.keep_frame_numbers, box=args.box)
     write_motdata(args.out, truth)
     frames = truth.frames()

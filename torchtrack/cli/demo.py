@@ -4,8 +4,9 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options
-from torchtrack.io.outputs import write_json
+from torchtrack.cli._common import add_common_options, add_force_option, config_file
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.pipeline.config import load_pipeline_config
 from torchtrack.pipeline.demo import format_demo, run_demo
 
@@ -18,7 +19,9 @@ detections, and print the CLEAR-MOT table in the layout of Table 1 of Aguilar et
 
 Writes under --out: annotated.mp4 (enhanced GM-PHD tracks, truth as white crosses), tracks.txt
 (MOTChallenge), detections.txt, metrics.json, tracks_first_frame.png, scores.png, frame_*.png,
-trackers/<name>.txt and the generated sequence in sequence/.
+trackers/<name>.txt and the generated sequence in sequence/. The files appear in --out as one set when
+the run completes (written in OUT.partial until then); an existing --out is replaced only when it holds
+the output of torchtrack demo (or with --force).
 """
 
 
@@ -29,16 +32,21 @@ def add_arguments(parser) -> None:
     parser.add_argument("--truth", choices=("moving", "all"), default="moving",
                         help="moving: the moving vehicles are the targets, parked ones don't-care (the "
                              "paper's protocol, default); all: every vehicle is a target")
-    parser.add_argument("--config", type=Path, default=None, metavar="YAML",
-                        help="pipeline settings (configs/pipeline.yaml); default: the embedded ones")
+    parser.add_argument("--config", type=config_file, default=None, metavar="YAML",
+                        help="pipeline settings, a path or a preset name (e.g. pipeline-online); default: the "
+                             "embedded ones (the preset pipeline)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_force_option(parser)
     add_common_options(parser)
 
 
 def run(args) -> int:
+    if args.frames is not None and args.frames < 1:
+        raise TorchtrackError(f"--frames must be at least 1, got {args.frames}")
     config = load_pipeline_config(args.config) if args.config else None
-    metrics = run_demo(args.out, seed=args.seed, frames=args.frames, truth=args.truth, config=config,
-                       progress=not args.no_progress)
+    with OutputFolder(args.out, f"torchtrack {NAME}", args.force, inputs=[args.config]) as staging:
+        metrics = run_demo(staging, seed=args.seed, frames=args.frames, truth=args.truth, config=config,
+                           progress=not args.no_progress)
     print(format_demo(metrics))
     print(f"wrote {args.out}/annotated.mp4, tracks.txt, metrics.json, tracks_first_frame.png, scores.png")
     write_json(args.json, metrics)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, config_file
 from torchtrack.detector.evaluate import PRIORS
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
@@ -32,7 +32,7 @@ Example: torchtrack eval-detector --sequences 4 --frames 20 --json out/eval.json
 
 def add_arguments(parser) -> None:
     parser.add_argument("--weights", type=Path, default=None, help="checkpoint (default: shipped weights)")
-    parser.add_argument("--config", type=Path, default=None,
+    parser.add_argument("--config", type=config_file, default=None,
                         help="video config of the held-out sequences (default: the checkpoint's training data)")
     parser.add_argument("--sequences", type=int, default=4, help="held-out synthetic sequences (default 4)")
     parser.add_argument("--frames", type=int, default=20, help="frames per sequence (default 20)")

@@ -6,12 +6,10 @@ import dataclasses
 import json
 from pathlib import Path
 
-import yaml
-
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, add_force_option, config_file
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
-from torchtrack.io.outputs import write_json
+from torchtrack.io.outputs import OutputFolder, check_output_file, write_json, write_yaml
 from torchtrack.metrics.table import format_table
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.selection import GRIDS, check_ids_reference, collect, select
@@ -28,7 +26,10 @@ R, the pipeline's tracker only among the option sets with at most R times the id
 --ids-reference's chosen options: fewer switches for some MOTA); the gate is where
 the pipeline's tracker (--pipeline-config's, default gmphd) scores best, so all trackers are compared on
 the same detections. Writes --out, a pipeline config for `torchtrack demo --config` and
-`torchtrack track --pipeline-config`, and OUT.json with every run.
+`torchtrack track --pipeline-config`, and OUT.json with every run (each file appears whole: written under
+a .partial name, then renamed; OUT.json first). The detection runs go to --work, one set written as
+WORK.partial and moved into place when the selection completes; an existing --work is replaced only when
+it holds the output of torchtrack select-trackers (or with --force).
 
 Use sequences that are not the ones you report (docs/pipeline.md). Example:
   for i in 1 2 3; do torchtrack simulate-video --seed $((10000000 + i)) --out out/val/seq$i; done
@@ -39,7 +40,7 @@ Use sequences that are not the ones you report (docs/pipeline.md). Example:
 def add_arguments(parser) -> None:
     parser.add_argument("--sequences", type=Path, required=True, metavar="DIR", help="validation sequences")
     parser.add_argument("--out", type=Path, required=True, metavar="YAML", help="pipeline config to write")
-    parser.add_argument("--pipeline-config", type=Path, default=None, metavar="YAML",
+    parser.add_argument("--pipeline-config", type=config_file, default=None, metavar="YAML",
                         help="starting pipeline settings (default: the embedded ones)")
     parser.add_argument("--trackers", nargs="+", choices=tracker_names(), default=None,
                         help="trackers to tune (default: all)")
@@ -58,6 +59,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--work", type=Path, default=Path("out/select-trackers"), metavar="DIR",
                         help="folder for the detection runs (default out/select-trackers)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
+    add_force_option(parser)
     add_common_options(parser)
 
 
@@ -76,18 +78,21 @@ def run(args) -> int:
             raise TorchtrackError(f"{flag} must be >= 0, got {values}")
     if args.max_ids_ratio is not None and not args.max_ids_ratio > 0:
         raise TorchtrackError(f"--max-ids-ratio must be > 0, got {args.max_ids_ratio}")
+    check_output_file(args.out)
+    check_output_file(args.out.with_suffix(".json"), "--out (its .json)")
     config = load_pipeline_config(args.pipeline_config)
     trackers = args.trackers or tracker_names()
     if args.max_ids_ratio is not None:
         check_ids_reference(args.ids_reference, config, trackers)
-    data = collect(args.sequences, args.work, config, progress=not args.no_progress)
-    if not data:
-        raise TorchtrackError(f"{args.sequences}: no sequence with a gt.txt")
-    gates = [(s, m) for s in args.min_speeds for m in args.min_motions]
-    ids_limit = None if args.max_ids_ratio is None else (args.ids_reference, args.max_ids_ratio)
-    chosen, log = select(data, config, trackers, gates, GRIDS, progress=not args.no_progress,
-                         mota_tolerance=args.mota_tolerance, ids_limit=ids_limit)
-    args.out.parent.mkdir(parents=True, exist_ok=True)
+    with OutputFolder(args.work, f"torchtrack {NAME}", args.force, flag="--work",
+                      inputs=[args.sequences, args.pipeline_config, args.out]) as work:
+        data = collect(args.sequences, work, config, progress=not args.no_progress)
+        if not data:
+            raise TorchtrackError(f"{args.sequences}: no sequence with a gt.txt")
+        gates = [(s, m) for s in args.min_speeds for m in args.min_motions]
+        ids_limit = None if args.max_ids_ratio is None else (args.ids_reference, args.max_ids_ratio)
+        chosen, log = select(data, config, trackers, gates, GRIDS, progress=not args.no_progress,
+                             mota_tolerance=args.mota_tolerance, ids_limit=ids_limit)
     flags = [f"--sequences {args.sequences}"]
     if args.pipeline_config is not None:
         flags.append(f"--pipeline-config {args.pipeline_config}")
@@ -96,8 +101,8 @@ def run(args) -> int:
     if ids_limit is not None:
         flags.append(f"--max-ids-ratio {args.max_ids_ratio} --ids-reference {args.ids_reference}")
     header = f"# written by: torchtrack select-trackers {' '.join(flags)}\n"
-    args.out.write_text(header + yaml.safe_dump(config_mapping(chosen), sort_keys=False))
-    args.out.with_suffix(".json").write_text(json.dumps(log, indent=1) + "\n")
+    write_json(args.out.with_suffix(".json"), log, indent=1)  # the log first: the config appears last
+    write_yaml(args.out, config_mapping(chosen), header)
     best = {r["tracker"]: r for r in log if (r["min_speed"], r["min_motion"]) == (chosen.min_speed, chosen.min_motion)
             and r["options"] == chosen.trackers.get(r["tracker"], {})}
     rows = [[n, best[n]["MOTA"], best[n]["IDS"], best[n]["FP"], best[n]["FN"], json.dumps(best[n]["options"])]

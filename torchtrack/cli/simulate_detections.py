@@ -10,7 +10,7 @@ import torch
 
 from torchtrack.cli._common import add_common_options
 from torchtrack.io.mot import POINT_BOX_SIZE, read_mot, write_motdata
-from torchtrack.io.outputs import write_json
+from torchtrack.io.outputs import check_output_file, write_json
 from torchtrack.metrics.table import format_table
 from torchtrack.sim.detections import default_image_size, simulate_detections
 
@@ -23,7 +23,8 @@ Each object is detected with probability --pd at its centre plus N(0, --sigma^2)
 frame gets Poisson(--clutter) false detections uniform over the image (--image-size W H, default: just
 covering the truth). With --velocity-sigma V every detection carries a velocity in px/frame (the truth's
 finite difference plus N(0, V^2) noise, standing in for the detector's velocity head), written in
-columns 8 and 9: frame,-1,x,y,w,h,1,vx,vy,-1. Same --seed, same detections.
+columns 8 and 9: frame,-1,x,y,w,h,1,vx,vy,-1. Same --seed, same detections. The file appears whole
+(written as OUT's .partial name, then renamed).
 
 example (the WPAFB benchmark defaults):
   torchtrack simulate-detections --gt out/wpafb/gt.txt --pd 0.9 --sigma 1 --clutter 30 \\
@@ -49,6 +50,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_output_file(args.out)
     truth = read_mot(args.gt)
     size = tuple(args.image_size) if args.image_size else default_image_size(truth)
     generator = torch.Generator().manual_seed(args.seed)

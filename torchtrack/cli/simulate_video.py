@@ -6,8 +6,9 @@ from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options, config_file
-from torchtrack.io.outputs import write_json
+from torchtrack.cli._common import add_common_options, add_force_option, config_file
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import OutputFolder, write_json
 
 NAME = "simulate-video"
 HELP = "write a synthetic satellite-style sequence: frames, gt.txt (MOTChallenge), camera.json"
@@ -15,7 +16,9 @@ DESCRIPTION = HELP + """
 
 Output folder: frames/000001.png ... (or video.mp4 with --format mp4), gt.txt
 (frame,id,x,y,w,h,conf,-1,-1,-1; boxes of gt_box_size px centred on the vehicles), velocity.txt
-(frame,id,vx,vy,moving) and camera.json (true reference->frame homographies).
+(frame,id,vx,vy,moving) and camera.json (true reference->frame homographies). The folder appears as one
+set when the sequence is complete (written in OUT.partial until then); an existing --out is replaced only
+when it holds the output of torchtrack simulate-video (or with --force).
 Example: torchtrack simulate-video --out out/seq --frames 30 --seed 1
 """
 
@@ -29,19 +32,26 @@ def add_arguments(parser) -> None:
                         help="frame height and width (overrides the config)")
     parser.add_argument("--format", choices=["png", "mp4", "avi"], default="png",
                         help="frames as PNG files (default) or one video file")
+    add_force_option(parser)
     add_common_options(parser)
 
 
 def run(args) -> int:
     from torchtrack.sim.video import load_video_config, write_sequence
 
+    if args.frames is not None and args.frames < 1:
+        raise TorchtrackError(f"--frames must be at least 1, got {args.frames}")
+    if args.size is not None and min(args.size) < 1:
+        raise TorchtrackError(f"--size must be positive, got {args.size[0]} {args.size[1]}")
     cfg = load_video_config(args.config)
     if args.frames is not None:
         cfg = cfg.replace(frames=args.frames)
     if args.size is not None:
         cfg = cfg.replace(height=args.size[0], width=args.size[1])
-    out = write_sequence(cfg, torch.Generator().manual_seed(args.seed), args.out, args.format, progress=True)
-    n_gt = sum(1 for _ in open(out / "gt.txt"))
+    with OutputFolder(args.out, f"torchtrack {NAME}", args.force, inputs=[args.config]) as staging:
+        write_sequence(cfg, torch.Generator().manual_seed(args.seed), staging, args.format, progress=True)
+        n_gt = sum(1 for _ in open(staging / "gt.txt"))
+    out = args.out
     print(f"wrote {cfg.frames} frames of {cfg.height}x{cfg.width}, {n_gt} truth rows to {out}")
     write_json(args.json, {"out": str(out), "frames": cfg.frames, "gt_rows": n_gt})
     return 0

@@ -8,24 +8,29 @@ the WPAFB benchmark through :mod:`torchtrack.cli._wpafb_benchmark`.
 from __future__ import annotations
 
 import argparse
+import math
 from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, add_force_option, config_file
 from torchtrack.cli._frames import add_frame_options, frame_inputs_given, run_frame_inputs
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import Tracker, tracker_names
 from torchtrack.filters.tracker_config import read_tracker_sections
-from torchtrack.io.outputs import write_json
+from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.metrics.table import format_table1
 
 NAME = "track"
+OUTPUT = f"torchtrack {NAME}"
+"""The command named in the marker of its output folders (:class:`torchtrack.io.outputs.OutputFolder`)."""
 HELP = "run a multi-target tracker (gmphd, labelled-gmphd, sort, greedy) on detections and score it"
 DESCRIPTION = """Run a tracker on a MOTChallenge detection file, one frame at a time.
 
 Writes DIR/tracks.txt (MOTChallenge, one line per reported target) and DIR/metrics.json (CLEAR-MOT
-against --gt at --threshold px, plus the tracker's frames per second). With --compare every tracker
+against --gt at --threshold px, plus the tracker's frames per second). A run's files appear in --out as
+one set when it completes (written in DIR.partial until then); an existing DIR is replaced only when it
+holds the output of torchtrack track (or with --force). With --compare every tracker
 runs on the same detections (DIR/<tracker>/...) and the paper's Table 1 is printed. With
 --benchmark wpafb (a preset name or a config path) the WPAFB real-data benchmark runs end to end. A
 detection file runs without the video pipeline's moving-object gate and fixed-lag output unless
@@ -35,7 +40,7 @@ Examples:
   torchtrack track --detections det.txt --tracker gmphd --gt gt.txt --out out/track
   torchtrack track --detections det.txt --gt gt.txt --compare --out out/compare
   torchtrack track --detections det.txt --gt gt.txt --params out/tune-gmphd/params.yaml
-  torchtrack track --benchmark wpafb --out out/wpafb
+  torchtrack track --benchmark wpafb --out out/wpafb-benchmark
 """
 
 
@@ -44,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "velocity vx, vy in columns 8-9 where the detector gives one)")
     parser.add_argument("--tracker", choices=tracker_names(), default="gmphd",
                         help="tracker (default gmphd: the enhanced GM-PHD)")
-    parser.add_argument("--config", default=None, metavar="YAML",
+    parser.add_argument("--config", type=config_file, default=None, metavar="YAML",
                         help="tracker options: a YAML mapping with one section per tracker name, a path or a "
                              "preset name (e.g. gmphd); defaults are the built-in values")
     parser.add_argument("--params", type=Path, default=None, metavar="FITTED",
@@ -64,15 +69,16 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "name or a config path")
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: the per-frame "
                         "work is small, more threads only add overhead)")
+    add_force_option(parser)
     add_common_options(parser)
     add_frame_options(parser)
 
 
 def fitted_tracker(args: argparse.Namespace) -> Tracker:
     """The GM-PHD tracker of a ``torchtrack tune`` fitted-parameter file (``--params``): built from the
-    file's tracker options and loaded with the fitted values exactly (:func:`torchtrack.tune.load_filter`)."""
-    from torchtrack.tune import load_filter
+    file's tracker options and loaded with the fitted values exactly (:func:`torchtrack.tuning.tune.load_filter`)."""
     from torchtrack.tuning.config import read_params_file
+    from torchtrack.tuning.tune import load_filter
 
     doc = read_params_file(args.params, ("gmphd",), "torchtrack track --params")
     kind = (doc.get("model") or {}).get("tracker", "gmphd")
@@ -89,38 +95,55 @@ def fitted_tracker(args: argparse.Namespace) -> Tracker:
     return tracker
 
 
+def inputs(args: argparse.Namespace) -> list[Path | None]:
+    """The files and folders ``torchtrack track`` reads (none of them may lie in its output folder)."""
+    return [args.detections, args.gt, args.config, args.params, args.pipeline_config, args.video, args.frames,
+            args.sequences, args.weights, args.camera, args.truth_csv]
+
+
+def check_arguments(args: argparse.Namespace) -> None:
+    """The argument errors that need no file (before anything is read or written)."""
+    if not (math.isfinite(args.threshold) and args.threshold > 0):
+        raise TorchtrackError(f"--threshold must be a positive distance in px, got {args.threshold:g}")
+    if args.compare and args.detections is not None and args.gt is None:
+        raise TorchtrackError("--compare needs --gt to score the trackers")
+
+
 def run(args: argparse.Namespace) -> int:
     from torchtrack.io.mot import read_mot
     from torchtrack.pipeline.config import load_pipeline_config
     from torchtrack.pipeline.detection_file import compare, detection_file_config, track_detections
 
+    check_arguments(args)
     torch.set_num_threads(max(1, args.threads))
     torch.manual_seed(args.seed)
     fitted = fitted_tracker(args) if args.params is not None else None
     tracker_options = read_tracker_sections(args.config)
     if frame_inputs_given(args):
-        return run_frame_inputs(args, tracker_options.get(args.tracker))
+        return run_frame_inputs(args, OUTPUT, tracker_options.get(args.tracker), inputs(args))
     if args.benchmark is not None:
         from torchtrack.cli._wpafb_benchmark import run_benchmark
 
-        payload = run_benchmark(args.benchmark, args.out, args.seed, args.trackers, args.config)
+        with OutputFolder(args.out, OUTPUT, args.force, inputs=inputs(args)) as staging:
+            payload = run_benchmark(args.benchmark, staging, args.seed, args.trackers, args.config)
         write_json(args.json, payload)
         return 0
     if args.detections is None:
         raise TorchtrackError("give --detections DET (or --benchmark CONFIG)")
     base = load_pipeline_config(args.pipeline_config) if args.pipeline_config else None
     config = detection_file_config(tracker_options, args.threshold, base)
-    det = read_mot(args.detections)
-    gt = read_mot(args.gt) if args.gt is not None else None
+    with OutputFolder(args.out, OUTPUT, args.force, inputs=inputs(args)) as staging:
+        det = read_mot(args.detections)
+        gt = read_mot(args.gt) if args.gt is not None else None
+        if args.compare:
+            results = compare(det, config, staging, gt, args.trackers or tracker_names())
+            write_json(staging / "comparison.json", results)
+        else:
+            m = track_detections(det, args.tracker, config, staging, gt, fitted)
     if args.compare:
-        if gt is None:
-            raise TorchtrackError("--compare needs --gt to score the trackers")
-        results = compare(det, config, args.out, gt, args.trackers or tracker_names())
         print(format_table1(results))
-        write_json(args.out / "comparison.json", results)
         write_json(args.json, results)
         return 0
-    m = track_detections(det, args.tracker, config, args.out, gt, fitted)
     if gt is not None:
         print(format_table1({args.tracker: m}))
     else:

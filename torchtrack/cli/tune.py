@@ -16,12 +16,15 @@ split into training and held-out sequences or windows), the loss (marginal log-l
 predictive likelihood, particle estimate, soft GOSPA) and the optimiser (adam or lbfgs, mini-batches,
 early stopping on the held-out loss). See docs/tune.md.
 
-Writes OUT/params.yaml (the fitted parameters; torchtrack.tune.load_params / load_filter,
+Writes OUT/params.yaml (the fitted parameters; torchtrack.tuning.tune.load_params / load_filter,
 `torchtrack track --params` (GM-PHD) and `torchtrack scenario maneuver|formation --params` (Kalman,
 IMM) read it; for the GM-PHD OUT/track.yaml is also a `torchtrack track --config` file) and
 OUT/loss.png (the loss curve). An optional `refine` section adds a line search on the task metric
 (MOTA) over the training items after the gradient fit. A non-finite loss stops training, keeps the
-last parameters with a finite loss, writes them, and exits with status 1.
+last parameters with a finite loss, writes them, and exits with status 1. The output folder appears as one
+set when the run completes (written in OUT.partial until then; the config's output.params/output.plot
+do not apply); an existing OUT is replaced only when it holds the output of torchtrack tune (or with
+--force).
 
 Examples:
   torchtrack tune --config configs/tune-kalman.yaml
@@ -34,7 +37,7 @@ Examples:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from torchtrack.cli._common import add_common_options, config_file
+    from torchtrack.cli._common import add_common_options, add_force_option, config_file
 
     parser.add_argument("--config", type=config_file, required=True, metavar="YAML",
                         help="tune config: a path or a preset name (configs/tune-*.yaml, e.g. tune-kalman)")
@@ -53,6 +56,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                         help="override a config entry (dotted key, YAML value; repeatable), e.g. "
                              "--set data.held_out_frames=[1,128] --set 'data.train_frames=[[129,512]]'")
+    add_force_option(parser)
     add_common_options(parser, seed=None)
     for action in parser._actions:
         if action.dest == "seed":
@@ -110,13 +114,18 @@ def _print_folds(summary: dict) -> None:
     print(line + f"; outputs under {Path(runs[0]['output']['params']).parent.parent}")
 
 
+def _final_paths(report: dict, folder) -> None:
+    """The report's output files where they are after the commit (they were written to the staging folder)."""
+    report["output"] = {key: str(folder.final(path)) for key, path in report["output"].items()}
+
+
 def run(args) -> int:
     import torch
 
-    from torchtrack.io.outputs import write_json
+    from torchtrack.io.outputs import OutputFolder, write_json
     from torchtrack.metrics.table import format_table
-    from torchtrack.tune import tune
     from torchtrack.tuning.config import apply_overrides, read_tune_config
+    from torchtrack.tuning.tune import output_dir, tune
 
     torch.set_num_threads(max(1, args.threads))
     config = apply_overrides(read_tune_config(args.config), args.set)
@@ -126,14 +135,20 @@ def run(args) -> int:
         config.pop("grid", None)
     if args.no_refine:
         config.pop("refine", None)
+    folder = OutputFolder(output_dir(config, args.out), f"torchtrack {NAME}", args.force, inputs=[args.config])
     if args.folds is not None:
         from torchtrack.tuning.crossval import cross_validate
 
-        summary = cross_validate(config, args.folds, out=args.out, seed=args.seed, progress=not args.no_progress)
+        with folder as staging:
+            summary = cross_validate(config, args.folds, out=staging, seed=args.seed, progress=not args.no_progress)
+        for report in summary["runs"]:
+            _final_paths(report, folder)
         _print_folds(summary)
         write_json(args.json, summary)
         return 1 if any(r["stopped"] == "non-finite" for r in summary["runs"]) else 0
-    report = tune(config, out=args.out, seed=args.seed, progress=not args.no_progress)
+    with folder as staging:
+        report = tune(config, out=staging, seed=args.seed, progress=not args.no_progress)
+    _final_paths(report, folder)
     print(format_table(["parameter", "start", "fitted", "truth", "error"], _rows(report)))
     before, after = report["held_out_before"], report["held_out_after"]
     keys = [k for k in before if k in after]

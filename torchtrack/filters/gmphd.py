@@ -60,7 +60,13 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.tracker_config import GMPHDFilterOptions
-from torchtrack.gaussian import LOG_2PI
+from torchtrack.gaussian import (
+    chi2_quantile,
+    gain_from_cholesky,
+    innovations_likelihood,
+    kalman_gain,
+    posterior_cov,
+)
 from torchtrack.models import ConstantVelocity, LinearPosition, MeasurementModel, MotionModel
 from torchtrack.params import Positive, Probability
 
@@ -146,19 +152,6 @@ class Matrices(NamedTuple):
     R_velocity: Tensor | None = None          # (m + 2, m + 2) blockdiag(R, σ_v² I): noise of [z, v]
     log_clutter_velocity: Tensor | None = None   # log κ_v, clutter density over velocities
     log_velocity_outlier: Tensor | None = None   # log ε, probability that a target's velocity is an outlier
-
-
-def _kalman_terms(cov: Tensor, PHt: Tensor, L: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """``S⁻¹ (J, m, m)``, gain ``K = P Hᵀ S⁻¹ (J, n, m)``, symmetrised ``P − K S Kᵀ (J, n, n)`` and
-    ``½ log det S (J,)`` from ``cov = P``, ``PHt = P Hᵀ`` and the Cholesky factor ``L`` of ``S``. (The
-    leading block of ``L`` is the factor of the leading block of ``S``: the position-only terms of a
-    ``[z, v]`` update are this on ``PHt[..., :2]`` and ``L[:, :2, :2]``.)"""
-    S_inv = torch.cholesky_inverse(L)
-    # batched products called as torch.bmm directly (the kernel ``@`` dispatches to, fewer ops)
-    K = torch.bmm(PHt, S_inv)
-    P_upd = torch.baddbmm(cov, K, PHt.transpose(-1, -2), alpha=-1)
-    P_upd = (P_upd + P_upd.transpose(-1, -2)) * scalar(0.5, P_upd)
-    return S_inv, K, P_upd, torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
 
 
 class UpdateInfo(NamedTuple):
@@ -324,20 +317,18 @@ class GMPHD(nn.Module):
             PHt = state.cov @ H.transpose(-1, -2)                   # (J, n, m)
             S = H @ PHt + R                      # (J, m, m); Cholesky reads its lower triangle only
             z_hat = state.mean @ H.transpose(-1, -2)                # (J, m)
-        L, info = torch.linalg.cholesky_ex(S)
-        if bool(info.any()):
-            raise TorchtrackError("GMPHD update: innovation covariance S is not positive definite "
-                                  f"for {int((info != 0).sum())} components")
-        S_inv, K, P_upd, half_logdet = _kalman_terms(state.cov, PHt, L)
-        half = scalar(0.5, P_upd)
-        base = log_pd + live_w - half_logdet - scalar(0.5 * m_dim * LOG_2PI, live_w)   # (J,)
+        # the shared Kalman update of torchtrack.gaussian: per component (J) the factor L of S, the gain
+        # and P − W Wᵀ; per (component, measurement) pair the whitened innovation gives NIS and log ℓ
+        gain = kalman_gain(S, PHt, "GMPHD update: innovation covariance S")
+        K, P_upd = gain.gain, posterior_cov(state.cov, gain)
+        base = log_pd + live_w                                       # (J,)
         gate = scalar(gate, live_w)
-        if robust:
+        if robust:         # the leading block of L is the factor of S's position block
             p_dim = H.shape[0]
-            S_inv_p, K_p, P_upd_p, half_logdet_p = _kalman_terms(state.cov, PHt[:, :, :p_dim], L[:, :p_dim, :p_dim])
+            gain_p = gain_from_cholesky(gain.chol[:, :p_dim, :p_dim], PHt[:, :, :p_dim])
+            K_p, P_upd_p = gain_p.gain, posterior_cov(state.cov, gain_p)
             log_eps = mats.log_velocity_outlier
-            base_pos = (log_pd + live_w - half_logdet_p - scalar(0.5 * p_dim * LOG_2PI, live_w)
-                        + log_eps + mats.log_clutter_velocity)
+            base_pos = log_pd + live_w + log_eps + mats.log_clutter_velocity
             base = base + torch.log1p(-log_eps.exp())
             pair_pos = []
 
@@ -349,16 +340,15 @@ class GMPHD(nn.Module):
         for start in range(0, M, C):
             zc, kc = (z, log_kappa) if M <= C else (z[start:start + C], log_kappa[start:start + C])
             nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
-            nis = (torch.bmm(nu, S_inv) * nu).sum(-1)                # (J, C)  νᵀ S⁻¹ ν
+            nis, loglik = innovations_likelihood(gain, nu)      # (J, C)  νᵀ S⁻¹ ν, log N(ν; 0, S)
             if robust:
-                nu_p = nu[..., :p_dim]
-                nis_p = (torch.bmm(nu_p, S_inv_p) * nu_p).sum(-1)
+                nis_p, loglik_p = innovations_likelihood(gain_p, nu[..., :p_dim])
                 gated = (nis_p <= gate) & state.mask.unsqueeze(1)
-                with_v, without_v = base.unsqueeze(1) - nis * half, base_pos.unsqueeze(1) - nis_p * half
+                with_v, without_v = base.unsqueeze(1) + loglik, base_pos.unsqueeze(1) + loglik_p
                 log_num = torch.where(gated, torch.logaddexp(with_v, without_v), neg_inf)
             else:
                 gated = (nis <= gate) & state.mask.unsqueeze(1)
-                log_num = torch.where(gated, base.unsqueeze(1) - nis * half, neg_inf)
+                log_num = torch.where(gated, base.unsqueeze(1) + loglik, neg_inf)
             if pair_loglik is not None:
                 log_num = log_num + (pair_loglik if M <= C else pair_loglik[:, start:start + C])
             den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
@@ -451,17 +441,6 @@ class GMPHD(nn.Module):
         cov = torch.diag_embed(std.pow(2))
         return MixtureState(log_weight, mean, cov, label, torch.ones(label.shape[0], dtype=torch.bool,
                                                                     device=label.device))
-
-
-def chi2_quantile(p: float, dof: int) -> float:
-    """Quantile of the χ² distribution (closed form for 2 dof, scipy otherwise); ``inf`` for ``p = 1``."""
-    if p >= 1.0:
-        return float("inf")
-    if dof == 2:
-        return -2.0 * math.log1p(-p)
-    from scipy.stats import chi2
-
-    return float(chi2.ppf(p, dof))
 
 
 def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, Tensor]:

@@ -10,8 +10,9 @@ operation is elementwise over (tracks × models) — no batched small matmuls::
 
     predict   p ← p + dt v + dt²/2 u_j,   v ← v + dt u_j
               A ← A + dt (B + Bᵀ) + dt² C + σ_j² dt⁴/4 I,   B ← B + dt C + σ_j² dt³/2 I,   C ← C + σ_j² dt² I
-    update    S = A + R,  w = S⁻¹ ν (2×2 closed form),  p ← p + A w,  v ← v + Bᵀ w
-              A ← A − A S⁻¹ A,   B ← B − A S⁻¹ B,   C ← C − Bᵀ S⁻¹ B
+    update    S = A + R = L Lᵀ,  W = [A; Bᵀ] L⁻ᵀ,  x ← x + W L⁻¹ ν,  P ← P − W Wᵀ
+              (the shared update of torchtrack.gaussian, on the packed entries: A ← A − A S⁻¹ A,
+               B ← B − A S⁻¹ B, C ← C − Bᵀ S⁻¹ B)
 
 The axes are *not* treated as independent: although each model's filter would keep ``x`` and ``y``
 apart, the IMM mixing spread ``(x_i − x⁰_j)(x_i − x⁰_j)ᵀ`` couples them, so the cross-axis entries
@@ -22,7 +23,6 @@ the elementwise work into a few loops; on failure it falls back to eager executi
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import torch
@@ -37,10 +37,10 @@ from torchtrack.filters.imm import (
     combine,
 )
 from torchtrack.filters.kalman import GaussianState
+from torchtrack.gaussian import cholesky_entries, gaussian_log_likelihood, solve_lower_entries
 from torchtrack.models.measurement import LinearPosition
 from torchtrack.models.motion import ModeControlInput
 
-LOG_2PI = math.log(2.0 * math.pi)
 # (row, col) of the 10 packed covariance entries in the 4×4 matrix over [x, y, vx, vy]
 _IDX = [(0, 0), (0, 1), (1, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3)]
 _ROW = [i for i, _ in _IDX]
@@ -116,46 +116,34 @@ def predict_packed(mean: Tensor, cov: Tensor, dt: float, q: Tensor, u: Tensor) -
     return mean, cov
 
 
-def update_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, R: Tensor,
-                  present: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+def update_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, R: Tensor, present: Tensor | None = None
+                  ) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
     """Model-matched updates and mode update; ``z (2, B)``, ``R (3,)`` = ``[Rxx, Rxy, Ryy]``, ``present (B,)``.
 
-    Returns ``(log_prob, mean, cov, total log-likelihood (B,), model log-likelihoods (M, B))``.
+    The shared update of :mod:`torchtrack.gaussian` on packed entries: ``S = A + R = L Lᵀ``
+    (:func:`~torchtrack.gaussian.cholesky_entries`), the whitened innovation ``L⁻¹ ν`` and the rows of
+    ``W = P Hᵀ L⁻ᵀ`` (``P Hᵀ`` is the first two columns of ``P``: ``[A; Bᵀ]``), then ``x⁺ = x + W L⁻¹ ν``
+    and ``P⁺ = P − W Wᵀ``. Returns ``(log_prob, mean, cov, total log-likelihood (B,), model
+    log-likelihoods (M, B), NIS (M, B), ok (M, B))`` (``ok``: ``S`` was positive definite).
     """
     px, py, vx, vy = mean.unbind(0)
     Axx, Axy, Ayy, Bxx, Bxy, Byx, Byy, Cxx, Cxy, Cyy = cov.unbind(0)
-    Sxx, Sxy, Syy = Axx + R[0], Axy + R[1], Ayy + R[2]
-    det = Sxx * Syy - Sxy * Sxy
-    ix, ixy, iy = Syy / det, -Sxy / det, Sxx / det           # S⁻¹
-    nx, ny = z[0] - px, z[1] - py
-    wx, wy = ix * nx + ixy * ny, ixy * nx + iy * ny          # S⁻¹ ν
-    nis = nx * wx + ny * wy
-    ll = -0.5 * (nis + torch.log(det) + 2 * LOG_2PI)
-    k00, k01 = Axx * ix + Axy * ixy, Axx * ixy + Axy * iy    # A S⁻¹
-    k10, k11 = Axy * ix + Ayy * ixy, Axy * ixy + Ayy * iy
-    g00, g01 = Bxx * ix + Byx * ixy, Bxx * ixy + Byx * iy    # Bᵀ S⁻¹
-    g10, g11 = Bxy * ix + Byy * ixy, Bxy * ixy + Byy * iy
-    new_mean = torch.stack([px + Axx * wx + Axy * wy, py + Axy * wx + Ayy * wy,
-                            vx + Bxx * wx + Byx * wy, vy + Bxy * wx + Byy * wy])
-    new_cov = torch.stack([
-        Axx - (k00 * Axx + k01 * Axy),
-        Axy - (k00 * Axy + k01 * Ayy),
-        Ayy - (k10 * Axy + k11 * Ayy),
-        Bxx - (k00 * Bxx + k01 * Byx),
-        Bxy - (k00 * Bxy + k01 * Byy),
-        Byx - (k10 * Bxx + k11 * Byx),
-        Byy - (k10 * Bxy + k11 * Byy),
-        Cxx - (g00 * Bxx + g01 * Byx),
-        Cxy - (g00 * Bxy + g01 * Byy),
-        Cyy - (g10 * Bxy + g11 * Byy),
-    ])
+    Sxy = Axy + R[1]
+    L, ok = cholesky_entries([[Axx + R[0], Sxy], [Sxy, Ayy + R[2]]])
+    white = solve_lower_entries(L, [z[0] - px, z[1] - py])
+    nis = white[0] * white[0] + white[1] * white[1]
+    ll = gaussian_log_likelihood(nis, 2.0 * (torch.log(L[0][0]) + torch.log(L[1][1])), 2)
+    W = [solve_lower_entries(L, row) for row in ([Axx, Axy], [Axy, Ayy], [Bxx, Byx], [Bxy, Byy])]
+    new_mean = torch.stack([c + w[0] * white[0] + w[1] * white[1] for c, w in zip((px, py, vx, vy), W)])
+    new_cov = torch.stack([c - (W[i][0] * W[j][0] + W[i][1] * W[j][1]) for c, (i, j) in zip(cov.unbind(0), _IDX)])
     if present is not None:
         ll = torch.where(present, ll, torch.zeros_like(ll))
+        nis = torch.where(present, nis, torch.zeros_like(nis))
         new_mean = torch.where(present, new_mean, mean)
         new_cov = torch.where(present, new_cov, cov)
     joint = log_prob + ll
     total = torch.logsumexp(joint, 0)
-    return joint - total, new_mean, new_cov, total, ll
+    return joint - total, new_mean, new_cov, total, ll, nis, ok
 
 
 def combine_packed(log_prob: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor, Tensor]:
@@ -175,7 +163,7 @@ def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, transiti
     """
     log_c, mean0, cov0 = mix_packed(log_prob, mean, cov, transition)
     mean1, cov1 = predict_packed(mean0, cov0, dt, q, u)
-    log_prob, mean2, cov2, total, _ = update_packed(log_c, mean1, cov1, z, R)
+    log_prob, mean2, cov2, total, *_ = update_packed(log_c, mean1, cov1, z, R)
     cm, cc = combine_packed(log_prob, mean2, cov2)
     return log_prob, mean2, cov2, total, cm, cc
 
@@ -267,14 +255,9 @@ class ConstantVelocityIMM(nn.Module):
         log_prob, m, c = pack(state)
         zp = z.reshape(-1, 2).transpose(0, 1)
         pres = present.reshape(-1)
-        S = torch.stack([c[0] + R[0], c[1] + R[1], c[2] + R[2]])
-        det = S[0] * S[2] - S[1] ** 2
-        if check and bool((det <= 0).any()):
+        log_prob, m2, c2, total, ll, nis, ok = update_packed(log_prob, m, c, zp, R, pres)
+        if check and not bool(ok.all()):
             raise TorchtrackError("ConstantVelocityIMM: innovation covariance S is not positive definite")
-        log_prob, m2, c2, total, ll = update_packed(log_prob, m, c, zp, R, pres)
-        nx, ny = zp[0] - m[0], zp[1] - m[1]
-        nis = (S[2] * nx * nx - 2 * S[1] * nx * ny + S[0] * ny * ny) / det
-        nis = torch.where(pres, nis, torch.zeros_like(nis))
         M = self.num_models
         info = IMMUpdateInfo(total.reshape(batch), ll.transpose(0, 1).reshape(*batch, M),
                              nis.transpose(0, 1).reshape(*batch, M), present)

@@ -39,7 +39,7 @@ from torch import Tensor, nn
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters import resampling
 from torchtrack.filters.particle import check_num_particles, noise_factor
-from torchtrack.gaussian import log_prob_from_cholesky
+from torchtrack.gaussian import LOG_2PI, log_prob_from_cholesky
 from torchtrack.models.measurement import MeasurementModel, RangeBearing, wrap_angle
 from torchtrack.models.motion import ModeControlInput
 
@@ -220,7 +220,7 @@ class MultipleModelParticleFilter(nn.Module):
         if isinstance(meas, RangeBearing):
             sensor = meas.sensor_position.to(dtype).reshape(2, *[1] * (batch_ndim + 2))
             sig = torch.stack([meas.sigma_range(), meas.sigma_bearing()]).to(dtype)
-            scale, log_norm = -0.5 / sig**2, -math.log(2 * math.pi) - torch.log(sig).sum()
+            scale, log_norm = -0.5 / sig**2, -LOG_2PI - torch.log(sig).sum()
         else:
             sensor = scale = log_norm = torch.zeros((), dtype=dtype)
         return Tables(torch.cat([controls, sigma[None]]), prob.to(dtype).flatten(), alias.flatten(), offset * M,

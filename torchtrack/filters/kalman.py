@@ -22,25 +22,24 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters import kalman_axes
 from torchtrack.filters import kalman_lanes as lanes
 from torchtrack.gaussian import (
-    LOG_2PI,
-    chol_solve,
+    GaussianState,
+    KalmanGain,
+    chi2_quantile,
     cholesky,
-    log_det_from_cholesky,
+    innovation_cov,
+    innovation_likelihood,
+    joseph_cov,
+    kalman_gain,
+    mahalanobis_sq,
     matmul,
-    solve_lower,
+    posterior_cov,
     symmetrize,
 )
-from torchtrack.models.measurement import MeasurementModel
-from torchtrack.models.motion import MotionModel
-
-
-class GaussianState(NamedTuple):
-    """A batch of Gaussian densities: ``mean (*, n)``, ``cov (*, n, n)``."""
-
-    mean: Tensor
-    cov: Tensor
+from torchtrack.models.measurement import LinearPosition, MeasurementModel
+from torchtrack.models.motion import ConstantVelocity, MotionModel
 
 
 class UpdateInfo(NamedTuple):
@@ -67,13 +66,6 @@ def _check_state(state: GaussianState, n: int, who: str) -> None:
         raise TorchtrackError(f"{who}: state mean must have shape (*, {n}); got {tuple(state.mean.shape)}")
     if state.cov.shape[-2:] != (n, n):
         raise TorchtrackError(f"{who}: state cov must have shape (*, {n}, {n}); got {tuple(state.cov.shape)}")
-
-
-def joseph_cov(P: Tensor, K: Tensor, H: Tensor, R: Tensor) -> Tensor:
-    """Joseph-form posterior covariance ``(I − K H) P (I − K H)ᵀ + K R Kᵀ`` (symmetrised)."""
-    eye = torch.eye(P.shape[-1], dtype=P.dtype, device=P.device)
-    A = eye - K @ H
-    return symmetrize(A @ P @ A.transpose(-1, -2) + K @ matmul(R, K.transpose(-1, -2)))
 
 
 def _presence(z: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
@@ -113,9 +105,10 @@ class _GaussianFilter(nn.Module):
                check: bool = True) -> tuple[GaussianState, UpdateInfo]:
         """Measurement update with ``z (*, m)``; ``mask (*,)`` bool, ``True`` where a measurement exists.
 
-        Gain from the cross-covariance ``C`` and ``S`` (``K = C S⁻¹`` by Cholesky solve);
-        covariance ``P⁺ = P⁻ − K S Kᵀ`` (equal to the Joseph form for the optimal gain; for the
-        linear filter the Joseph form itself is used).
+        The shared update of :mod:`torchtrack.gaussian` (:func:`~torchtrack.gaussian.kalman_gain`,
+        :func:`~torchtrack.gaussian.innovation_likelihood`) on this filter's moments: gain from the
+        cross-covariance ``C`` and ``S``; covariance ``P⁺ = P⁻ − W Wᵀ`` (``= P⁻ − K S Kᵀ``, equal to
+        the Joseph form for the optimal gain; for the linear filter the Joseph form itself is used).
         """
         m = self.measurement.meas_dim
         if z.shape[-1] != m:
@@ -123,14 +116,11 @@ class _GaussianFilter(nn.Module):
         _check_state(state, self.state_dim, self.name)
         present, z = _presence(z, mask)
         z_hat, S, C = self._moments(state)
-        L = cholesky(S, f"{self.name}: innovation covariance S", check=check)
+        gain = kalman_gain(S, C, f"{self.name}: innovation covariance S", check=check)
         nu = self.measurement.residual(z, z_hat)
-        K = chol_solve(L, C.transpose(-1, -2)).transpose(-1, -2)
-        mean = state.mean + (K @ nu.unsqueeze(-1)).squeeze(-1)
-        cov = self._posterior_cov(state, K, S)
-        white = solve_lower(L, nu.unsqueeze(-1)).squeeze(-1)
-        nis = white.pow(2).sum(-1)
-        loglik = -0.5 * (nis + log_det_from_cholesky(L) + m * LOG_2PI)
+        mean = state.mean + (gain.gain @ nu.unsqueeze(-1)).squeeze(-1)
+        cov = self._posterior_cov(state, gain)
+        nis, loglik = innovation_likelihood(gain.chol, nu)
         keep = present.unsqueeze(-1)
         mean = torch.where(keep, mean, state.mean)
         cov = torch.where(keep.unsqueeze(-1), cov, state.cov)
@@ -138,8 +128,8 @@ class _GaussianFilter(nn.Module):
         info = UpdateInfo(nu, S, torch.where(present, nis, zero), torch.where(present, loglik, zero), present)
         return GaussianState(mean, cov), info
 
-    def _posterior_cov(self, state: GaussianState, K: Tensor, S: Tensor) -> Tensor:
-        return symmetrize(state.cov - K @ S @ K.transpose(-1, -2))
+    def _posterior_cov(self, state: GaussianState, gain: KalmanGain) -> Tensor:
+        return posterior_cov(state.cov, gain)
 
     def forward(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
                 predict_first: bool = True) -> FilterResult:
@@ -147,12 +137,13 @@ class _GaussianFilter(nn.Module):
         return self.run(measurements, init, dt, mask, predict_first)
 
     def run(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
-            predict_first: bool = True) -> FilterResult:
+            predict_first: bool = True, history: bool = True) -> FilterResult:
         """Filter a whole sequence ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` = missing).
 
         With ``predict_first`` the prior ``init`` is for time 0 and each step predicts then updates;
-        otherwise the first step only updates. Returns stacked posteriors and the total
-        log-likelihood ``Σ_k log p(z_k | z_{1:k-1})`` — differentiable in every model parameter.
+        otherwise the first step only updates. Returns stacked posteriors (only the last, ``T = 1``,
+        without ``history``) and the total log-likelihood ``Σ_k log p(z_k | z_{1:k-1})`` —
+        differentiable in every model parameter.
         """
         if measurements.dim() < 2:
             raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, m); got "
@@ -160,13 +151,15 @@ class _GaussianFilter(nn.Module):
         state = init
         means, covs, nis = [], [], []
         total = 0.0
-        for k in range(measurements.shape[0]):
+        T = measurements.shape[0]
+        for k in range(T):
             if predict_first or k > 0:
                 state = self.predict(state, dt)
             state, info = self.update(state, measurements[k], None if mask is None else mask[k])
-            means.append(state.mean)
-            covs.append(state.cov)
-            nis.append(info.nis)
+            if history or k == T - 1:
+                means.append(state.mean)
+                covs.append(state.cov)
+                nis.append(info.nis)
             total = total + info.log_likelihood
         return FilterResult(torch.stack(means), torch.stack(covs), torch.stack(nis), total)
 
@@ -192,13 +185,11 @@ class KalmanFilter(_GaussianFilter):
 
     def _moments(self, state):
         H = self.measurement.matrix()
-        R = self.measurement.noise_cov()
-        C = state.cov @ H.transpose(-1, -2)
-        S = symmetrize(matmul(H, C) + R)
+        C, S = innovation_cov(state.cov, H, self.measurement.noise_cov())
         return matmul(H, state.mean.unsqueeze(-1)).squeeze(-1), S, C
 
-    def _posterior_cov(self, state, K, S):
-        return joseph_cov(state.cov, K, self.measurement.matrix(), self.measurement.noise_cov())
+    def _posterior_cov(self, state, gain):
+        return joseph_cov(state.cov, gain.gain, self.measurement.matrix(), self.measurement.noise_cov())
 
     def _small(self) -> bool:
         """Whether the model is small enough for the unrolled per-lane arithmetic of the lanes path."""
@@ -233,35 +224,76 @@ class KalmanFilter(_GaussianFilter):
         return post, info
 
     def _shared_matrices(self, dt) -> tuple[Tensor, Tensor, Tensor, Tensor] | None:
-        """``(F, Q, H, R)`` when all are shared 2-D matrices of a small model (the lanes path), else None."""
+        """``(F, Q, H, R)`` when all are shared 2-D matrices of a small model (the lanes engine), else None."""
         if not self._small():
             return None
         mats = (self.motion.transition_matrix(dt), self.motion.process_noise(dt), self.measurement.matrix(),
                 self.measurement.noise_cov())
         return mats if all(M.dim() == 2 for M in mats) else None
 
-    def run(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
-            predict_first: bool = True, compile: bool = False) -> FilterResult:
-        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` = missing); see
-        :meth:`_GaussianFilter.run`.
+    def _axes_parameters(self, dt) -> tuple[float, float, float, float]:
+        """``(q₁₁, q₁₂, q₂₂, r)`` of the axis-decoupled engine, or a clear error where it does not apply."""
+        motion, meas = self.motion, self.measurement
+        if not isinstance(motion, ConstantVelocity) or not isinstance(meas, LinearPosition) or isinstance(dt, Tensor):
+            raise TorchtrackError("Kalman filter engine 'axes' needs ConstantVelocity motion, LinearPosition "
+                                  "measurements and a number dt")
+        if meas.meas_dim != motion.ndim or meas.state_dim != motion.state_dim:
+            raise TorchtrackError("Kalman filter engine 'axes' needs position measurements of every axis")
+        sigma = meas.sigma().detach()
+        if sigma.numel() != 1 and not bool((sigma == sigma.flatten()[0]).all()):
+            raise TorchtrackError("Kalman filter engine 'axes' needs isotropic measurement noise")
+        Q = motion.process_noise(dt).detach()
+        d = motion.ndim
+        return float(Q[0, 0]), float(Q[0, d]), float(Q[d, d]), float(sigma.flatten()[0] ** 2)
 
-        With shared model matrices (``dt`` a number) and a small model, the sequence is filtered in
-        the batch-last layout of :mod:`~torchtrack.filters.kalman_lanes` (the same equations); the
-        returned ``mean``/``cov`` are then views of batch-last storage (not contiguous). A failed
-        factorisation of ``S`` raises :class:`TorchtrackError` naming the step (checked once, after
-        the last step, so the loop never waits on the host). ``compile=True`` runs each step through
-        ``torch.compile`` when no gradient is needed (one fused loop over the tracks; compiled once
-        per process for each model size, dtype and with/without missing measurements; falls back to
-        eager where unavailable).
+    def run(self, measurements: Tensor, init: GaussianState, dt=1.0, mask: Tensor | None = None,
+            predict_first: bool = True, compile: bool = False, engine: str = "auto",
+            history: bool = True) -> FilterResult:
+        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` = missing); see
+        :meth:`_GaussianFilter.run`. Without ``history`` only the last posterior is returned (``T = 1``).
+
+        ``engine`` chooses how the same equations (the shared update of :mod:`torchtrack.gaussian`) are
+        laid out; all agree to rounding:
+
+        * ``"batch"``: the batch-first predict/update loop; any linear model, ``dt`` may be a tensor.
+        * ``"lanes"``: the batch-last layout of :mod:`~torchtrack.filters.kalman_lanes`; needs shared
+          2-D model matrices (``dt`` a number), state size ≤ 8 and measurement size ≤ 4. The returned
+          ``mean``/``cov`` are views of batch-last storage (not contiguous).
+        * ``"axes"``: the axis-decoupled engine of :mod:`~torchtrack.filters.kalman_axes`; needs
+          ``ConstantVelocity`` motion, ``LinearPosition`` measurements of every axis with isotropic
+          noise, a number ``dt`` and a prior without cross-axis covariance; NaN marks missing
+          measurements per axis. Differentiable in the state, not in the noise parameters (they
+          enter as numbers). The fastest for that model.
+        * ``"auto"`` (default): ``"lanes"`` where it applies, otherwise ``"batch"``.
+
+        A failed factorisation of ``S`` raises :class:`TorchtrackError` naming the step (lanes: checked
+        once, after the last step, so the loop never waits on the host). ``compile=True`` runs each
+        step of ``"lanes"`` and ``"axes"`` through ``torch.compile`` when no gradient is needed (one
+        fused loop over the tracks; compiled once per process for each model size, dtype and
+        with/without missing measurements; falls back to eager where unavailable).
         """
-        mats = self._shared_matrices(dt) if measurements.dim() >= 2 else None
-        if mats is None:
-            return super().run(measurements, init, dt, mask, predict_first)
+        if engine not in ("auto", "batch", "lanes", "axes"):
+            raise TorchtrackError(f"{self.name}: engine must be auto, batch, lanes or axes; got {engine!r}")
+        if measurements.dim() < 2:
+            raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, m); got "
+                                  f"{tuple(measurements.shape)}")
         n, m = self.state_dim, self.measurement.meas_dim
         _check_state(init, n, self.name)
         if measurements.shape[-1] != m:
             raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, {m}); got "
                                   f"{tuple(measurements.shape)}")
+        if engine == "axes":
+            z = measurements if mask is None else torch.where(mask.to(torch.bool).unsqueeze(-1), measurements,
+                                                              float("nan"))
+            mean, cov, nis, total = kalman_axes.run(z, init.mean, init.cov, float(dt), self._axes_parameters(dt),
+                                                    predict_first, compile, history)
+            return FilterResult(mean, cov, nis, total)
+        mats = None if engine == "batch" else self._shared_matrices(dt)
+        if mats is None:
+            if engine == "lanes":
+                raise TorchtrackError(f"{self.name}: engine 'lanes' needs shared 2-D model matrices, a number dt, "
+                                      f"state size <= {lanes.MAX_STATE} and measurement size <= {lanes.MAX_MEAS}")
+            return super().run(measurements, init, dt, mask, predict_first, history)
         T = measurements.shape[0]
         shapes = [measurements.shape[1:-1], init.mean.shape[:-1], init.cov.shape[:-2]]
         if mask is not None:
@@ -285,16 +317,17 @@ class KalmanFilter(_GaussianFilter):
         needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x, P, z, *mats))
         if compile and not needs_grad:
             mean, cov, nis, total, ok = self._run_compiled(x, P, z, None if all_present else present, mats,
-                                                           predict_first)
+                                                           predict_first, history)
         else:
             means, covs, nis_list, oks = [], [], [], []
             total = torch.zeros(B, dtype=z.dtype, device=z.device)
             for k in range(T):
                 fn = lanes.step if predict_first or k > 0 else lanes.update_only
                 x, P, nis_k, ll_k, ok_k = fn(x, P, z[k], None if all_present else present[k], *mats)
-                means.append(x)
-                covs.append(P)
-                nis_list.append(nis_k)
+                if history or k == T - 1:
+                    means.append(x)
+                    covs.append(P)
+                    nis_list.append(nis_k)
                 oks.append(ok_k)
                 total = total + ll_k
             mean, cov, nis, ok = torch.stack(means), torch.stack(covs), torch.stack(nis_list), torch.stack(oks)
@@ -303,26 +336,33 @@ class KalmanFilter(_GaussianFilter):
             k = int(failed.any(-1).nonzero()[0])
             raise TorchtrackError(f"{self.name}: innovation covariance S is not positive definite at step {k} "
                                   f"({int(failed[k].sum())} of {B} matrices failed Cholesky factorisation)")
-        return FilterResult(mean.permute(0, 2, 1).reshape(T, *batch, n),
-                            cov.permute(0, 3, 1, 2).reshape(T, *batch, n, n), nis.reshape(T, *batch),
+        Tk = mean.shape[0]
+        return FilterResult(mean.permute(0, 2, 1).reshape(Tk, *batch, n),
+                            cov.permute(0, 3, 1, 2).reshape(Tk, *batch, n, n), nis.reshape(Tk, *batch),
                             total.reshape(batch))
 
     @staticmethod
-    def _run_compiled(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, mats, predict_first: bool):
+    def _run_compiled(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, mats, predict_first: bool,
+                      history: bool = True):
         """The time loop through the compiled :func:`~torchtrack.filters.kalman_lanes.fused_step`, which
-        writes each posterior straight into the batch-last history (no autograd)."""
+        writes each posterior straight into the batch-last history (no autograd); without ``history``
+        two slots are used in turn and the last is returned."""
         (n, B), T = x.shape, z.shape[0]
-        mean = x.new_empty(T, n, B)
-        cov = P.new_empty(T, n, n, B)
-        nis = x.new_empty(T, B)
+        slots = T if history else 2
+        mean = x.new_empty(slots, n, B)
+        cov = P.new_empty(slots, n, n, B)
+        nis = x.new_empty(slots, B)
         ok = torch.empty(T, B, dtype=torch.bool, device=x.device)
         total = x.new_zeros(B)
         step = lanes.compiled_step()
         pattern = tuple(lanes.structure(M) for M in mats)
         for k in range(T):
-            prev = (x, P) if k == 0 else (mean[k - 1], cov[k - 1])
-            step(*prev, z[k], None if present is None else present[k], *mats, mean[k], cov[k], nis[k], total,
-                 ok[k], predict_first or k > 0, pattern)
+            prev = (x, P) if k == 0 else (mean[(k - 1) % slots], cov[(k - 1) % slots])
+            step(*prev, z[k], None if present is None else present[k], *mats, mean[k % slots], cov[k % slots],
+                 nis[k % slots], total, ok[k], predict_first or k > 0, pattern)
+        if not history:
+            last = (T - 1) % slots
+            mean, cov, nis = mean[last:last + 1], cov[last:last + 1], nis[last:last + 1]
         return mean, cov, nis, total, ok
 
 
@@ -339,13 +379,11 @@ class ExtendedKalmanFilter(_GaussianFilter):
         return GaussianState(mean, symmetrize(F @ state.cov @ F.transpose(-1, -2) + Q))
 
     def _moments(self, state):
-        H = self.measurement.jacobian(state.mean)
-        R = self.measurement.noise_cov()
-        C = state.cov @ H.transpose(-1, -2)
-        return self.measurement.measure(state.mean), symmetrize(H @ C + R), C
+        C, S = innovation_cov(state.cov, self.measurement.jacobian(state.mean), self.measurement.noise_cov())
+        return self.measurement.measure(state.mean), S, C
 
-    def _posterior_cov(self, state, K, S):
-        return joseph_cov(state.cov, K, self.measurement.jacobian(state.mean), self.measurement.noise_cov())
+    def _posterior_cov(self, state, gain):
+        return joseph_cov(state.cov, gain.gain, self.measurement.jacobian(state.mean), self.measurement.noise_cov())
 
 
 class UnscentedKalmanFilter(_GaussianFilter):
@@ -404,16 +442,13 @@ class UnscentedKalmanFilter(_GaussianFilter):
 
 def nees(state: GaussianState, truth: Tensor) -> Tensor:
     """Normalised estimation error squared ``(x − x̂)ᵀ P⁻¹ (x − x̂)``, shape ``(*,)``."""
-    L = cholesky(state.cov, "state covariance")
-    return solve_lower(L, (truth - state.mean).unsqueeze(-1)).squeeze(-1).pow(2).sum(-1)
+    return mahalanobis_sq(truth, state.mean, cholesky(state.cov, "state covariance"))
 
 
 def chi2_bounds(dof: int, runs: int, prob: float = 0.95) -> tuple[float, float]:
     """Two-sided ``prob`` interval for the average of ``runs`` χ²(``dof``) values (consistency tests)."""
-    from scipy.stats import chi2
-
     a = (1 - prob) / 2
-    return chi2.ppf(a, dof * runs) / runs, chi2.ppf(1 - a, dof * runs) / runs
+    return chi2_quantile(a, dof * runs) / runs, chi2_quantile(1 - a, dof * runs) / runs
 
 
 __all__ = [

@@ -22,14 +22,19 @@ Equations (Bar-Shalom, Li & Kirubarajan 2001, §5.2; the maneuver paper, eq. 3�
 
 from __future__ import annotations
 
-import math
 import warnings
 from typing import NamedTuple
 
 import torch
 from torch import Tensor
 
-LOG_2PI = math.log(2.0 * math.pi)
+from torchtrack.gaussian import (
+    LOG_2PI,
+    cholesky_entries,
+    solve_lower_entries,
+    solve_upper_t_entries,
+    symmetrize,
+)
 
 # largest state / measurement sizes for which the unrolled per-lane arithmetic is used
 MAX_STATE = 8
@@ -48,11 +53,6 @@ class LaneUpdate(NamedTuple):
     ok: Tensor              # (B,) bool: Cholesky of S succeeded
 
 
-def symmetrize(P: Tensor) -> Tensor:
-    """``(P + Pᵀ) / 2`` over the two leading (matrix) dimensions."""
-    return 0.5 * (P + P.transpose(0, 1))
-
-
 def _left(A: Tensor, X: Tensor) -> Tensor:
     """``[i, …] = Σ_k A[i, k] X[k, …]`` for a shared ``A``: one GEMM over all lanes."""
     return (A @ X.reshape(X.shape[0], -1)).reshape(A.shape[0], *X.shape[1:])
@@ -65,53 +65,7 @@ def _right(X: Tensor, A: Tensor) -> Tensor:
 
 def predict(x: Tensor, P: Tensor, F: Tensor, Q: Tensor) -> tuple[Tensor, Tensor]:
     """``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q`` for ``x (n, B)``, ``P (n, n, B)``, ``F, Q (n, n)``."""
-    return _left(F, x), symmetrize(_right(_left(F, P), F) + Q.unsqueeze(-1))
-
-
-def _cholesky_entries(S) -> tuple[list[list[Tensor]], Tensor]:
-    """Lower Cholesky factor of ``S`` (``S[i][j]`` are ``(B,)`` lanes; an ``(m, m, B)`` tensor or nested
-    lists) as rows of per-lane entries ``L[i][j] (B,)``, ``j ≤ i``, and ``ok (B,)``; a failed pivot is
-    replaced by 1 so no NaN is produced (the caller raises)."""
-    m = len(S)
-    L: list[list[Tensor]] = [[] for _ in range(m)]
-    ok = torch.ones_like(S[0][0], dtype=torch.bool)
-    for j in range(m):
-        s = S[j][j]
-        for k in range(j):
-            s = s - L[j][k] * L[j][k]
-        ok = ok & (s > 0)
-        d = torch.sqrt(torch.where(s > 0, s, torch.ones_like(s)))
-        for i in range(j, m):
-            if i == j:
-                L[j].append(d)
-                continue
-            t = S[i][j]
-            for k in range(j):
-                t = t - L[i][k] * L[j][k]
-            L[i].append(t / d)
-    return L, ok
-
-
-def _solve_lower(L: list[list[Tensor]], rows: list[Tensor]) -> list[Tensor]:
-    """Forward substitution ``L Y = B`` with ``B`` given as its ``m`` rows (each ``(*, B)``)."""
-    out: list[Tensor] = []
-    for i, b in enumerate(rows):
-        for j in range(i):
-            b = b - L[i][j] * out[j]
-        out.append(b / L[i][i])
-    return out
-
-
-def _solve_upper_t(L: list[list[Tensor]], rows: list[Tensor]) -> list[Tensor]:
-    """Back substitution ``Lᵀ X = Y`` with ``Y`` given as its rows."""
-    m = len(rows)
-    out: list[Tensor] = [rows[0]] * m
-    for i in reversed(range(m)):
-        b = rows[i]
-        for j in range(i + 1, m):
-            b = b - L[j][i] * out[j]
-        out[i] = b / L[i][i]
-    return out
+    return _left(F, x), symmetrize(_right(_left(F, P), F) + Q.unsqueeze(-1), (0, 1))
 
 
 def update(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, H: Tensor, R: Tensor) -> LaneUpdate:
@@ -122,11 +76,11 @@ def update(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, H: Tensor, R
     """
     m = H.shape[0]
     C = _right(P, H)                                                # (n, m, B): (P Hᵀ)[i, r]
-    S = symmetrize(_left(H, C) + R.unsqueeze(-1))
-    L, ok = _cholesky_entries(S)
+    S = symmetrize(_left(H, C) + R.unsqueeze(-1), (0, 1))
+    L, ok = cholesky_entries(S)
     nu = z - _left(H, x)                                            # (m, B)
     Ct = C.transpose(0, 1)                                          # (m, n, B): rows of Cᵀ = H P
-    Kt = _solve_upper_t(L, _solve_lower(L, list(Ct.unbind(0))))     # rows of Kᵀ, each (n, B)
+    Kt = solve_upper_t_entries(L, solve_lower_entries(L, list(Ct.unbind(0))))     # rows of Kᵀ, each (n, B)
     nu_rows = list(nu.unbind(0))
     mean = x
     for r in range(m):
@@ -139,8 +93,8 @@ def update(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, H: Tensor, R
     cov = AP
     for r in range(m):
         cov = torch.addcmul(cov, (D[:, r] - KRt[r]).unsqueeze(1), Kt[r].unsqueeze(0), value=-1)
-    cov = symmetrize(cov)
-    white = _solve_lower(L, nu_rows)
+    cov = symmetrize(cov, (0, 1))
+    white = solve_lower_entries(L, nu_rows)
     nis = white[0] * white[0]
     log_det = torch.log(L[0][0])
     for r in range(1, m):
@@ -227,9 +181,9 @@ def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tenso
     S = [[_plus(_dot([_times(H, pH, r, i, C[i][s]) for i in range(n)], X[0]), R, pR, r, s) for s in range(m)]
          for r in range(m)]
     S = [[S[max(r, s)][min(r, s)] for s in range(m)] for r in range(m)]
-    L, ok = _cholesky_entries(S)
+    L, ok = cholesky_entries(S)
     nu = [z[r] - _dot([_times(H, pH, r, j, X[j]) for j in range(n)], X[0]) for r in range(m)]
-    K = [_solve_upper_t(L, _solve_lower(L, C[i])) for i in range(n)]                           # rows of K
+    K = [solve_upper_t_entries(L, solve_lower_entries(L, C[i])) for i in range(n)]                           # rows of K
     mean = [X[i] + _dot([K[i][r] * nu[r] for r in range(m)], X[0]) for i in range(n)]
     AP = [[Pm[i][j] - _dot([K[i][r] * C[j][r] for r in range(m)], X[0]) for j in range(n)] for i in range(n)]
     E = [[_dot([_times(H, pH, r, j, AP[i][j]) for j in range(n)], X[0])
@@ -238,7 +192,7 @@ def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tenso
     up = {(i, j): AP[i][j] - _dot([E[i][r] * K[j][r] for r in range(m)], X[0])
           for i in range(n) for j in range(i, n)}
     cov = [[up[min(i, j), max(i, j)] for j in range(n)] for i in range(n)]
-    white = _solve_lower(L, nu)
+    white = solve_lower_entries(L, nu)
     nis = _dot([w * w for w in white], X[0])
     loglik = -0.5 * (nis + m * LOG_2PI) - _dot([torch.log(L[r][r]) for r in range(m)], X[0])
     if present is not None:

@@ -24,6 +24,7 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
+from torchtrack.gaussian import chi2_quantile
 
 
 class ManeuverResult(NamedTuple):
@@ -34,15 +35,6 @@ class ManeuverResult(NamedTuple):
     d2: Tensor              # (T, *) normalised innovation squared (0 where not tested)
     detected: Tensor        # (T, *) bool, a maneuver declared (and the filter reset) at this scan
     log_likelihood: Tensor  # (*,) Σ log N(ν; 0, S) over tested scans
-
-
-def chi2_threshold(probability: float, dof: int) -> float:
-    """The ``probability`` quantile of χ²(``dof``), e.g. 0.99 and 2 → 9.21 (the paper rounds to 10)."""
-    if not 0.0 < probability < 1.0:
-        raise TorchtrackError(f"probability must lie in (0, 1); got {probability}")
-    from scipy.stats import chi2
-
-    return float(chi2.ppf(probability, dof))
 
 
 def two_point_init(z_prev: Tensor, z: Tensor, R: Tensor, dt: float) -> GaussianState:
@@ -70,7 +62,7 @@ class ManeuverDetectingKalmanFilter(nn.Module):
             raise TorchtrackError(f"maneuver detection needs a [p (m), v (m)] state with position measurements; "
                                   f"got state size {n} and measurement size {m}")
         if probability is not None:
-            threshold = chi2_threshold(probability, m)
+            threshold = chi2_quantile(probability, m)
         if threshold is None or threshold <= 0:
             raise TorchtrackError(f"threshold must be > 0; got {threshold}")
         self.kf = kf

@@ -32,7 +32,7 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters import resampling
-from torchtrack.gaussian import log_prob_from_cholesky
+from torchtrack.gaussian import log_prob_from_cholesky, symmetrize
 from torchtrack.models.measurement import MeasurementModel
 from torchtrack.models.motion import MotionModel
 
@@ -90,7 +90,7 @@ def weighted_moments(particles: Tensor, log_weight: Tensor) -> tuple[Tensor, Ten
     mean = (w * particles).sum(-2)
     d = particles - mean.unsqueeze(-2)
     cov = (w * d).transpose(-1, -2) @ d
-    return mean, 0.5 * (cov + cov.transpose(-1, -2))
+    return mean, symmetrize(cov)
 
 
 def noise_factor(Q: Tensor, what: str) -> Tensor:

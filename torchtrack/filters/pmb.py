@@ -48,17 +48,19 @@ import math
 from typing import NamedTuple
 
 import torch
-from scipy.stats import chi2
 from torch import Tensor, nn
 
 from torchtrack.association.lbp import LBPResult, lbp_marginals
 from torchtrack.errors import TorchtrackError
 from torchtrack.gaussian import (
-    LOG_2PI,
-    cholesky,
-    log_det_from_cholesky,
+    chi2_quantile,
+    innovation_cov,
+    innovations_likelihood,
+    kalman_gain,
+    matmul,
     moment_match,
-    solve_lower,
+    posterior_cov,
+    small_matmul,
     symmetrize,
 )
 from torchtrack.models.measurement import MeasurementModel
@@ -137,15 +139,6 @@ class _Hypotheses(NamedTuple):
     cov: Tensor       # (*, C, n, n) Kalman-updated covariance (the same for every z_j)
 
 
-def _small_mm(A: Tensor, B: Tensor) -> Tensor:
-    """``A @ B`` for batches of tiny matrices: a sum over the (2 or 4) inner index unrolled into
-    elementwise products, since batched BLAS and reductions over a tiny axis are slow at this size."""
-    out = A[..., :, 0:1] * B[..., 0:1, :]
-    for k in range(1, A.shape[-1]):
-        out = out + A[..., :, k:k + 1] * B[..., k:k + 1, :]
-    return out
-
-
 def _small_mv(A: Tensor, x: Tensor) -> Tensor:
     """``A_c x_cm`` for ``A (*, C, p, q)`` and ``x (*, C, M, q)`` → ``(*, C, M, p)``, unrolled over ``q``."""
     out = A[..., :, 0].unsqueeze(-2) * x[..., 0:1]
@@ -154,43 +147,20 @@ def _small_mv(A: Tensor, x: Tensor) -> Tensor:
     return out
 
 
-def _sq_norm(x: Tensor) -> Tensor:
-    """``Σ_k x_k²`` over a short last axis, unrolled."""
-    out = x[..., 0] * x[..., 0]
-    for k in range(1, x.shape[-1]):
-        out = out + x[..., k] * x[..., k]
-    return out
-
-
-def _shared_left(H: Tensor, P: Tensor) -> Tensor:
-    """``H @ P`` for one shared ``H (p, q)`` and batched ``P (*, q, r)`` as one folded matrix product."""
-    return (P.transpose(-1, -2) @ H.transpose(-1, -2)).transpose(-1, -2)
-
-
 def _kalman_all_pairs(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor, what: str) -> _Hypotheses:
     """Kalman updates of ``C`` Gaussians with each of ``M`` measurements at once.
 
-    ``mean (*, C, n)``, ``cov (*, C, n, n)``, ``z (*, M, d)``, ``H (d, n)``, ``R (*, d, d)``.
-    ``S_c = H P_c Hᵀ + R = L_c L_cᵀ`` is factorised once per component; with ``W_c = P_c Hᵀ L_c⁻ᵀ``
-    (a triangular solve) the gain is ``K_c = W_c L_c⁻¹``, the whitened innovation ``L_c⁻¹ ν_cm``
-    gives the Mahalanobis distance, and ``P_c⁺ = P_c − W_c W_cᵀ`` (``= P − K S Kᵀ``, symmetric by
-    construction). The updated means ``m_c + K_c ν_cj`` are left to the caller (the TOMB merge needs
-    only their weighted moments).
+    ``mean (*, C, n)``, ``cov (*, C, n, n)``, ``z (*, M, d)``, ``H (d, n)``, ``R (*, d, d)``. The shared
+    update of :mod:`torchtrack.gaussian` with the measurements as an extra batch dimension: ``S_c`` is
+    factorised once per component (:func:`~torchtrack.gaussian.kalman_gain`), each innovation ``ν_cm``
+    is whitened by it, and ``P_c⁺ = P_c − W_c W_cᵀ`` (symmetric by construction). The updated means
+    ``m_c + K_c ν_cj`` are left to the caller (the TOMB merge needs only their weighted moments).
     """
-    PHt = cov @ H.transpose(-1, -2)                                  # (*, C, n, d)
-    S = symmetrize(_shared_left(H, PHt) + R.unsqueeze(-3))           # (*, C, d, d)
-    L = cholesky(S, what)
-    d = z.shape[-1]
-    eye_d = torch.eye(d, dtype=S.dtype, device=S.device)
-    Linv = solve_lower(L, eye_d.expand_as(L))                        # (*, C, d, d)
-    nu = z.unsqueeze(-3) - (mean @ H.transpose(-1, -2)).unsqueeze(-2)  # (*, C, M, d)
-    white = nu @ Linv.transpose(-1, -2)                              # (*, C, M, d), one GEMM per component
-    d2 = _sq_norm(white)
-    log_lik = -0.5 * (d2 + log_det_from_cholesky(L).unsqueeze(-1) + d * LOG_2PI)
-    W = _small_mm(PHt, Linv.transpose(-1, -2))                       # (*, C, n, d)
-    K = _small_mm(W, Linv)                                           # (*, C, n, d)
-    upd_cov = symmetrize(cov - _small_mm(W, W.transpose(-1, -2)))
-    return _Hypotheses(log_lik, d2, nu, K, upd_cov)
+    PHt, S = innovation_cov(cov, H, R.unsqueeze(-3))                 # (*, C, n, d), (*, C, d, d)
+    gain = kalman_gain(S, PHt, what)
+    nu = z.unsqueeze(-3) - (mean @ H.transpose(-1, -2)).unsqueeze(-2)   # (*, C, M, d)
+    d2, log_lik = innovations_likelihood(gain, nu)                   # (*, C, M)
+    return _Hypotheses(log_lik, d2, nu, gain.gain, posterior_cov(cov, gain))
 
 
 class PMBFilter(nn.Module):
@@ -244,7 +214,7 @@ class PMBFilter(nn.Module):
         self.register_buffer("birth_cov", bc)
         self.capacity = capacity
         self.poisson_capacity = poisson_capacity
-        self.gate_d2 = float(chi2.ppf(gate, measurement.meas_dim)) if gate < 1 else float("inf")
+        self.gate_d2 = chi2_quantile(gate, measurement.meas_dim)
         self.lbp_iterations = lbp_iterations
         self.lbp_tol = lbp_tol
         self.prune_existence = prune_existence
@@ -321,10 +291,10 @@ class PMBFilter(nn.Module):
         ref = state.mean
         F, Q, ps, log_bw, bm, bc = self._constants("predict", dt, ref)
         mean = state.mean @ F.transpose(-1, -2)
-        cov = symmetrize(_shared_left(F, state.cov @ F.transpose(-1, -2)) + Q)
+        cov = symmetrize(matmul(F, state.cov @ F.transpose(-1, -2)) + Q)
         existence = ps * state.existence
         pmean = state.poisson_mean @ F.transpose(-1, -2)
-        pcov = symmetrize(_shared_left(F, state.poisson_cov @ F.transpose(-1, -2)) + Q)
+        pcov = symmetrize(matmul(F, state.poisson_cov @ F.transpose(-1, -2)) + Q)
         plw = state.poisson_log_weight + _log(ps)
         # keep the K-1 heaviest components, then append the birth (a stop-gradient selection)
         keep = torch.topk(plw.detach(), self.poisson_capacity - 1, dim=-1).indices
@@ -419,7 +389,7 @@ class PMBFilter(nn.Module):
         inner = V / denom[..., None, None] - c.unsqueeze(-1) * c.unsqueeze(-2)
         mean_post = state.mean + _small_mv(trk.gain, c.unsqueeze(-2)).squeeze(-2)
         cov_post = ((a0[..., None, None] * state.cov + a_det[..., None, None] * trk.cov) / denom[..., None, None]
-                    + _small_mm(_small_mm(trk.gain, inner), trk.gain.transpose(-1, -2)))
+                    + small_matmul(small_matmul(trk.gain, inner), trk.gain.transpose(-1, -2)))
         r_new = torch.where(zmask, marg.new * r_new_hyp, torch.zeros_like(r_new_hyp))
         new_label = torch.where(zmask, state.next_label.unsqueeze(-1) + torch.cumsum(zmask.long(), -1) - 1,
                                 torch.full_like(zmask, -1, dtype=torch.long))

@@ -36,6 +36,7 @@ from typing import NamedTuple
 import numpy as np
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import partial_name, write_text
 
 POINT_BOX_SIZE = 8.0
 """Side in pixels of the square box written around point objects (vehicles in WAMI are 3–7 px across)."""
@@ -275,17 +276,18 @@ def write_mot(
 
 
 def write_motdata(path: str | os.PathLike, data: MOTData) -> None:
-    """Write a MOTData as MOTChallenge text, sorted by frame then id (parent folders are created)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(format_lines(data.sorted()))
+    """Write a MOTData as MOTChallenge text, sorted by frame then id (parent folders are created; the file
+    appears whole, :func:`torchtrack.io.outputs.write_text`)."""
+    write_text(path, format_lines(data.sorted()))
 
 
 class MOTWriter:
     """Incremental MOTChallenge writer: one :meth:`write_frame` call per frame, flushed at once.
 
-    Each frame's lines go to the file in a single write followed by a flush, so a run that is interrupted
-    leaves a file that is complete up to the last frame written. Use as a context manager::
+    The lines go to ``NAME.partial.txt`` (:func:`torchtrack.io.outputs.partial_name`), each frame in a single
+    write followed by a flush, and :meth:`close` renames it to ``path``: the final name only ever holds a
+    whole run, and a run that is interrupted leaves the partial file complete up to the last frame written.
+    Use as a context manager (leaving it by an exception closes without renaming)::
 
         with MOTWriter("out/tracks.txt") as w:
             for k, (ids, cx, cy) in enumerate(estimates, start=1):
@@ -294,23 +296,37 @@ class MOTWriter:
 
     def __init__(self, path: str | os.PathLike, box: float = POINT_BOX_SIZE):
         self.path = Path(path)
+        self.partial = partial_name(self.path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self.box = float(box)
-        self._file = open(self.path, "w")  # noqa: SIM115 - closed in close()
+        self._file = open(self.partial, "w")  # noqa: SIM115 - closed in close()
 
     def write_frame(self, frame: int, ids, cx, cy, conf=None, vx=None, vy=None) -> None:
         """Append the objects of one frame (arrays of length n, n may be 0) and flush."""
         ids = _as_int_array(ids, "ids")
         frames = np.full(ids.shape[0], int(frame), dtype=np.int64)
-        data = from_points(frames, ids, cx, cy, box=self.box, conf=conf, vx=vx, vy=vy)
+        self.write_lines(from_points(frames, ids, cx, cy, box=self.box, conf=conf, vx=vx, vy=vy))
+
+    def write_lines(self, data: MOTData) -> None:
+        """Append the objects of ``data`` in the order given (one frame's, typically) and flush."""
         self._file.write(format_lines(data))
         self._file.flush()
 
     def close(self) -> None:
+        """Finish the file and give it its final name."""
+        if not self._file.closed:
+            self._file.close()
+            os.replace(self.partial, self.path)
+
+    def abort(self) -> None:
+        """Close without renaming: the partial file stays, marked incomplete by its name."""
         self._file.close()
 
     def __enter__(self) -> MOTWriter:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()

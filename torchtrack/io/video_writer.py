@@ -27,6 +27,7 @@ import numpy as np
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography
+from torchtrack.io.outputs import atomic_file, partial_name
 
 _GOLDEN = 0.6180339887498949
 
@@ -98,11 +99,12 @@ def render_frame(image: np.ndarray, ids: np.ndarray, positions: np.ndarray,
 
 
 def save_png(path: str | Path, image: np.ndarray, compression: int = 3) -> Path:
-    """Write ``image`` as a PNG (zlib ``compression`` 0–9), creating the folder; error names the file."""
+    """Write ``image`` as a PNG (zlib ``compression`` 0–9), creating the folder; the file appears whole; error
+    names the file."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    if not cv2.imwrite(str(path), image, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]):
-        raise TorchtrackError(f"{path}: could not write PNG")
+    with atomic_file(path) as tmp:
+        if not cv2.imwrite(str(tmp), image, [cv2.IMWRITE_PNG_COMPRESSION, int(compression)]):
+            raise TorchtrackError(f"{path}: could not write PNG")
     return path
 
 
@@ -127,7 +129,7 @@ class AnnotatedVideoWriter:
         self.path = Path(path)
         if self.path.suffix.lower() != ".mp4":
             raise TorchtrackError(f"{self.path}: the annotated video must be an .mp4 file")
-        self.partial = self.path.with_name(self.path.stem + ".partial.mp4")
+        self.partial = partial_name(self.path)
         self.fps, self.trail_len, self.box, self.scale = float(fps), int(trail), box, int(scale)
         self.trails: dict[int, deque] = {}
         self._last_seen: dict[int, int] = {}

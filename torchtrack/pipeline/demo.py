@@ -60,7 +60,8 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
              trackers: list[str] | None = None, truth: str = "moving", detector=None,
              video_config: VideoConfig | None = None, config: PipelineConfig | None = None,
              progress: bool = True) -> dict:
-    """Run the demo (module docstring); returns the ``metrics.json`` payload."""
+    """Run the demo (module docstring); returns the ``metrics.json`` payload (its ``files``: the names of
+    the files written, relative to ``out``, so that they stay true when the folder is moved into place)."""
     out = Path(out)
     t_start = time.perf_counter()
     vcfg = video_config or VideoConfig()
@@ -101,7 +102,7 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
                  "size": [vcfg.height, vcfg.width], "truth": truth,
                  "generate_s": t_generated - t_start, "total_s": time.perf_counter() - t_start},
         "trackers": scores,
-        "files": {k: str(v) for k, v in {**result.files, **plots}.items()},
+        "files": {k: str(Path(v).relative_to(out)) for k, v in {**result.files, **plots}.items()},
     })
     write_json(out / "metrics.json", metrics)
     return metrics

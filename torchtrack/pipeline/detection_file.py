@@ -18,7 +18,7 @@ from torchtrack.io.mot import MOTData
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import score
 from torchtrack.pipeline.config import PipelineConfig
-from torchtrack.pipeline.frame_detections import frame_range, mot_frames
+from torchtrack.pipeline.frame_detections import mot_frames, stream_frames
 from torchtrack.pipeline.replay import run_tracker
 
 
@@ -44,7 +44,7 @@ def track_detections(det: MOTData, name: str, config: PipelineConfig, out: str |
     out = Path(out)
     if tracker is None:
         tracker = make_tracker(name, config.options_for(name))
-    run = run_tracker(tracker, config, mot_frames(det, frame_range(det, gt)), out / "tracks.txt")
+    run = run_tracker(tracker, config, mot_frames(det, stream_frames(det, gt)), out / "tracks.txt")
     metrics = {"tracker": name, **(score(gt, run.tracks, config.threshold) if gt is not None else {}),
                "frames_run": run.frames, "seconds": run.seconds, "FPS": run.fps}
     if hasattr(tracker, "cap_hits"):

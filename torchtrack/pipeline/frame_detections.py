@@ -72,15 +72,25 @@ def as_numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:
 def mot_frames(det: MOTData, frames: Sequence[int]) -> Iterator[FrameDetections]:
     """The detections ``det`` of every frame in ``frames`` (frames without detections give ``K = 0``) as
     :meth:`FrameDetections.registered`, with the file's scores and velocities (columns 8–9, where given)."""
-    centres, velocity = det.centers(), det.velocity()
     for f, idx in zip(frames, det.split(frames)):
-        yield FrameDetections.registered(f, centres[idx], None if velocity is None else velocity[idx], det.conf[idx])
+        one = det.select(idx)
+        yield FrameDetections.registered(f, one.centers(), one.velocity(), one.conf)
 
 
-def frame_range(*datas: MOTData | None) -> range:
-    """All frame numbers from the first to the last frame present in any of ``datas``."""
+MAX_GAP = 50
+"""Longest run of frames without data that a stream steps through one frame at a time (:func:`stream_frames`)."""
+
+
+def stream_frames(*datas: MOTData | None, max_gap: int = MAX_GAP) -> np.ndarray:
+    """The frame numbers a stream steps through: every frame from the first to the last present in any of
+    ``datas`` (frames between them without detections are frames in which nothing was detected), except that
+    a gap of more than ``max_gap`` frames without data is crossed in one step — the trackers predict by the
+    frame difference — so that sparse frame numbers (frames 1 and 10⁹) cost nothing. Sorted int64 array."""
     frames = [d.frame for d in datas if d is not None and d.size]
     if not frames:
-        return range(1, 1)
-    every = np.concatenate(frames)
-    return range(int(every.min()), int(every.max()) + 1)
+        return np.zeros(0, dtype=np.int64)
+    present = np.unique(np.concatenate(frames))
+    gaps = np.diff(present)
+    short = np.flatnonzero((gaps > 1) & (gaps <= max_gap + 1))
+    filled = [np.arange(present[i] + 1, present[i + 1]) for i in short]
+    return np.unique(np.concatenate([present, *filled])) if filled else present

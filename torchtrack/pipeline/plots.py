@@ -10,6 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
+from torchtrack.io.outputs import atomic_file  # noqa: E402
 from torchtrack.io.video_writer import identity_color  # noqa: E402
 
 
@@ -33,7 +34,8 @@ def plot_tracks(first_frame: np.ndarray, tracks: dict[int, np.ndarray], path: st
     ax.set_axis_off()
     ax.set_title(title, fontsize=9)
     fig.tight_layout()
-    fig.savefig(path)
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp)
     plt.close(fig)
     return path
 
@@ -55,6 +57,7 @@ def plot_scores(rows: dict[str, dict], path: str | Path) -> Path:
         ax.set_xticks(x, names, rotation=20, fontsize=8)
         ax.grid(axis="y", alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path)
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp)
     plt.close(fig)
     return path

@@ -2,59 +2,86 @@
 MOTChallenge file as they come.
 
 A :class:`TrackRecorder` takes one frame at a time (frame coordinates). Each frame also goes to its file
-(when it has one) in one write followed by a flush, so an interrupted run leaves a file complete up to the
-last frame recorded; :meth:`TrackRecorder.tracks` builds the :class:`~torchtrack.io.mot.MOTData` of the
-whole run once, which is what the run is scored on (the file is an output, never read back).
+(when it has one, through :class:`~torchtrack.io.mot.MOTWriter`: under its partial name until the recorder
+is closed after a normal finish, so an interrupted run leaves ``NAME.partial.txt`` complete up to the last
+frame recorded and never a short file under the final name); :meth:`TrackRecorder.tracks` builds the
+:class:`~torchtrack.io.mot.MOTData` of the whole run once, which is what the run is scored on (the file is
+an output, never read back).
 """
 
 from __future__ import annotations
 
 import os
+from array import array
 from pathlib import Path
 
 import numpy as np
 
-from torchtrack.io.mot import MOTData, MOTWriter, concat_mot, from_points
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.mot import POINT_BOX_SIZE, MOTData, MOTWriter, empty_mot, from_points
 
 
 class TrackRecorder:
     """Tracks (or detections) of a run, frame by frame: in memory, and in ``path`` where given.
 
     ``record(index, ids, positions)`` with ``ids (N,)`` and frame-coordinate ``positions (N, 2)``; detections
-    add their ``scores (N,)`` and ``velocities (N, 2)``. Use as a context manager (the file is closed at the
-    end); :meth:`tracks` may be called after it.
+    add their ``scores (N,)`` and ``velocities (N, 2)`` (kept only while every frame has them). The objects are
+    appended to typed columns (8 bytes a value), which :meth:`tracks` wraps without a copy, so memory stays
+    near the size of the result; after :meth:`tracks`, nothing more can be recorded. Use as a context manager
+    (the file is closed at the end); :meth:`tracks` may be called after it.
     """
 
-    def __init__(self, path: str | os.PathLike | None = None) -> None:
+    def __init__(self, path: str | os.PathLike | None = None, box: float = POINT_BOX_SIZE) -> None:
         self.path = None if path is None else Path(path)
-        self._writer = None if path is None else MOTWriter(path)
-        self._frames: list[MOTData] = []
+        self.box = float(box)
+        self._writer = None if path is None else MOTWriter(path, box=box)
+        self._frame, self._id = array("q"), array("q")
+        self._x, self._y, self._conf, self._vx, self._vy = (array("d") for _ in range(5))
+        self._with_velocity = True
         self._data: MOTData | None = None
 
     def record(self, index: int, ids: np.ndarray, positions: np.ndarray, scores: np.ndarray | None = None,
                velocities: np.ndarray | None = None) -> None:
         """Append frame ``index`` (see the class docstring)."""
-        positions = np.asarray(positions, np.float64).reshape(-1, 2)
+        if self._data is not None:
+            raise TorchtrackError("TrackRecorder: a frame recorded after tracks() was read")
+        cx, cy = np.asarray(positions, np.float64).reshape(-1, 2).T
         vx, vy = (None, None) if velocities is None else np.asarray(velocities, np.float64).reshape(-1, 2).T
-        self._frames.append(from_points(np.full(len(positions), int(index)), ids, positions[:, 0], positions[:, 1],
-                                        conf=scores, vx=vx, vy=vy))
-        self._data = None
+        frame = from_points(np.full(len(cx), int(index)), ids, cx, cy, box=self.box, conf=scores, vx=vx, vy=vy)
+        self._frame.extend(frame.frame)
+        self._id.extend(frame.id)
+        self._x.extend(frame.x)
+        self._y.extend(frame.y)
+        self._conf.extend(frame.conf)
+        self._with_velocity &= velocities is not None
+        if self._with_velocity:
+            self._vx.extend(frame.vx)
+            self._vy.extend(frame.vy)
         if self._writer is not None:
-            self._writer.write_frame(index, ids, positions[:, 0], positions[:, 1], conf=scores, vx=vx, vy=vy)
+            self._writer.write_lines(frame)
 
     def tracks(self) -> MOTData:
         """Everything recorded, in recording order."""
         if self._data is None:
-            self._data = concat_mot(self._frames)
-            self._frames = [self._data]
+            n = len(self._frame)
+            if n == 0:
+                self._data = empty_mot()
+            else:
+                column = np.frombuffer
+                velocity = (column(self._vx), column(self._vy)) if self._with_velocity else (None, None)
+                self._data = MOTData(column(self._frame, np.int64), column(self._id, np.int64), column(self._x),
+                                     column(self._y), np.full(n, self.box), np.full(n, self.box),
+                                     column(self._conf), *velocity)
         return self._data
 
     def close(self) -> None:
+        """Finish the file under its final name."""
         if self._writer is not None:
             self._writer.close()
 
     def __enter__(self) -> TrackRecorder:
         return self
 
-    def __exit__(self, *exc) -> None:
-        self.close()
+    def __exit__(self, exc_type, exc, tb) -> None:
+        if self._writer is not None:
+            self._writer.__exit__(exc_type, exc, tb)

@@ -21,6 +21,8 @@ from __future__ import annotations
 import os
 import time
 import warnings
+from collections.abc import Iterable, Iterator
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,7 +34,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, concat_mot, read_mot
-from torchtrack.io.outputs import write_json
+from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.metrics.table import score
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.replay import run_tracker
@@ -144,6 +146,35 @@ def _distributed() -> tuple[int, int]:
     if not dist.is_initialized():
         dist.init_process_group("gloo")
     return dist.get_rank(), dist.get_world_size()
+
+
+@contextmanager
+def shared_output(out: str | Path, command: str, force: bool = False,
+                  inputs: Iterable[str | os.PathLike | None] = ()) -> Iterator[Path]:
+    """The staging folder of the output folder ``out`` (:class:`~torchtrack.io.outputs.OutputFolder`) for
+    every process of a run: one process alone, or every ``torchrun`` rank.
+
+    Rank 0 checks and prepares the folder and tells the others (its refusal becomes every rank's error);
+    then all ranks write into the same staging folder (``out`` must be on a file system they share) and,
+    once every rank has left the block normally (a barrier), rank 0 commits the set. ``inputs``: the paths
+    the run reads (refused inside ``out``).
+    """
+    rank, world = _distributed()
+    folder = OutputFolder(out, command, force=force, commit=rank == 0, inputs=inputs)
+    with ExitStack() as stack:
+        refusal: list[str | None] = [None]
+        if rank == 0:
+            try:
+                stack.enter_context(folder)
+            except TorchtrackError as exc:
+                refusal[0] = str(exc)
+        if world > 1:
+            dist.broadcast_object_list(refusal, src=0)
+        if refusal[0] is not None:
+            raise TorchtrackError(refusal[0])
+        yield folder.staging
+        if world > 1:
+            dist.barrier()
 
 
 def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, detector=None,

@@ -29,7 +29,7 @@ import torch
 from torchtrack.association.assignment import assign
 from torchtrack.association.gating import (
     Gate,
-    chi2_threshold,
+    check_alpha,
     density_gate,
     ellipsoid_volume,
     ellipsoidal_gate,
@@ -39,7 +39,7 @@ from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_bank import BankState, ClassConditionedIMM
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
-from torchtrack.gaussian import moment_match
+from torchtrack.gaussian import chi2_quantile, moment_match
 from torchtrack.metrics.table import format_table
 from torchtrack.models import LinearPosition, ModeControlInput
 from torchtrack.params import RowStochastic
@@ -51,7 +51,7 @@ GATES = ("rectangular", "ellipsoidal", "class_conditioned_ellipse", "class_condi
 
 def load_config(path: Path) -> dict:
     """Read and check the scenario YAML (sections ``scenario``, ``filter``, ``association``)."""
-    cfg = load_sections(path, {"scenario", "filter", "association"})
+    cfg = load_sections(path, "formation")
     try:
         cfg["scenario"] = FormationConfig(**{**cfg["scenario"], "classes": tuple(cfg["scenario"]["classes"])})
     except TypeError as exc:
@@ -70,7 +70,7 @@ def build_bank(fcfg: dict, sigma_w: float, confusion, params: Path | None = None
     With ``params`` (a ``torchtrack tune`` file of an ``imm`` filter fitted with scan time ``dt``) every
     class IMM takes its fitted transition matrix ``transition.learned``, per-mode process noise
     ``motion.sigma`` and measurement noise ``measurement.sigma`` (loaded exactly,
-    :func:`torchtrack.tune.load_params`); the classes keep their own control inputs.
+    :func:`torchtrack.tuning.tune.load_params`); the classes keep their own control inputs.
     """
     doc = None
     if params is not None:
@@ -115,7 +115,7 @@ def _cc_ellipse_gate(bank: ClassConditionedIMM, state: BankState, z, z_class, z_
     it is the ellipsoidal gate of the class-conditioned mixture, with an unlikely report it shrinks
     (or vanishes). Volume: the ellipse area averaged over the report classes.
     """
-    thr = chi2_threshold(alpha, z.shape[-1])
+    thr = chi2_quantile(1.0 - check_alpha(alpha), z.shape[-1])
     mask = dist = None
     volumes = []
     for c in range(bank.num_classes):

@@ -31,7 +31,7 @@ DEFAULT_CONFIG = preset_path("jtc")
 
 
 def load_config(path: Path) -> dict:
-    cfg = load_sections(path, {"trajectory", "sensor", "filter", "true_class"})
+    cfg = load_sections(path, "jtc")
     return cfg
 
 

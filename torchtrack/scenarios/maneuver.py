@@ -25,7 +25,7 @@ DEFAULT_CONFIG = preset_path("maneuver")
 
 
 def load_config(path: Path) -> dict:
-    cfg = load_sections(path, {"stationary", "constant_velocity", "maneuver", "filter"})
+    cfg = load_sections(path, "maneuver")
     return cfg
 
 
@@ -52,7 +52,7 @@ def fitted_kalman(fcfg: dict, sigma: float, params: Path | None = None) -> Kalma
     """The Kalman filter of the constant-velocity and maneuver experiments (CV, PWCA noise ``q``, position
     measurements ``sigma``); with ``params`` (a ``torchtrack tune`` file of a ``kalman`` filter with
     ``motion: cv``, ``noise: pwca``, ``ndim: 2`` and the same ``dt``) its ``motion.q`` and
-    ``measurement.sigma`` are the fitted ones, loaded exactly (:func:`torchtrack.tune.load_params`)."""
+    ``measurement.sigma`` are the fitted ones, loaded exactly (:func:`torchtrack.tuning.tune.load_params`)."""
     kf = KalmanFilter(ConstantVelocity(2, q=fcfg["q"], noise="pwca"), LinearPosition(2, sigma=sigma)).double()
     if params is not None:
         from torchtrack.tuning.config import load_params, read_params_file

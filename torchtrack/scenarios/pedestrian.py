@@ -36,7 +36,7 @@ PAPER_OSPA = {"joint": 0.87, "inflated": 0.99, "naive": 2.61}
 
 
 def load_config(path: Path) -> dict:
-    cfg = load_sections(path, {"scene", "filter", "ospa"})
+    cfg = load_sections(path, "pedestrian")
     return cfg
 
 

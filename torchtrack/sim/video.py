@@ -33,6 +33,7 @@ import torch
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import Frame, FrameSource
+from torchtrack.io.outputs import partial_name, write_json, write_text
 from torchtrack.sim.video_config import VideoConfig, load_video_config
 from torchtrack.sim.video_scene import Scene, build_scene, draw_buildings
 
@@ -286,7 +287,9 @@ def write_sequence(config: VideoConfig | None, generator: torch.Generator, out: 
     ``mp4`` / ``avi``), ``gt.txt`` in MOTChallenge form ``frame,id,x,y,w,h,conf,-1,-1,-1`` (frames from
     1, ``x, y`` the top-left corner of a ``gt_box_size`` box centred on the vehicle, conf 1),
     ``velocity.txt`` (``frame,id,vx,vy,moving``; px/frame, empty where unknown) and ``camera.json``
-    with the true reference->frame homographies (see the module docstring).
+    with the true reference->frame homographies (see the module docstring). Each file appears whole (the
+    video under ``video.partial.mp4`` until it is complete); ``torchtrack simulate-video`` writes the folder
+    as one set (:class:`torchtrack.io.outputs.OutputFolder`).
     """
     cfg = config or VideoConfig()
     if video_format not in ("png", "mp4", "avi"):
@@ -297,7 +300,8 @@ def write_sequence(config: VideoConfig | None, generator: torch.Generator, out: 
     writer = None
     if video_format != "png":
         fourcc = cv2.VideoWriter_fourcc(*("mp4v" if video_format == "mp4" else "MJPG"))
-        writer = cv2.VideoWriter(str(out / f"video.{video_format}"), fourcc, 2.0, (cfg.width, cfg.height), False)
+        video = out / f"video.{video_format}"
+        writer = cv2.VideoWriter(str(partial_name(video)), fourcc, 2.0, (cfg.width, cfg.height), False)
     half = cfg.gt_box_size / 2
     gt_lines, vel_lines, homs = [], [], []
     frames = generate_sequence(cfg, generator)
@@ -321,15 +325,16 @@ def write_sequence(config: VideoConfig | None, generator: torch.Generator, out: 
         homs.append(f.homography.tolist())
     if writer is not None:
         writer.release()
-    (out / "gt.txt").write_text("\n".join(gt_lines) + "\n")
-    (out / "velocity.txt").write_text("\n".join(vel_lines) + "\n")
+        partial_name(video).replace(video)
+    write_text(out / "gt.txt", "\n".join(gt_lines) + "\n")
+    write_text(out / "velocity.txt", "\n".join(vel_lines) + "\n")
     camera = {
         "convention": "homographies[k] maps reference pixel coordinates (x = column, y = row) to frame k+1; "
                       "frame k+1 -> frame k is homographies[k-1] @ inv(homographies[k])",
         "width": cfg.width, "height": cfg.height, "gt_box_size": cfg.gt_box_size,
         "homographies": homs,
     }
-    (out / "camera.json").write_text(json.dumps(camera, indent=1) + "\n")
+    write_json(out / "camera.json", camera, indent=1)
     return out
 
 

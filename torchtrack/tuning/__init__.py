@@ -1,1 +1,1 @@
-"""Fitting filter parameters by gradient; the public entry points are in :mod:`torchtrack.tune`."""
+"""Fitting filter parameters by gradient; the public entry points are in :mod:`torchtrack.tuning.tune`."""

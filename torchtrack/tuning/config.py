@@ -29,8 +29,9 @@ import torch
 import yaml
 from torch import nn
 
-from torchtrack.config import from_mapping
+from torchtrack.config import from_mapping, read_mapping
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import write_yaml
 from torchtrack.tuning.parameters import get_raw, get_values, set_raw, set_values, tunable_parameters
 
 
@@ -57,27 +58,9 @@ class TuneSections:
 TUNE_KEYS = tuple(f.name for f in dataclasses.fields(TuneSections))
 
 
-def read_yaml(path: str | os.PathLike) -> dict:
-    """A YAML mapping from ``path``; errors name the file (and line for syntax errors)."""
-    path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise TorchtrackError(f"cannot read {path}: {exc.strerror or exc}") from exc
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as exc:
-        mark = getattr(exc, "problem_mark", None)
-        where = f"{path}:{mark.line + 1}" if mark is not None else str(path)
-        raise TorchtrackError(f"{where}: invalid YAML: {getattr(exc, 'problem', exc)}") from exc
-    if not isinstance(data, dict):
-        raise TorchtrackError(f"{path}: expected a mapping at the top level")
-    return data
-
-
 def read_tune_config(path: str | os.PathLike) -> dict:
     """A tune config with its keys checked (``filter``, ``trainable`` and ``data`` required)."""
-    cfg = read_yaml(path)
+    cfg = read_mapping(path, "tune config")
     from_mapping(TuneSections, cfg, str(path))     # unknown sections and bad types, named
     for key in ("filter", "trainable", "data"):
         if key not in cfg:
@@ -132,16 +115,13 @@ def save_params(module: nn.Module, path: str | os.PathLike, filter_name: str,
                 model: Mapping[str, Any] | None = None, names: Iterable[str] | None = None,
                 extra: Mapping[str, Any] | None = None) -> Path:
     """Write the fitted-parameter file (floats written with full precision, so reading is exact)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(yaml.safe_dump(params_document(module, filter_name, model, names, extra), sort_keys=False))
-    return path
+    return write_yaml(path, params_document(module, filter_name, model, names, extra))
 
 
 def read_params_file(path: str | os.PathLike, filters: Iterable[str], where: str) -> dict:
     """A fitted-parameter file, checked to come from one of the tunable ``filters`` (e.g. ``("kalman",)``)
     that ``where`` (e.g. ``"scenario maneuver"``) can load."""
-    doc = read_yaml(path)
+    doc = read_mapping(path, "fitted parameters")
     filters = tuple(filters)
     if doc.get("filter") not in filters:
         raise TorchtrackError(f"{path}: fitted parameters of a {doc.get('filter')!r} filter; {where} takes "
@@ -158,7 +138,7 @@ def load_params(module: nn.Module, path: str | os.PathLike) -> dict[str, torch.T
     Names not in the module raise :class:`TorchtrackError` listing the valid names. The module's
     ``requires_grad`` flags are left unchanged.
     """
-    doc = read_yaml(path)
+    doc = read_mapping(path, "fitted parameters")
     params = doc.get("params")
     if not isinstance(params, Mapping) or not params:
         raise TorchtrackError(f"{path}: needs a non-empty 'params' mapping of name: value")

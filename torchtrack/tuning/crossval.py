@@ -67,14 +67,14 @@ def _held_out(report: Mapping[str, Any]) -> dict[str, Any]:
 
 def cross_validate(config: Mapping[str, Any], folds: int, out: str | os.PathLike | None = None,
                    seed: int | None = None, progress: bool = True) -> dict[str, Any]:
-    """Run :func:`torchtrack.tune.tune` once per fold (outputs under ``OUT/fold-K``) and summarise.
+    """Run :func:`torchtrack.tuning.tune.tune` once per fold (outputs under ``OUT/fold-K``) and summarise.
 
     Returns ``{"folds", "runs"`` (each fold's report, with its ``held_out_frames`` or items),
     ``"per_fold"`` (per method the held-out metrics of each fold: on the further draws where the config
     has ``held_out_draws``, else on the held-out items), ``"mean"`` (per method their mean over the folds)
     and, with a grid, ``"difference"`` (tuned − grid of the grid's metric per fold, its mean and standard
     error)}``."""
-    from torchtrack.tune import output_dir, tune
+    from torchtrack.tuning.tune import output_dir, tune
 
     base = output_dir(config, out)
     runs, per_fold = [], []

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from torchtrack.io.outputs import atomic_file
 from torchtrack.tuning.trainer import FitResult
 
 
@@ -29,6 +30,7 @@ def plot_loss_curve(result: FitResult, path: str | Path, title: str = "") -> Pat
     ax.set_title(title or "torchtrack tune")
     ax.legend()
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, dpi=100)
     plt.close(fig)
     return path

@@ -11,7 +11,7 @@ the loss, the optimiser and early stopping. :func:`tune` runs it and writes
 
 Example::
 
-    from torchtrack.tune import tune, load_filter
+    from torchtrack.tuning.tune import tune, load_filter
     report = tune("configs/tune-kalman.yaml")
     kf = load_filter(report["output"]["params"])     # the fitted KalmanFilter
 """
@@ -24,11 +24,12 @@ from pathlib import Path
 from typing import Any
 
 import torch
-import yaml
 from torch import nn
 
+from torchtrack.config import read_mapping
 from torchtrack.errors import TorchtrackError
-from torchtrack.tuning.config import load_params, read_tune_config, read_yaml, save_params
+from torchtrack.io.outputs import write_yaml
+from torchtrack.tuning.config import load_params, read_tune_config, save_params
 from torchtrack.tuning.losses import exact_gospa, sinkhorn_gospa
 from torchtrack.tuning.parameters import get_values, select_trainable, tunable_parameters
 from torchtrack.tuning.plot import plot_loss_curve
@@ -40,7 +41,7 @@ OUTPUT_KEYS = ("dir", "params", "plot")
 
 def load_filter(path: str | os.PathLike) -> nn.Module:
     """Build the filter a fitted-parameter file describes (``filter`` + ``model``) and load its params."""
-    doc = read_yaml(path)
+    doc = read_mapping(path, "fitted parameters")
     if "filter" not in doc:
         raise TorchtrackError(f"{path}: missing 'filter' (one of {', '.join(tunable_names())})")
     module = get_tunable(doc["filter"], doc.get("model") or {}).build()
@@ -165,8 +166,7 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     exported = tunable.export(module)
     if exported is not None:
         path = out_dir / exported[0]
-        path.parent.mkdir(parents=True, exist_ok=True)
-        path.write_text(yaml.safe_dump(exported[1], sort_keys=False))
+        write_yaml(path, exported[1])
         report["output"][exported[0].split(".")[0]] = str(path)
     plot_loss_curve(result, plot_path, f"torchtrack tune {tunable.name} ({loss})")
     return report
