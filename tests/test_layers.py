@@ -73,10 +73,8 @@ def _command_line_uses(tree: ast.Module) -> list[str]:
 def test_no_library_module_takes_an_argparse_namespace():
     """Only the command layer reads the command line: outside ``torchtrack/cli`` (and ``__main__.py``) no module
     imports argparse or has a parameter that is an argparse Namespace (by name or annotation)."""
-    exempt = {"bench/kf.py", "bench/lbp.py"}   # still command modules, converted once issue #24's kernels land
     offenders = {str(p.relative_to(ROOT)): found for p in _library_modules()
-                 if p.relative_to(PACKAGE).as_posix() not in exempt
-                 and (found := _command_line_uses(ast.parse(p.read_text())))}
+                 if (found := _command_line_uses(ast.parse(p.read_text())))}
     assert offenders == {}
 
 

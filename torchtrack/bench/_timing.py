@@ -6,7 +6,6 @@ import time
 from collections.abc import Callable
 from typing import NamedTuple
 
-from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
 
 
@@ -48,11 +47,3 @@ def format_result(r: BenchResult) -> str:
     return "\n".join([f"workload: {r.workload}", format_table(["implementation", f"{r.unit}/s"], rows),
                       f"ratio: {r.ratio:.1f}x"])
 
-
-def report(workload: str, ours_per_s: float, reference: str, reference_per_s: float, unit: str,
-           json_path=None, extra: dict | None = None) -> dict:
-    """Print the benchmark table and write the design's JSON keys (plus ``extra``)."""
-    result = BenchResult(workload, ours_per_s, reference, reference_per_s, unit, extra or {})
-    print(format_result(result))
-    write_json(json_path, result.payload())
-    return result.payload()
