@@ -12,7 +12,7 @@ def _commands():
     names = []
     for module in _command_modules("torchtrack.cli"):
         names.append([module.NAME])
-    for package, group in (("torchtrack.scenarios", "scenario"), ("torchtrack.bench", "bench")):
+    for package, group in (("torchtrack.cli.scenarios", "scenario"), ("torchtrack.cli.bench", "bench")):
         for module in _command_modules(package):
             names.append([group, module.NAME])
     names.append(["data", "fetch"])

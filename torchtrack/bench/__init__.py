@@ -1,6 +1,6 @@
-"""Throughput benchmarks, one module each, run by ``torchtrack bench NAME``.
+"""Throughput benchmarks, one module each, run by ``torchtrack bench NAME`` (``torchtrack.cli.bench``).
 
-A module defines ``NAME``, ``HELP``, ``add_arguments(parser)`` and ``run(args) -> int`` (``torchtrack bench``
-adds ``--seed`` and ``--json``) and reports ``workload, ours_per_s, reference, reference_per_s, ratio`` (see
-:func:`torchtrack.bench._timing.report`).
+A module defines ``measure(...)``, typed options in, a :class:`torchtrack.bench._timing.BenchResult` out
+(``workload, ours_per_s, reference, reference_per_s, ratio`` and its own numbers; ``payload()`` is the JSON),
+and, where it prints more than :func:`torchtrack.bench._timing.format_result`, a ``format_*`` function.
 """

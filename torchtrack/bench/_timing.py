@@ -1,11 +1,11 @@
-"""Timing helpers shared by the benchmarks: best-of-k wall time and the common report."""
+"""Timing helpers shared by the benchmarks: best-of-k wall time and the common result and its table."""
 
 from __future__ import annotations
 
 import time
 from collections.abc import Callable
+from typing import NamedTuple
 
-from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
 
 
@@ -21,22 +21,29 @@ def best_time(fn: Callable[[], object], repeats: int = 3, warmup: int = 1) -> fl
     return best
 
 
-def report(workload: str, ours_per_s: float, reference: str, reference_per_s: float, unit: str,
-           json_path=None, extra: dict | None = None) -> dict:
-    """Print the benchmark table and write the design's JSON keys (plus ``extra``)."""
-    payload = {
-        "workload": workload,
-        "ours_per_s": ours_per_s,
-        "reference": reference,
-        "reference_per_s": reference_per_s,
-        "ratio": ours_per_s / reference_per_s if reference_per_s > 0 else float("inf"),
-        "unit": unit,
-    }
-    if extra:
-        payload.update(extra)
-    print(f"workload: {workload}")
-    rows = [["torchtrack", f"{ours_per_s:,.0f}"], [reference, f"{reference_per_s:,.0f}"]]
-    print(format_table(["implementation", f"{unit}/s"], rows))
-    print(f"ratio: {payload['ratio']:.1f}x")
-    write_json(json_path, payload)
-    return payload
+class BenchResult(NamedTuple):
+    """One benchmark's rates: ours and the reference's, timed in the same run, in ``unit`` per second."""
+    workload: str
+    ours_per_s: float
+    reference: str
+    reference_per_s: float
+    unit: str
+    extra: dict   # further numbers of the JSON
+
+    @property
+    def ratio(self) -> float:
+        return self.ours_per_s / self.reference_per_s if self.reference_per_s > 0 else float("inf")
+
+    def payload(self) -> dict:
+        """The design's JSON keys (``workload, ours_per_s, reference, reference_per_s, ratio, unit``), then
+        ``extra``."""
+        return {"workload": self.workload, "ours_per_s": self.ours_per_s, "reference": self.reference,
+                "reference_per_s": self.reference_per_s, "ratio": self.ratio, "unit": self.unit, **self.extra}
+
+
+def format_result(r: BenchResult) -> str:
+    """The workload line, the table of both rates and the ratio."""
+    rows = [["torchtrack", f"{r.ours_per_s:,.0f}"], [r.reference, f"{r.reference_per_s:,.0f}"]]
+    return "\n".join([f"workload: {r.workload}", format_table(["implementation", f"{r.unit}/s"], rows),
+                      f"ratio: {r.ratio:.1f}x"])
+

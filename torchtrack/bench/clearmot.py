@@ -13,20 +13,9 @@ import warnings
 
 import numpy as np
 
-from torchtrack.bench._timing import best_time, report
-from torchtrack.errors import TorchtrackError
+from torchtrack.bench._timing import BenchResult, best_time
 from torchtrack.io.mot import MOTData, from_points
 from torchtrack.metrics import clear_mot
-
-NAME = "clearmot"
-HELP = "CLEAR-MOT evaluation throughput vs py-motmetrics"
-DESCRIPTION = __doc__
-
-
-def add_arguments(parser) -> None:
-    parser.add_argument("--frames", type=int, default=512, help="frames (default 512)")
-    parser.add_argument("--objects", type=int, default=100, help="objects and predictions per frame (100)")
-    parser.add_argument("--repeats", type=int, default=3, help="timed repeats, best kept (default 3)")
 
 
 def workload(frames: int, objects: int, seed: int) -> tuple[MOTData, MOTData]:
@@ -54,11 +43,11 @@ def _motmetrics(gt: MOTData, pred: MOTData, threshold: float) -> dict:
         return mm.metrics.create().compute(acc, metrics=mm.metrics.motchallenge_metrics, return_dataframe=False)
 
 
-def run(args) -> int:
-    if args.frames < 1 or args.objects < 1:
-        raise TorchtrackError("--frames and --objects must be positive")
-    gt, pred = workload(args.frames, args.objects, args.seed)
-    ours = best_time(lambda: clear_mot(gt, pred, threshold=10.0), repeats=args.repeats)
+def measure(frames: int = 512, objects: int = 100, repeats: int = 3, seed: int = 0) -> BenchResult:
+    """Time :func:`~torchtrack.metrics.clear_mot` (best of ``repeats``) and py-motmetrics, when installed, on
+    :func:`workload`; ``extra`` says whether their counts agree (None: no reference)."""
+    gt, pred = workload(frames, objects, seed)
+    ours = best_time(lambda: clear_mot(gt, pred, threshold=10.0), repeats=repeats)
     scores = clear_mot(gt, pred, threshold=10.0)
     try:
         import motmetrics  # noqa: F401  (test-only dependency, optional here)
@@ -69,9 +58,7 @@ def run(args) -> int:
         ref = _motmetrics(gt, pred, 10.0)
         agree = all(scores[k] == int(ref[r]) for k, r in (("IDS", "num_switches"), ("FP", "num_false_positives"),
                                                           ("FN", "num_misses"), ("FRAG", "num_fragmentations")))
-    report(f"CLEAR-MOT + IDF1, {args.frames} frames x {args.objects} objects x {args.objects} predictions",
-           args.frames / ours, "py-motmetrics", args.frames / ref_time if ref_time == ref_time else 0.0,
-           "frames", args.json,
-           extra={"seconds": ours, "reference_seconds": ref_time, "counts_agree": agree,
-                  "MOTA": scores["MOTA"], "IDS": scores["IDS"]})
-    return 0
+    return BenchResult(f"CLEAR-MOT + IDF1, {frames} frames x {objects} objects x {objects} predictions",
+                       frames / ours, "py-motmetrics", frames / ref_time if ref_time == ref_time else 0.0, "frames",
+                       {"seconds": ours, "reference_seconds": ref_time, "counts_agree": agree,
+                        "MOTA": scores["MOTA"], "IDS": scores["IDS"]})

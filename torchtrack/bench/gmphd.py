@@ -16,19 +16,15 @@ detector velocities) is timed too and reported as ``enhanced_per_s``.
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
 
 import numpy as np
 import torch
 
-from torchtrack.bench._timing import report
+from torchtrack.bench._timing import BenchResult, format_result
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.gaussian import chi2_quantile
-
-NAME = "gmphd"
-HELP = "GM-PHD steps/s (Stone Soup tutorial setting and a WPAFB-scale frame) vs a per-component NumPy GM-PHD"
 
 WORKLOADS = {
     # targets, steps, clutter per scan, region side (px), speed std (px/step), p_D, sigma, q
@@ -39,16 +35,6 @@ WORKLOADS = {
 FILTER = dict(p_survival=0.99, clutter_density=None, gate_probability=0.999, prune_threshold=5e-3,
               merge_threshold=9.0, capacity=1024, extract_threshold=0.5)
 BIRTH = dict(birth_weight=0.05, sigma_pos=2.0, sigma_vel_unknown=8.0, distance_threshold=5.0, suppress_weight=0.05)
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--workload", choices=[*WORKLOADS, "all"], default="all", help="workload (default all)")
-    parser.add_argument("--steps", type=int, default=None, help="steps timed for torchtrack (default: workload's)")
-    parser.add_argument("--reference-steps", type=int, default=20, help="steps timed for the NumPy reference "
-                        "(default 20)")
-    parser.add_argument("--repeats", type=int, default=5, help="timed passes of the whole sequence, the fastest kept "
-                        "(default 5; slower passes are the machine's noise)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
 
 
 def scenario(w: dict, steps: int, seed: int) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -193,38 +179,36 @@ def op_overhead_us(n: int = 20000) -> float:
     return 1e6 * (time.process_time() - c0) / n
 
 
-def run(args: argparse.Namespace) -> int:
-    torch.set_num_threads(max(1, args.threads))
-    overhead = op_overhead_us()
-    print(f"one tiny torch op costs {overhead:.1f} us of CPU now (about 1-2 us on an idle core)")
-    names = list(WORKLOADS) if args.workload == "all" else [args.workload]
-    results = {}
-    for wname in names:
-        w = WORKLOADS[wname]
-        steps = args.steps or w["steps"]
-        frames = scenario(w, steps, args.seed)
-        cfg = tracker_config(w)
-        ours, ours_cpu, card = _time_torch("labelled-gmphd", cfg, frames, False, args.repeats)
-        enhanced, enhanced_cpu, card_e = _time_torch("gmphd", cfg, frames, True, args.repeats)
-        ref_steps = min(args.reference_steps, steps)
-        reference, card_ref_prefix = _time_reference(cfg, frames[:ref_steps])
-        meas = float(np.mean([z.shape[0] for z, _ in frames]))
-        workload = (f"{wname}: {w['targets']} targets, {steps} steps, ~{meas:.0f} measurements/step "
-                    f"(clutter {w['clutter']:g}/scan), p_D {w['pd']}; labelled GM-PHD, float32, "
-                    f"{torch.get_num_threads()} thread(s)")
-        print()
-        results[wname] = report(workload, ours, f"NumPy per-component GM-PHD ({ref_steps} steps)", reference,
-                                "steps", None, extra={"enhanced_per_s": enhanced, "ours_cpu_per_s": ours_cpu,
-                                                      "op_overhead_us": overhead,
-                                                      "enhanced_cpu_per_s": enhanced_cpu, "mean_estimates": card,
-                                                      "mean_estimates_enhanced": card_e,
-                                                      "reference_steps": ref_steps})
-        print(f"per process CPU second (load-independent): labelled {ours_cpu:,.0f} steps/s, enhanced "
-              f"{enhanced_cpu:,.0f} steps/s")
-        print(f"enhanced GM-PHD (label fix, velocity map, detector velocity): {enhanced:,.0f} steps/s; "
-              f"mean estimates/step: labelled {card:.1f}, enhanced {card_e:.1f}, targets {w['targets']}")
-    if args.json is not None:
-        from torchtrack.io.outputs import write_json
+def measure(wname: str, overhead_us: float, steps: int | None = None, reference_steps: int = 20, repeats: int = 5,
+            seed: int = 0) -> BenchResult:
+    """Time the labelled and the enhanced GM-PHD (best of ``repeats`` passes over ``steps`` steps; None: the
+    workload's) and the NumPy reference (``reference_steps``) on the workload ``wname`` of ``WORKLOADS``;
+    ``overhead_us`` (:func:`op_overhead_us`) is reported with them."""
+    w = WORKLOADS[wname]
+    steps = steps or w["steps"]
+    frames = scenario(w, steps, seed)
+    cfg = tracker_config(w)
+    ours, ours_cpu, card = _time_torch("labelled-gmphd", cfg, frames, False, repeats)
+    enhanced, enhanced_cpu, card_e = _time_torch("gmphd", cfg, frames, True, repeats)
+    ref_steps = min(reference_steps, steps)
+    reference, card_ref_prefix = _time_reference(cfg, frames[:ref_steps])
+    meas = float(np.mean([z.shape[0] for z, _ in frames]))
+    workload = (f"{wname}: {w['targets']} targets, {steps} steps, ~{meas:.0f} measurements/step "
+                f"(clutter {w['clutter']:g}/scan), p_D {w['pd']}; labelled GM-PHD, float32, "
+                f"{torch.get_num_threads()} thread(s)")
+    return BenchResult(workload, ours, f"NumPy per-component GM-PHD ({ref_steps} steps)", reference, "steps",
+                       {"enhanced_per_s": enhanced, "ours_cpu_per_s": ours_cpu, "op_overhead_us": overhead_us,
+                        "enhanced_cpu_per_s": enhanced_cpu, "mean_estimates": card,
+                        "mean_estimates_enhanced": card_e, "reference_steps": ref_steps})
 
-        write_json(args.json, results if len(results) > 1 else next(iter(results.values())))
-    return 0
+
+def format_workload(wname: str, r: BenchResult) -> str:
+    """One workload's table and the enhanced tracker's rates, as ``torchtrack bench gmphd`` prints them."""
+    e = r.extra
+    return "\n".join([
+        "", format_result(r),
+        f"per process CPU second (load-independent): labelled {e['ours_cpu_per_s']:,.0f} steps/s, enhanced "
+        f"{e['enhanced_cpu_per_s']:,.0f} steps/s",
+        f"enhanced GM-PHD (label fix, velocity map, detector velocity): {e['enhanced_per_s']:,.0f} steps/s; "
+        f"mean estimates/step: labelled {e['mean_estimates']:.1f}, enhanced {e['mean_estimates_enhanced']:.1f}, "
+        f"targets {WORKLOADS[wname]['targets']}"])

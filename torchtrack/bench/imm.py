@@ -12,35 +12,19 @@ what a run on an otherwise idle machine would see per core when the machine is s
 
 from __future__ import annotations
 
-import argparse
 import time
 
 import torch
 
-from torchtrack.bench._timing import best_time, report
+from torchtrack.bench._timing import BenchResult, best_time, format_result
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
 from torchtrack.models import LinearPosition, ModeControlInput
 from torchtrack.threads import torch_threads
 
-NAME = "imm"
-HELP = "3-model IMM, 100 000 tracks, against FilterPy's IMMEstimator per track"
-DESCRIPTION = __doc__
 G = 9.81
 CONTROLS = [[0.0, 0.0], [0.0, 3 * G], [0.0, -G]]
 TRANSITION = [[0.95, 0.05, 0.0], [0.1, 0.8, 0.1], [0.0, 0.05, 0.95]]
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--tracks", type=int, default=100_000, help="tracks filtered at once (default 100000)")
-    parser.add_argument("--steps", type=int, default=20, help="time steps per timed pass (default 20)")
-    parser.add_argument("--reference-tracks", type=int, default=100,
-                        help="tracks run through FilterPy (default 100)")
-    parser.add_argument("--dtype", choices=["float32", "float64"], default="float32")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: the compiled elementwise step is faster on one "
-                             "thread of this 2-core machine, 6.1 M vs 3.1 M track-steps/s idle)")
-    parser.add_argument("--no-compile", action="store_true", help="eager step instead of torch.compile")
 
 
 def _model(dtype: torch.dtype) -> ConstantVelocityIMM:
@@ -101,40 +85,43 @@ def filterpy_rate(z: torch.Tensor, x0: torch.Tensor, model: ConstantVelocityIMM)
     return rates[0], rates[1], torch.as_tensor(np.stack([imm.x.ravel() for imm in imms]))
 
 
-def run(args) -> int:
-    with torch_threads(args.threads):
-        return _run(args)
+def measure(tracks: int = 100_000, steps: int = 20, reference_tracks: int = 100, dtype: str = "float32",
+            threads: int = 1, compile: bool = True, seed: int = 0) -> BenchResult:
+    """Time our IMM on ``tracks`` tracks x ``steps`` steps (best of 3, on ``threads`` torch threads, compiled
+    or eager) and FilterPy on the first ``reference_tracks`` of them; ``extra`` holds the CPU-time rates and
+    the largest deviation of the final estimates from FilterPy's."""
+    with torch_threads(threads):
+        torch_dtype = getattr(torch, dtype)
+        gen = torch.Generator().manual_seed(seed)
+        z, x0 = _data(tracks, steps, gen, torch_dtype)
+        model = _model(torch_dtype)
+        init = model.initial_state(x0, torch.diag(torch.tensor([100.0, 100.0, 25.0, 25.0], dtype=torch_dtype)))
+        with torch.no_grad():
+            t0 = time.perf_counter()
+            model.run_packed(z[:2], init, 1.0, compile=compile)       # compilation / warm-up, not timed
+            warm = time.perf_counter() - t0
+            seconds = best_time(lambda: model.run_packed(z, init, 1.0, compile=compile), repeats=3, warmup=0)
+            c0 = time.process_time()
+            _, means, _ = model.run_packed(z, init, 1.0, compile=compile)
+            cpu = time.process_time() - c0
+        n_ref = min(reference_tracks, tracks)
+        ref, ref_cpu, ref_x = filterpy_rate(z[:, :n_ref], x0[:n_ref], _model(torch.float64))
+        deviation = float((means[-1, :n_ref].double() - ref_x).abs().max())
+        workload = (f"IMM, 3 models (CV + lateral inputs 0, 3g, -g), [x, y, vx, vy], {tracks} tracks x "
+                    f"{steps} steps, {dtype}, {torch.get_num_threads()} threads, "
+                    f"{'torch.compile' if compile else 'eager'}")
+    return BenchResult(workload, tracks * steps / seconds, f"filterpy IMMEstimator per track ({n_ref} tracks)", ref,
+                       "track-steps", {"ms_per_step": 1e3 * seconds / steps, "warmup_s": warm,
+                                       "ours_per_cpu_s": tracks * steps / cpu, "reference_per_cpu_s": ref_cpu,
+                                       "max_abs_deviation_from_reference": deviation})
 
 
-def _run(args) -> int:
-    if args.tracks < 1 or args.steps < 1 or args.reference_tracks < 1:
-        raise TorchtrackError("--tracks, --steps and --reference-tracks must be >= 1")
-    dtype = getattr(torch, args.dtype)
-    gen = torch.Generator().manual_seed(args.seed)
-    z, x0 = _data(args.tracks, args.steps, gen, dtype)
-    model = _model(dtype)
-    init = model.initial_state(x0, torch.diag(torch.tensor([100.0, 100.0, 25.0, 25.0], dtype=dtype)))
-    compile_ok = not args.no_compile
-    with torch.no_grad():
-        t0 = time.perf_counter()
-        model.run_packed(z[:2], init, 1.0, compile=compile_ok)       # compilation / warm-up, not timed
-        warm = time.perf_counter() - t0
-        seconds = best_time(lambda: model.run_packed(z, init, 1.0, compile=compile_ok), repeats=3, warmup=0)
-        c0 = time.process_time()
-        _, means, _ = model.run_packed(z, init, 1.0, compile=compile_ok)
-        cpu = time.process_time() - c0
-    ours = args.tracks * args.steps / seconds
-    n_ref = min(args.reference_tracks, args.tracks)
-    ref, ref_cpu, ref_x = filterpy_rate(z[:, :n_ref], x0[:n_ref], _model(torch.float64))
-    deviation = float((means[-1, :n_ref].double() - ref_x).abs().max())
-    workload = (f"IMM, 3 models (CV + lateral inputs 0, 3g, -g), [x, y, vx, vy], {args.tracks} tracks x "
-                f"{args.steps} steps, {args.dtype}, {torch.get_num_threads()} threads, "
-                f"{'torch.compile' if compile_ok else 'eager'}")
-    report(workload, ours, f"filterpy IMMEstimator per track ({n_ref} tracks)", ref, "track-steps",
-           args.json, extra={"ms_per_step": 1e3 * seconds / args.steps, "warmup_s": warm,
-                             "ours_per_cpu_s": args.tracks * args.steps / cpu, "reference_per_cpu_s": ref_cpu,
-                             "max_abs_deviation_from_reference": deviation})
-    print(f"per CPU second (all threads; robust to other load): torchtrack {args.tracks * args.steps / cpu:,.0f}, "
-          f"reference {ref_cpu:,.0f} track-steps")
-    print(f"final combined estimates of the {n_ref} reference tracks: max |ours - FilterPy| = {deviation:.2e}")
-    return 0
+def format_report(r: BenchResult, reference_tracks: int) -> str:
+    """The table and the CPU-time rates and deviation over the ``reference_tracks`` FilterPy ran."""
+    e = r.extra
+    return "\n".join([
+        format_result(r),
+        f"per CPU second (all threads; robust to other load): torchtrack {e['ours_per_cpu_s']:,.0f}, "
+        f"reference {e['reference_per_cpu_s']:,.0f} track-steps",
+        f"final combined estimates of the {reference_tracks} reference tracks: max |ours - FilterPy| = "
+        f"{e['max_abs_deviation_from_reference']:.2e}"])

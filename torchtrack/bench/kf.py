@@ -22,23 +22,11 @@ import time
 import numpy as np
 import torch
 
-from torchtrack.bench._timing import best_time, report
+from torchtrack.bench._timing import BenchResult, best_time, format_result
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.models import ConstantVelocity, LinearPosition
 
-NAME = "kf"
-HELP = "batched Kalman filter throughput vs NumPy and a per-track loop"
-DESCRIPTION = __doc__
-
 DT, Q, SIGMA = 1.0, 0.05, 1.0
-
-
-def add_arguments(parser) -> None:
-    parser.add_argument("--tracks", type=int, default=100_000, help="tracks (default 100000)")
-    parser.add_argument("--steps", type=int, default=100, help="time steps (default 100)")
-    parser.add_argument("--general-steps", type=int, default=10, help="steps timed for the general path")
-    parser.add_argument("--loop-tracks", type=int, default=200, help="tracks for the per-track loop")
-    parser.add_argument("--no-compile", action="store_true", help="time the eager fast and general paths")
 
 
 def _cpu_seconds(fn) -> float:
@@ -76,9 +64,13 @@ def _filterpy_loop(z: np.ndarray, x0: np.ndarray, P0: np.ndarray, F, Qm, H, R) -
             f.update(z[k, i])
 
 
-def run(args) -> int:
-    gen = torch.Generator().manual_seed(args.seed)
-    N, T = args.tracks, args.steps
+def measure(tracks: int = 100_000, steps: int = 100, general_steps: int = 10, loop_tracks: int = 200,
+            compile: bool = True, seed: int = 0) -> BenchResult:
+    """Time the axis-decoupled engine on ``tracks`` x ``steps`` (``compile``: torch.compile'd), the general
+    path on ``general_steps`` steps, the NumPy reference and FilterPy's per-track loop on ``loop_tracks``
+    tracks (when installed); the general path's and the loop's rates are in ``extra``."""
+    gen = torch.Generator().manual_seed(seed)
+    N, T = tracks, steps
     dtype = torch.float32
     kf = KalmanFilter(ConstantVelocity(2, q=Q), LinearPosition(2, sigma=SIGMA)).to(dtype)
     truth_v = torch.randn(N, 2, generator=gen, dtype=dtype) * 5
@@ -87,14 +79,13 @@ def run(args) -> int:
     init = GaussianState(torch.zeros(N, 4, dtype=dtype), torch.diag(torch.tensor([10.0, 10, 100, 100])).to(dtype)
                          .expand(N, 4, 4))
 
-    compile = not args.no_compile
     with torch.no_grad():
         t0 = time.perf_counter()
         kf.run(z, init, DT, compile=compile, engine="axes", history=False)
         warmup_s = time.perf_counter() - t0
         ours_s = best_time(lambda: kf.run(z, init, DT, compile=compile, engine="axes", history=False), repeats=3,
                            warmup=0)
-        Tg = min(args.general_steps, T)
+        Tg = min(general_steps, T)
         t0 = time.perf_counter()
         kf.run(z[:Tg], init, DT, compile=compile)
         general_warmup_s = time.perf_counter() - t0
@@ -125,7 +116,7 @@ def run(args) -> int:
     try:
         import filterpy  # noqa: F401
 
-        M = min(args.loop_tracks, N)
+        M = min(loop_tracks, N)
         loop_s = best_time(lambda: _filterpy_loop(z_np[:Tr, :M].astype(np.float64), x0[:M].astype(np.float64),
                                                   P0[:M].astype(np.float64), F, Qm, H, R), repeats=1, warmup=0)
         extra["filterpy_loop_per_s"] = M * Tr / loop_s
@@ -133,15 +124,21 @@ def run(args) -> int:
     except ImportError:
         extra["filterpy_loop_per_s"] = None
 
-    report(f"KF, 2-D CV + position, {N} tracks x {T} steps, float32", N * T / ours_s,
-           "batched NumPy (same equations, 4x4)", N * Tr / ref_s, "track-steps", args.json, extra)
-    print(f"general path (KalmanFilter.run, 4x4 matrices{', compiled' if compile else ''}): "
-          f"{extra['general_path_per_s']:,.0f} track-steps/s (eager: {extra['general_path_eager_per_s']:,.0f}; "
-          f"first call {general_warmup_s:.1f} s; {extra['general_path_per_cpu_s']:,.0f} per CPU-second)")
-    print(f"batch-first predict/update loop (the previous general path): "
-          f"{extra['batch_first_loop_per_s']:,.0f} track-steps/s")
-    if extra.get("filterpy_loop_per_s"):
-        print(f"FilterPy per-track loop: {extra['filterpy_loop_per_s']:,.0f} track-steps/s "
-              f"(ours {extra['ratio_vs_filterpy_loop']:,.0f}x)")
-    print(f"(first call incl. compilation: {warmup_s:.1f} s)")
-    return 0
+    return BenchResult(f"KF, 2-D CV + position, {N} tracks x {T} steps, float32", N * T / ours_s,
+                       "batched NumPy (same equations, 4x4)", N * Tr / ref_s, "track-steps", extra)
+
+
+def format_report(r: BenchResult) -> str:
+    """The table and the general path's, the batch-first loop's and FilterPy's rates."""
+    e = r.extra
+    lines = [format_result(r),
+             f"general path (KalmanFilter.run, 4x4 matrices{', compiled' if e['compile'] else ''}): "
+             f"{e['general_path_per_s']:,.0f} track-steps/s (eager: {e['general_path_eager_per_s']:,.0f}; "
+             f"first call {e['general_warmup_s']:.1f} s; {e['general_path_per_cpu_s']:,.0f} per CPU-second)",
+             f"batch-first predict/update loop (the previous general path): "
+             f"{e['batch_first_loop_per_s']:,.0f} track-steps/s"]
+    if e.get("filterpy_loop_per_s"):
+        lines.append(f"FilterPy per-track loop: {e['filterpy_loop_per_s']:,.0f} track-steps/s "
+                     f"(ours {e['ratio_vs_filterpy_loop']:,.0f}x)")
+    lines.append(f"(first call incl. compilation: {e['warmup_s']:.1f} s)")
+    return "\n".join(lines)

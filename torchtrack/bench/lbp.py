@@ -8,7 +8,6 @@ per-size times in milliseconds are reported beside it.
 
 from __future__ import annotations
 
-import argparse
 import time
 from collections.abc import Callable
 
@@ -16,26 +15,9 @@ import numpy as np
 import torch
 
 from torchtrack.association.lbp import LOG_NEW_FLOOR, lbp_marginals
-from torchtrack.bench._timing import best_time, report
-from torchtrack.errors import TorchtrackError
+from torchtrack.bench._timing import BenchResult, best_time, format_result
 from torchtrack.metrics.table import format_table
 from torchtrack.threads import torch_threads
-
-NAME = "lbp"
-HELP = "LBP association marginals on n x n problems against a NumPy implementation"
-DESCRIPTION = __doc__
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--sizes", default="10,100,300,1000", help="comma-separated n (default %(default)s)")
-    parser.add_argument("--iterations", type=int, default=15, help="LBP iterations (fixed; default 15)")
-    parser.add_argument("--density", type=float, default=0.2,
-                        help="fraction of track-measurement pairs inside the gate (default 0.2)")
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float32")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: on a shared, loaded machine more threads spin and "
-                             "wait for each other)")
-    parser.add_argument("--repeats", type=int, default=5, help="timed repeats, best is kept (default 5)")
 
 
 def _np_sum_of_others(v: np.ndarray, floor, axis: int) -> tuple[np.ndarray, np.ndarray]:
@@ -105,43 +87,40 @@ def _loadavg() -> float | None:
         return None
 
 
-def run(args) -> int:
-    with torch_threads(args.threads):
-        return _run(args)
+def measure(sizes: list[int], iterations: int = 15, density: float = 0.2, dtype: str = "float32", threads: int = 1,
+            repeats: int = 5, seed: int = 0) -> BenchResult:
+    """Time ours and the NumPy reference (best of ``repeats``, on ``threads`` torch threads) on one random
+    ``n x n`` problem per ``sizes`` entry (``density``: the gated fraction), ``iterations`` fixed; the rates are
+    the last size's, every size's times and largest marginal difference are ``extra["per_size"]``."""
+    with torch_threads(threads):
+        torch_dtype = getattr(torch, dtype)
+        gen = torch.Generator().manual_seed(seed)
+        per_size = {}
+        ours_ms = ref_ms = float("nan")
+        for n in sizes:
+            lw, lm, ln = make_problem(n, density, gen, torch_dtype)
+            lw_np, lm_np, ln_np = lw.numpy(), lm.numpy(), ln.numpy()
+            with torch.no_grad():
+                ours = best_time(lambda a=lw, b=lm, c=ln: lbp_marginals(a, b, c, iterations=iterations, tol=None,
+                                                                        check=False), repeats=repeats)
+                ours_cpu = best_cpu_time(lambda a=lw, b=lm, c=ln: lbp_marginals(a, b, c, iterations=iterations,
+                                                                                tol=None, check=False), repeats)
+            ref = best_time(lambda a=lw_np, b=lm_np, c=ln_np: numpy_lbp(a, b, c, iterations), repeats=repeats)
+            ref_cpu = best_cpu_time(lambda a=lw_np, b=lm_np, c=ln_np: numpy_lbp(a, b, c, iterations), repeats)
+            a_ours = lbp_marginals(lw, lm, ln, iterations=iterations, tol=None).assoc.numpy()
+            a_ref, _ = numpy_lbp(lw_np, lm_np, ln_np, iterations)
+            ours_ms, ref_ms = ours * 1e3, ref * 1e3
+            per_size[n] = {"ours_ms": ours_ms, "numpy_ms": ref_ms, "ours_cpu_ms": ours_cpu * 1e3,
+                           "numpy_cpu_ms": ref_cpu * 1e3, "max_abs_diff": float(np.abs(a_ours - a_ref).max())}
+        n = sizes[-1]
+        return BenchResult(f"LBP marginals, {n}x{n}, {iterations} iterations, {dtype}, gate density {density}",
+                           1e3 / ours_ms, "numpy (same algorithm)", 1e3 / ref_ms, "problems",
+                           {"per_size": per_size, "threads": torch.get_num_threads(), "load_average": _loadavg()})
 
 
-def _run(args) -> int:
-    try:
-        sizes = [int(s) for s in args.sizes.split(",") if s.strip()]
-    except ValueError as exc:
-        raise TorchtrackError(f"--sizes must be comma-separated integers; got {args.sizes!r}") from exc
-    if not sizes or min(sizes) < 1 or args.iterations < 1:
-        raise TorchtrackError("--sizes must be positive integers and --iterations >= 1")
-    dtype = getattr(torch, args.dtype)
-    gen = torch.Generator().manual_seed(args.seed)
-    rows, per_size = [], {}
-    ours_ms = ref_ms = float("nan")
-    for n in sizes:
-        lw, lm, ln = make_problem(n, args.density, gen, dtype)
-        lw_np, lm_np, ln_np = lw.numpy(), lm.numpy(), ln.numpy()
-        with torch.no_grad():
-            ours = best_time(lambda a=lw, b=lm, c=ln: lbp_marginals(a, b, c, iterations=args.iterations, tol=None,
-                                                                    check=False), repeats=args.repeats)
-            ours_cpu = best_cpu_time(lambda a=lw, b=lm, c=ln: lbp_marginals(a, b, c, iterations=args.iterations,
-                                                                            tol=None, check=False), args.repeats)
-        ref = best_time(lambda a=lw_np, b=lm_np, c=ln_np: numpy_lbp(a, b, c, args.iterations), repeats=args.repeats)
-        ref_cpu = best_cpu_time(lambda a=lw_np, b=lm_np, c=ln_np: numpy_lbp(a, b, c, args.iterations), args.repeats)
-        a_ours = lbp_marginals(lw, lm, ln, iterations=args.iterations, tol=None).assoc.numpy()
-        a_ref, _ = numpy_lbp(lw_np, lm_np, ln_np, args.iterations)
-        diff = float(np.abs(a_ours - a_ref).max())
-        ours_ms, ref_ms = ours * 1e3, ref * 1e3
-        per_size[n] = {"ours_ms": ours_ms, "numpy_ms": ref_ms, "ours_cpu_ms": ours_cpu * 1e3,
-                       "numpy_cpu_ms": ref_cpu * 1e3, "max_abs_diff": diff}
-        rows.append([f"{n}x{n}", ours_ms, ref_ms, ours_cpu * 1e3, ref_cpu * 1e3, f"{diff:.1e}"])
-    print(format_table(["problem", "torchtrack ms", "numpy ms", "torchtrack cpu ms", "numpy cpu ms", "max |diff|"],
-                       rows))
-    n = sizes[-1]
-    report(f"LBP marginals, {n}x{n}, {args.iterations} iterations, {args.dtype}, gate density {args.density}",
-           1e3 / ours_ms, "numpy (same algorithm)", 1e3 / ref_ms, "problems", args.json,
-           extra={"per_size": per_size, "threads": torch.get_num_threads(), "load_average": _loadavg()})
-    return 0
+def format_report(r: BenchResult) -> str:
+    """The per-size times and differences, then the table of the largest size's rates."""
+    rows = [[f"{n}x{n}", s["ours_ms"], s["numpy_ms"], s["ours_cpu_ms"], s["numpy_cpu_ms"], f"{s['max_abs_diff']:.1e}"]
+            for n, s in r.extra["per_size"].items()]
+    return "\n".join([format_table(["problem", "torchtrack ms", "numpy ms", "torchtrack cpu ms", "numpy cpu ms",
+                                     "max |diff|"], rows), format_result(r)])

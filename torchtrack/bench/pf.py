@@ -22,26 +22,12 @@ import time
 import numpy as np
 import torch
 
-from torchtrack.bench._timing import best_time, report
-from torchtrack.errors import TorchtrackError
+from torchtrack.bench._timing import BenchResult, best_time, format_result
 from torchtrack.filters.jtc import MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import jtc_trajectory, simulate_measurements
 from torchtrack.threads import torch_threads
 
-NAME = "pf"
-HELP = "JTC particle-filter bank throughput (particle-steps/s) vs a vectorised NumPy implementation"
-DESCRIPTION = __doc__
 PRIOR_STD = (150.0, 150.0, 20.0, 20.0)
-
-
-def add_arguments(parser) -> None:
-    parser.add_argument("--runs", type=int, default=20, help="Monte Carlo runs in one batch (default 20)")
-    parser.add_argument("--particles", type=int, default=3000, help="particles per class (default 3000)")
-    parser.add_argument("--scans", type=int, default=80, help="scans of the trajectory (default 80)")
-    parser.add_argument("--dtype", choices=["float32", "float64"], default="float32")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
-    parser.add_argument("--compile", action="store_true", help="torch.compile the filter step (inductor)")
-    parser.add_argument("--repeats", type=int, default=3, help="best of this many timed runs each (default 3)")
 
 
 def numpy_bank(bank: MultipleModelParticleFilter, z: np.ndarray, mean: np.ndarray, std: np.ndarray, dt: float,
@@ -108,50 +94,50 @@ def _cpu_time(fn):
     return out, time.process_time() - c0
 
 
-def run(args) -> int:
-    with torch_threads(None):  # _run sets --threads itself; the count is restored here
-        return _run(args)
-
-
-def _run(args) -> int:
-    for name in ("runs", "particles", "scans", "threads", "repeats"):
-        if getattr(args, name) < 1:
-            raise TorchtrackError(f"--{name} must be >= 1; got {getattr(args, name)}")
-    torch.set_num_threads(args.threads)
-    dtype = getattr(torch, args.dtype)
-    traj = jtc_trajectory(args.scans)
-    bank = paper_bank(args.particles)
-    if args.compile:
-        bank.kernel = torch.compile(bank.kernel, dynamic=False)
-    gen = torch.Generator().manual_seed(args.seed)
-    z = simulate_measurements(traj, bank.measurement, args.runs, gen).to(dtype)
-    mean = traj.states[0].to(dtype).expand(args.runs, 4)
-    std = torch.tensor(PRIOR_STD, dtype=dtype)
-    cov = torch.diag(std**2)
-    with torch.inference_mode():
-        t_ours = best_time(lambda: bank.run(z, mean, cov, traj.dt, gen), args.repeats)
-        ours, c_ours = _cpu_time(lambda: bank.run(z, mean, cov, traj.dt, gen))
-    rng = np.random.default_rng(args.seed)
-    z_np, mean_np, std_np = z.numpy(), mean.numpy(), std.numpy()
-    t_ref = best_time(lambda: numpy_bank(bank, z_np, mean_np, std_np, traj.dt, rng), args.repeats, warmup=0)
-    ref, c_ref = _cpu_time(lambda: numpy_bank(bank, z_np, mean_np, std_np, traj.dt, rng))
-    steps = args.runs * bank.num_classes * args.particles * args.scans
+def measure(runs: int = 20, particles: int = 3000, scans: int = 80, dtype: str = "float32", threads: int = 1,
+            compile: bool = False, repeats: int = 3, seed: int = 0) -> BenchResult:
+    """Time the bank (best of ``repeats`` passes, on ``threads`` torch threads; ``compile``: its step
+    ``torch.compile``d) and the NumPy reference on the same measurements of ``runs`` runs."""
+    with torch_threads(threads):
+        torch_dtype = getattr(torch, dtype)
+        traj = jtc_trajectory(scans)
+        bank = paper_bank(particles)
+        if compile:
+            bank.kernel = torch.compile(bank.kernel, dynamic=False)
+        gen = torch.Generator().manual_seed(seed)
+        z = simulate_measurements(traj, bank.measurement, runs, gen).to(torch_dtype)
+        mean = traj.states[0].to(torch_dtype).expand(runs, 4)
+        std = torch.tensor(PRIOR_STD, dtype=torch_dtype)
+        cov = torch.diag(std**2)
+        with torch.inference_mode():
+            t_ours = best_time(lambda: bank.run(z, mean, cov, traj.dt, gen), repeats)
+            ours, c_ours = _cpu_time(lambda: bank.run(z, mean, cov, traj.dt, gen))
+        rng = np.random.default_rng(seed)
+        z_np, mean_np, std_np = z.numpy(), mean.numpy(), std.numpy()
+        t_ref = best_time(lambda: numpy_bank(bank, z_np, mean_np, std_np, traj.dt, rng), repeats, warmup=0)
+        ref, c_ref = _cpu_time(lambda: numpy_bank(bank, z_np, mean_np, std_np, traj.dt, rng))
+    steps = runs * bank.num_classes * particles * scans
     extra = {
-        "runs": args.runs, "particles_per_class": args.particles, "scans": args.scans, "dtype": args.dtype,
-        "threads": args.threads, "compiled": args.compile, "load_average_1min": os.getloadavg()[0],
-        "ours_ms_per_scan": 1e3 * t_ours / args.scans,
-        "reference_ms_per_scan": 1e3 * t_ref / args.scans,
-        "ours_cpu_ms_per_scan": 1e3 * c_ours / args.scans, "reference_cpu_ms_per_scan": 1e3 * c_ref / args.scans,
+        "runs": runs, "particles_per_class": particles, "scans": scans, "dtype": dtype,
+        "threads": threads, "compiled": compile, "load_average_1min": os.getloadavg()[0],
+        "ours_ms_per_scan": 1e3 * t_ours / scans,
+        "reference_ms_per_scan": 1e3 * t_ref / scans,
+        "ours_cpu_ms_per_scan": 1e3 * c_ours / scans, "reference_cpu_ms_per_scan": 1e3 * c_ref / scans,
         "ours_final_class2_probability": float(ours.class_prob[-1, :, 1].mean()),
         "reference_final_class2_probability": float(ref[-1, :, 1].mean()),
     }
-    compiled = ", compiled" if args.compile else ""
-    report(f"JTC bank, {args.runs} runs x 2 classes x {args.particles} particles x {args.scans} scans, "
-           f"{args.dtype}, {args.threads} thread(s){compiled}", steps / t_ours, "numpy (vectorised, same algorithm)",
-           steps / t_ref, "particle-steps", args.json, extra)
-    print(f"ms per scan (wall): ours {extra['ours_ms_per_scan']:.1f}, numpy {extra['reference_ms_per_scan']:.1f}; "
-          f"(process CPU, one pass): ours {extra['ours_cpu_ms_per_scan']:.1f}, "
-          f"numpy {extra['reference_cpu_ms_per_scan']:.1f}")
-    print(f"final mean P(class 2): ours {extra['ours_final_class2_probability']:.3f}, "
-          f"numpy {extra['reference_final_class2_probability']:.3f}")
-    return 0
+    compiled = ", compiled" if compile else ""
+    return BenchResult(f"JTC bank, {runs} runs x 2 classes x {particles} particles x {scans} scans, "
+                       f"{dtype}, {threads} thread(s){compiled}", steps / t_ours, "numpy (vectorised, same algorithm)",
+                       steps / t_ref, "particle-steps", extra)
+
+
+def format_report(r: BenchResult) -> str:
+    """The table, the times per scan and both final class probabilities."""
+    e = r.extra
+    return "\n".join([
+        format_result(r),
+        f"ms per scan (wall): ours {e['ours_ms_per_scan']:.1f}, numpy {e['reference_ms_per_scan']:.1f}; "
+        f"(process CPU, one pass): ours {e['ours_cpu_ms_per_scan']:.1f}, numpy {e['reference_cpu_ms_per_scan']:.1f}",
+        f"final mean P(class 2): ours {e['ours_final_class2_probability']:.3f}, "
+        f"numpy {e['reference_final_class2_probability']:.3f}"])

@@ -10,39 +10,19 @@ scans from the same state.
 
 from __future__ import annotations
 
-import argparse
 import math
 
 import numpy as np
 import torch
 
-from torchtrack.bench._timing import best_time, report
+from torchtrack.bench._timing import BenchResult, best_time, format_result
 from torchtrack.bench.lbp import _loadavg, best_cpu_time, numpy_lbp
-from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter, PMBState
 from torchtrack.models import ConstantVelocity, LinearPosition
 from torchtrack.threads import torch_threads
 
-NAME = "pmb"
-HELP = "TOMB/P filter scans/s (100 tracks, 150 measurements per scan) against a NumPy implementation"
-DESCRIPTION = __doc__
-
 HALF = 1000.0   # surveillance region (-1000, 1000)^2 m
 SIGMA = 5.0     # measurement noise, m
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--targets", type=int, default=100, help="targets/tracks (default 100)")
-    parser.add_argument("--measurements", type=int, default=150, help="measurements per scan (default 150)")
-    parser.add_argument("--scans", type=int, default=20, help="timed scans (default 20)")
-    parser.add_argument("--dtype", choices=("float32", "float64"), default="float64")
-    parser.add_argument("--lbp-iterations", type=int, default=30, help="LBP iteration cap (default 30)")
-    parser.add_argument("--lbp-tol", type=float, default=1e-6,
-                        help="LBP tolerance on the miss/new marginals (default 1e-6; 0: fixed iterations)")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: on a shared, loaded machine more threads spin and "
-                             "wait for each other)")
-    parser.add_argument("--repeats", type=int, default=3)
 
 
 def make_scans(targets: int, meas: int, scans: int, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
@@ -143,66 +123,70 @@ def _to_numpy_state(st: PMBState) -> dict:
             "pm": st.poisson_mean.numpy().copy(), "pP": st.poisson_cov.numpy().copy()}
 
 
-def run(args) -> int:
-    with torch_threads(args.threads):
-        return _run(args)
+def measure(targets: int = 100, measurements: int = 150, scans: int = 20, dtype: str = "float64",
+            lbp_iterations: int = 30, lbp_tol: float = 1e-6, threads: int = 1, repeats: int = 3,
+            seed: int = 0) -> BenchResult:
+    """Time ``scans`` TOMB/P scans (best of ``repeats``, on ``threads`` torch threads) of our filter and of the
+    NumPy step from the same state after a warm-up; ``lbp_tol`` 0: a fixed number of LBP iterations."""
+    with torch_threads(threads):
+        torch_dtype = getattr(torch, dtype)
+        gen = torch.Generator().manual_seed(seed)
+        warm = 15
+        all_scans, _ = make_scans(targets, measurements, warm + scans, gen)
+        tol = lbp_tol if lbp_tol > 0 else None
+        filt = build(targets, measurements, lbp_iterations, tol).to(torch_dtype)
+        with torch.no_grad():
+            state = filt.init_state((), undetected_weight=float(targets), dtype=torch_dtype)
+            for t in range(warm):
+                state, _ = filt.step(state, all_scans[t].to(torch_dtype))
+            start = state
+            timed = all_scans[warm:].to(torch_dtype)
 
+            def ours():
+                s = start
+                for t in range(timed.shape[0]):
+                    s, _ = filt.step(s, timed[t])
+                return s
 
-def _run(args) -> int:
-    if args.targets < 1 or args.measurements < 1 or args.scans < 1:
-        raise TorchtrackError("--targets, --measurements and --scans must be >= 1")
-    dtype = getattr(torch, args.dtype)
-    gen = torch.Generator().manual_seed(args.seed)
-    warm = 15
-    scans, _ = make_scans(args.targets, args.measurements, warm + args.scans, gen)
-    tol = args.lbp_tol if args.lbp_tol > 0 else None
-    filt = build(args.targets, args.measurements, args.lbp_iterations, tol).to(dtype)
-    with torch.no_grad():
-        state = filt.init_state((), undetected_weight=float(args.targets), dtype=dtype)
-        for t in range(warm):
-            state, _ = filt.step(state, scans[t].to(dtype))
-        start = state
-        timed = scans[warm:].to(dtype)
+            t_ours = best_time(ours, repeats=repeats)
+            c_ours = best_cpu_time(ours, repeats=repeats)
+            final = ours()
+        live = int((start.existence > 0.5).sum())
+        params = {"F": filt.motion.transition_matrix(1.0).double().numpy(),
+                  "Q": filt.motion.process_noise(1.0).double().numpy(), "H": filt.measurement.matrix().double().numpy(),
+                  "R": filt.measurement.noise_cov().double().numpy(), "pd": 0.9, "ps": 0.99,
+                  "kappa": float(filt.clutter_intensity()), "bw": float(filt.birth_weight()),
+                  "bm": filt.birth_mean.double().numpy(), "bP": filt.birth_cov.double().numpy(), "gate": filt.gate_d2,
+                  "iters": lbp_iterations, "tol": tol, "cap": filt.capacity}
+        np_start = _to_numpy_state(start.__class__(*[t.double() if t.is_floating_point() else t for t in start]))
+        timed_np = timed.double().numpy()
 
-        def ours():
-            s = start
-            for t in range(timed.shape[0]):
-                s, _ = filt.step(s, timed[t])
+        def reference():
+            s = np_start
+            for t in range(timed_np.shape[0]):
+                s = numpy_step(s, timed_np[t], params)
             return s
 
-        t_ours = best_time(ours, repeats=args.repeats)
-        c_ours = best_cpu_time(ours, repeats=args.repeats)
-        final = ours()
-    live = int((start.existence > 0.5).sum())
-    params = {"F": filt.motion.transition_matrix(1.0).double().numpy(),
-              "Q": filt.motion.process_noise(1.0).double().numpy(), "H": filt.measurement.matrix().double().numpy(),
-              "R": filt.measurement.noise_cov().double().numpy(), "pd": 0.9, "ps": 0.99,
-              "kappa": float(filt.clutter_intensity()), "bw": float(filt.birth_weight()),
-              "bm": filt.birth_mean.double().numpy(), "bP": filt.birth_cov.double().numpy(), "gate": filt.gate_d2,
-              "iters": args.lbp_iterations, "tol": tol, "cap": filt.capacity}
-    np_start = _to_numpy_state(start.__class__(*[t.double() if t.is_floating_point() else t for t in start]))
-    timed_np = timed.double().numpy()
+        t_ref = best_time(reference, repeats=repeats)
+        c_ref = best_cpu_time(reference, repeats=repeats)
+        ref_final = reference()
+        agree = abs(float(final.existence.sum()) - float(ref_final["r"].sum()))
+        n = timed.shape[0]
+        return BenchResult(
+            f"TOMB/P predict+update, {targets} targets, {measurements} measurements/scan, "
+            f"capacity {filt.capacity}, LBP cap {lbp_iterations} tol {tol}, {dtype}",
+            n / t_ours, "numpy (same algorithm)", n / t_ref, "scans",
+            {"confirmed_tracks": live, "ms_per_scan": 1e3 * t_ours / n, "numpy_ms_per_scan": 1e3 * t_ref / n,
+             "cpu_ms_per_scan": 1e3 * c_ours / n, "numpy_cpu_ms_per_scan": 1e3 * c_ref / n,
+             "load_average": _loadavg(), "expected_count_difference": agree, "threads": torch.get_num_threads()})
 
-    def reference():
-        s = np_start
-        for t in range(timed_np.shape[0]):
-            s = numpy_step(s, timed_np[t], params)
-        return s
 
-    t_ref = best_time(reference, repeats=args.repeats)
-    c_ref = best_cpu_time(reference, repeats=args.repeats)
-    ref_final = reference()
-    agree = abs(float(final.existence.sum()) - float(ref_final["r"].sum()))
-    print(f"{live} confirmed tracks at the start of the timed scans; expected-count difference "
-          f"torchtrack vs numpy after {args.scans} scans: {agree:.2e}")
-    n = timed.shape[0]
-    print(f"CPU time per scan: torchtrack {1e3 * c_ours / n:.2f} ms, numpy {1e3 * c_ref / n:.2f} ms "
-          f"({torch.get_num_threads()} threads, load average {_loadavg()})")
-    report(f"TOMB/P predict+update, {args.targets} targets, {args.measurements} measurements/scan, "
-           f"capacity {filt.capacity}, LBP cap {args.lbp_iterations} tol {tol}, {args.dtype}",
-           n / t_ours, "numpy (same algorithm)", n / t_ref, "scans", args.json,
-           extra={"confirmed_tracks": live, "ms_per_scan": 1e3 * t_ours / n, "numpy_ms_per_scan": 1e3 * t_ref / n,
-                  "cpu_ms_per_scan": 1e3 * c_ours / n, "numpy_cpu_ms_per_scan": 1e3 * c_ref / n,
-                  "load_average": _loadavg(),
-                  "expected_count_difference": agree, "threads": torch.get_num_threads()})
-    return 0
+def format_report(r: BenchResult, scans: int) -> str:
+    """The tracks and the expected-count difference after ``scans`` timed scans, the CPU times and the table."""
+    e = r.extra
+    return "\n".join([
+        f"{e['confirmed_tracks']} confirmed tracks at the start of the timed scans; expected-count difference "
+        f"torchtrack vs numpy after {scans} scans: {e['expected_count_difference']:.2e}",
+        f"CPU time per scan: torchtrack {e['cpu_ms_per_scan']:.2f} ms, numpy {e['numpy_cpu_ms_per_scan']:.2f} ms "
+        f"({e['threads']} threads, load average {e['load_average']})",
+        format_result(r)])

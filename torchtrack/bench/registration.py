@@ -16,21 +16,11 @@ import time
 import numpy as np
 import torch
 
-from torchtrack.bench._timing import report
+from torchtrack.bench._timing import BenchResult, format_result
 from torchtrack.detector.dataset import split_seed
 from torchtrack.geometry import transfer_error
 from torchtrack.pipeline.registration import Registration, RegistrationConfig
 from torchtrack.sim.video import VideoConfig, generate_sequence
-
-NAME = "registration"
-HELP = "registration frames/s and error vs the true camera motion (ours LK vs OpenCV ORB+RANSAC)"
-DESCRIPTION = __doc__
-
-
-def add_arguments(parser) -> None:
-    parser.add_argument("--sequences", type=int, default=3, help="synthetic sequences (default 3)")
-    parser.add_argument("--frames", type=int, default=30, help="frames per sequence (default 30)")
-    parser.add_argument("--size", type=int, default=512, help="frame side in px (default 512)")
 
 
 def evaluate(config: RegistrationConfig, sequences: list[list]) -> tuple[float, np.ndarray]:
@@ -50,24 +40,30 @@ def evaluate(config: RegistrationConfig, sequences: list[list]) -> tuple[float, 
     return frames / seconds, np.asarray(errors)
 
 
-def run(args) -> int:
-    cfg = VideoConfig(height=args.size, width=args.size, frames=args.frames)
-    seqs = [list(generate_sequence(cfg, torch.Generator().manual_seed(split_seed(args.seed, "test", i))))
-            for i in range(args.sequences)]
+def _stats(e: np.ndarray) -> dict:
+    return {"median_px": float(np.median(e)), "p90_px": float(np.percentile(e, 90)), "max_px": float(e.max())}
+
+
+def measure(sequences: int = 3, frames: int = 30, size: int = 512, seed: int = 0) -> BenchResult:
+    """Time and score ours, OpenCV's ORB + RANSAC and ours with ECC on ``sequences`` synthetic sequences of
+    ``frames`` ``size`` x ``size`` frames (the held-out split's seeds)."""
+    cfg = VideoConfig(height=size, width=size, frames=frames)
+    seqs = [list(generate_sequence(cfg, torch.Generator().manual_seed(split_seed(seed, "test", i))))
+            for i in range(sequences)]
     ours_fps, ours_err = evaluate(RegistrationConfig(), seqs)
     ref_fps, ref_err = evaluate(RegistrationConfig(method="orb", features=1500), seqs)
     ecc_fps, ecc_err = evaluate(RegistrationConfig(ecc=True), seqs)
+    extra = {"error": {"ours_lk": _stats(ours_err), "reference_orb": _stats(ref_err), "ours_lk_ecc": _stats(ecc_err)},
+             "ours_lk_ecc_per_s": ecc_fps, "frames": int(len(ours_err) + len(seqs)), "size": size}
+    return BenchResult(f"registration of {sequences} x {frames} synthetic {size}x{size} frames",
+                       ours_fps, "OpenCV ORB + RANSAC", ref_fps, "frames", extra)
 
-    def stats(e: np.ndarray) -> dict:
-        return {"median_px": float(np.median(e)), "p90_px": float(np.percentile(e, 90)), "max_px": float(e.max())}
 
-    extra = {"error": {"ours_lk": stats(ours_err), "reference_orb": stats(ref_err), "ours_lk_ecc": stats(ecc_err)},
-             "ours_lk_ecc_per_s": ecc_fps, "frames": int(len(ours_err) + len(seqs)), "size": args.size}
-    report(f"registration of {args.sequences} x {args.frames} synthetic {args.size}x{args.size} frames",
-           ours_fps, "OpenCV ORB + RANSAC", ref_fps, "frames", args.json, extra)
-    for name, e in extra["error"].items():
-        s = stats(e) if isinstance(e, np.ndarray) else e
-        print(f"error vs true camera motion, {name}: median {s['median_px']:.3f} px, p90 {s['p90_px']:.3f}, "
-              f"max {s['max_px']:.3f}")
-    print(f"ours + ECC refinement: {ecc_fps:.1f} frames/s")
-    return 0
+def format_report(r: BenchResult) -> str:
+    """The table, each method's error against the true camera motion and the rate with ECC."""
+    lines = [format_result(r)]
+    for name, s in r.extra["error"].items():
+        lines.append(f"error vs true camera motion, {name}: median {s['median_px']:.3f} px, p90 {s['p90_px']:.3f}, "
+                     f"max {s['max_px']:.3f}")
+    lines.append(f"ours + ECC refinement: {r.extra['ours_lk_ecc_per_s']:.1f} frames/s")
+    return "\n".join(lines)

@@ -2,7 +2,8 @@
 
 Each sub-command lives in its own module of this package and defines ``NAME``, ``HELP``,
 optional ``DESCRIPTION``, ``add_arguments(parser)`` and ``run(args) -> int``; modules are discovered
-automatically, so a new command is a new file. ``NAME`` and ``HELP`` are read from the source
+automatically, so a new command is a new file. A command group (``scenario``, ``bench``) is a sub-package
+whose ``__init__`` is the command and whose modules are its members. ``NAME`` and ``HELP`` are read from the source
 without importing it, and only the module of the command being run is imported: a command pays
 only for its own dependencies.
 """
@@ -38,7 +39,7 @@ def discover(package: str) -> list[tuple[str, str, str]]:
     for info in pkgutil.iter_modules(spec.submodule_search_locations):
         if info.name.startswith("_"):
             continue
-        path = Path(info.module_finder.path) / f"{info.name}.py"
+        path = Path(info.module_finder.path) / (f"{info.name}/__init__.py" if info.ispkg else f"{info.name}.py")
         if not path.is_file():
             continue
         tree = ast.parse(path.read_text())

@@ -1,6 +1,6 @@
-"""The papers' experiments, one module each, run by ``torchtrack scenario NAME``.
+"""The papers' experiments, one module each, run by ``torchtrack scenario NAME`` (``torchtrack.cli.scenarios``).
 
-A module defines ``NAME``, ``HELP``, ``DEFAULT_CONFIG`` (its preset), ``RUNS`` (default Monte Carlo runs),
-optionally ``PARAMS`` (what a ``torchtrack tune`` fitted-parameter file sets) and ``add_arguments(parser)``
-(its own options), and ``run(args) -> int``; ``torchtrack scenario`` adds the options every scenario takes.
+A module defines ``DEFAULT_CONFIG`` (its preset), ``load_config(path)``, one function that runs the experiment
+from a config path and typed options (``runs``, ``seed``, ...) and returns a typed report, and
+``format_report``/``report_json``: the text the command prints and the numbers of its ``--json``.
 """

@@ -21,8 +21,8 @@ area that collects clutter of uniformly drawn class); with ``--plot``, estimated
 
 from __future__ import annotations
 
-import math
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -40,19 +40,12 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_bank import BankState, ClassConditionedIMM
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
 from torchtrack.gaussian import chi2_quantile, moment_match
-from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
 from torchtrack.models import LinearPosition, ModeControlInput
 from torchtrack.params import RowStochastic
 from torchtrack.sim.formation import FormationConfig, FormationData, simulate_formation
 
-NAME = "formation"
-HELP = "class-conditioned tracking gates on the ground formation (the gate paper, Table 1)"
-DESCRIPTION = __doc__
 DEFAULT_CONFIG = preset_path("formation")
-RUNS = 100
-PARAMS = "every class IMM's transition matrix and process and measurement noise (an 'imm' file with 3 modes)"
-"""What a fitted-parameter file (``--params``) sets in this scenario."""
 GATES = ("rectangular", "ellipsoidal", "class_conditioned_ellipse", "class_conditioned_density")
 
 
@@ -210,42 +203,57 @@ def association_probability(result: dict, target_class: torch.Tensor, num_classe
     return out
 
 
-def run(args) -> int:
-    cfg = load_config(args.config)
-    cfg["params"] = args.params
-    if args.runs < 1:
-        raise TorchtrackError(f"--runs must be >= 1; got {args.runs}")
-    gen = torch.Generator().manual_seed(args.seed)
+class FormationReport(NamedTuple):
+    """Every gate's tracking of the same simulated runs, scored (the tables' names: ``class_conditioned`` is the
+    configured class-conditioned region)."""
+    data: FormationData
+    results: dict[str, dict]                          # gate (GATES) -> track_formation's output
+    names: dict[str, str]                             # gate (GATES) -> its name in the table and the JSON
+    association_probability: dict[str, dict[str, float]]   # name -> class_c -> probability
+    gate_volume: dict[str, float]                     # name -> mean gate volume (m^2)
+    config: dict
+    runs: int
+    seed: int
+    params: Path | None
+
+
+def run_gates(config: Path, runs: int, seed: int, params: Path | None = None) -> FormationReport:
+    """Simulate ``runs`` runs of the scenario YAML ``config`` (seed ``seed``) and track them with every gate;
+    ``params``: a fitted-parameter file for the class IMMs (:func:`build_bank`)."""
+    cfg = load_config(config)
+    cfg["params"] = params
+    gen = torch.Generator().manual_seed(seed)
     scfg = cfg["scenario"]
-    data = simulate_formation(scfg, args.runs, gen)
+    data = simulate_formation(scfg, runs, gen)
     num_classes = len(scfg.confusion)
     from tqdm import tqdm
 
     results = {}
     for gate in tqdm(GATES, desc="gates", file=__import__("sys").stderr):
-        results[gate] = track_formation(data, cfg, gate, torch.Generator().manual_seed(args.seed + 1))
+        results[gate] = track_formation(data, cfg, gate, torch.Generator().manual_seed(seed + 1))
     main_cc = f"class_conditioned_{cfg['association']['cc_region']}"
     other_cc = "class_conditioned_density" if main_cc.endswith("ellipse") else "class_conditioned_ellipse"
     names = {"rectangular": "rectangular", "ellipsoidal": "ellipsoidal", main_cc: "class_conditioned",
              other_cc: other_cc}
     prob = {names[g]: association_probability(results[g], data.target_class, num_classes) for g in GATES}
     vol = {names[g]: float(results[g]["volume"].mean()) for g in GATES}
-    rows = [[n, 100 * p["class_1"], 100 * p["class_2"], vol[n] / 1e6] for n, p in prob.items()]
-    print(f"Table 1: probability that measurements are associated with the correct track ({args.runs} runs, "
-          f"{scfg.num_steps} scans, alpha = {cfg['association']['alpha']})")
-    print(format_table(["gate", "class 1 %", "class 2 %", "mean gate volume km^2"], rows, floatfmt=".2f"))
-    print("paper: rectangular 53/61 %, ellipsoidal 76/79 %, class-conditioned 100/100 %")
-    payload = {"association_probability": prob, "gate_volume": vol, "runs": args.runs, "seed": args.seed,
-               "scans": scfg.num_steps, "alpha": cfg["association"]["alpha"],
-               "class_conditioned_region": cfg["association"]["cc_region"],
-               "params": None if args.params is None else str(args.params)}
-    write_json(args.json, payload)
-    if args.plot is not None:
-        from torchtrack.scenarios._formation_plots import plot_formation
+    return FormationReport(data, results, names, prob, vol, cfg, runs, seed, params)
 
-        # show the run where the ellipsoidal gate loses most associations (stated in the figure titles)
-        ell = results["ellipsoidal"]
-        run_idx = int((ell["detected"] & ~ell["correct"]).sum((1, 2)).argmax())
-        paths = plot_formation(data, {names[g]: r["estimate"] for g, r in results.items()}, args.plot, run_idx)
-        print("plots: " + ", ".join(str(p) for p in paths))
-    return 0 if all(math.isfinite(v) for v in vol.values()) else 1
+
+def format_report(r: FormationReport) -> str:
+    """Table 1 as ``torchtrack scenario formation`` prints it."""
+    rows = [[n, 100 * p["class_1"], 100 * p["class_2"], r.gate_volume[n] / 1e6]
+            for n, p in r.association_probability.items()]
+    return "\n".join([
+        f"Table 1: probability that measurements are associated with the correct track ({r.runs} runs, "
+        f"{r.config['scenario'].num_steps} scans, alpha = {r.config['association']['alpha']})",
+        format_table(["gate", "class 1 %", "class 2 %", "mean gate volume km^2"], rows, floatfmt=".2f"),
+        "paper: rectangular 53/61 %, ellipsoidal 76/79 %, class-conditioned 100/100 %"])
+
+
+def report_json(r: FormationReport) -> dict:
+    """The numbers of ``--json``."""
+    return {"association_probability": r.association_probability, "gate_volume": r.gate_volume, "runs": r.runs,
+            "seed": r.seed, "scans": r.config["scenario"].num_steps, "alpha": r.config["association"]["alpha"],
+            "class_conditioned_region": r.config["association"]["cc_region"],
+            "params": None if r.params is None else str(r.params)}

@@ -11,11 +11,11 @@ and the time per update — one run, both classes — and per scan for all runs 
 
 from __future__ import annotations
 
-import argparse
 import os
 import statistics
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 from tqdm import tqdm
@@ -23,32 +23,11 @@ from tqdm import tqdm
 from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.jtc import MMPFOutput, MultipleModelParticleFilter, paper_bank
-from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
 from torchtrack.sim.jtc_trajectory import Trajectory, jtc_trajectory, simulate_measurements, true_modes
 from torchtrack.threads import torch_threads
 
-NAME = "jtc"
-HELP = "joint tracking and classification with a bank of multiple-model particle filters (the JTC paper)"
-DESCRIPTION = __doc__
 DEFAULT_CONFIG = preset_path("jtc")
-RUNS = 100
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--no-speed-constraints", action="store_true",
-                        help="report the bank without speed likelihoods as the main result")
-    parser.add_argument("--particles", type=int, default=None,
-                        help="particles per class (default: the config's, 3000 as in the paper)")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: a 6000-particle step is too small to share, "
-                             "and on a loaded machine spinning threads cost more than they give)")
-    parser.add_argument("--timing-repeats", type=int, default=5,
-                        help="one-run passes over the trajectory for the time per update; the best pass's "
-                             "median is reported (default 5)")
-    parser.add_argument("--compile", action="store_true",
-                        help="torch.compile the filter step (inductor; needs a C compiler; ~1 min of compilation "
-                             "per batch shape, then ~25%% less CPU per scan)")
 
 
 def load_config(path: Path) -> dict:
@@ -122,87 +101,103 @@ def time_one_run(bank: MultipleModelParticleFilter, cfg: dict, traj: Trajectory,
     return best[0], best[1], [p[0] for p in passes]
 
 
-def run(args) -> int:
-    with torch_threads(None):  # _run sets --threads itself; the count is restored here
-        return _run(args)
+class JTCReport(NamedTuple):
+    """Both settings' per-scan summaries (:func:`summarize`; key: with speed constraints) and the timings."""
+    trajectory: Trajectory
+    results: dict[bool, dict]
+    speed_constraints: bool        # the setting of the main result (RMSE and mode columns, timings)
+    true_class: int
+    particles: int                 # per class
+    per_update_ms: float           # one run, both classes: wall, CPU, every pass's wall
+    per_update_cpu_ms: float
+    per_update_ms_each_pass: list[float]
+    per_scan_ms: float             # all runs at once: wall, CPU
+    per_scan_cpu_ms: float
+    runs: int
+    seed: int
+    threads: int
+    compiled: bool
+    load_average: float            # 1 min, when the runs ended
 
 
-def _run(args) -> int:
-    if args.runs < 1:
-        raise TorchtrackError(f"--runs must be >= 1; got {args.runs}")
-    if args.threads < 1:
-        raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
-    cfg = load_config(args.config)
-    if args.particles is not None:
-        cfg["filter"]["particles"] = args.particles
-    dtype = getattr(torch, str(cfg["filter"]["dtype"]), None)
-    if dtype not in (torch.float32, torch.float64):
-        raise TorchtrackError(f"{args.config}: filter.dtype must be float32 or float64")
-    true_class = int(cfg["true_class"])
-    if true_class not in (1, 2):
-        raise TorchtrackError(f"{args.config}: true_class must be 1 or 2")
-    torch.set_num_threads(args.threads)
-    t = cfg["trajectory"]
-    traj = jtc_trajectory(t["scans"], t["dt"], t["speed"], t["start"], t["heading_deg"])
-    gen = torch.Generator().manual_seed(args.seed)
-    main_setting = not args.no_speed_constraints
-    z = simulate_measurements(traj, make_bank(cfg, True).measurement, args.runs, gen).to(dtype)
-    mean, cov = prior(cfg, traj, args.runs, dtype)
-    results, scan_times = {}, {}
-    for setting in (main_setting, not main_setting):
-        label = "with" if setting else "without"
-        out, wall, cpu = filter_runs(make_bank(cfg, setting, args.compile), z, mean, cov, traj.dt, gen,
-                                     f"{args.runs} runs, {label} speed constraints")
-        results[setting] = summarize(out, traj, true_class)
-        scan_times[setting] = (wall, cpu)
-    main = results[main_setting]
-    timing_bank = make_bank(cfg, main_setting, args.compile)
-    per_update, per_update_cpu, per_update_passes = time_one_run(timing_bank, cfg, traj, z, dtype, gen,
-                                                                 args.timing_repeats)
-    per_scan, per_scan_cpu = (1e3 * statistics.median(t) for t in scan_times[main_setting])
+def run_jtc(config: Path, runs: int, seed: int, *, speed_constraints: bool = True, particles: int | None = None,
+            threads: int = 1, timing_repeats: int = 5, compile_step: bool = False) -> JTCReport:
+    """The scenario YAML ``config``: ``runs`` runs filtered by the bank with and without speed likelihoods
+    (``speed_constraints``: the main result's setting), then the time per update of one run; ``particles``
+    per class (None: the config's) on ``threads`` torch threads (restored afterwards)."""
+    with torch_threads(threads):
+        cfg = load_config(config)
+        if particles is not None:
+            cfg["filter"]["particles"] = particles
+        dtype = getattr(torch, str(cfg["filter"]["dtype"]), None)
+        if dtype not in (torch.float32, torch.float64):
+            raise TorchtrackError(f"{config}: filter.dtype must be float32 or float64")
+        true_class = int(cfg["true_class"])
+        if true_class not in (1, 2):
+            raise TorchtrackError(f"{config}: true_class must be 1 or 2")
+        t = cfg["trajectory"]
+        traj = jtc_trajectory(t["scans"], t["dt"], t["speed"], t["start"], t["heading_deg"])
+        gen = torch.Generator().manual_seed(seed)
+        z = simulate_measurements(traj, make_bank(cfg, True).measurement, runs, gen).to(dtype)
+        mean, cov = prior(cfg, traj, runs, dtype)
+        results, scan_times = {}, {}
+        for setting in (speed_constraints, not speed_constraints):
+            label = "with" if setting else "without"
+            out, wall, cpu = filter_runs(make_bank(cfg, setting, compile_step), z, mean, cov, traj.dt, gen,
+                                         f"{runs} runs, {label} speed constraints")
+            results[setting] = summarize(out, traj, true_class)
+            scan_times[setting] = (wall, cpu)
+        timing_bank = make_bank(cfg, speed_constraints, compile_step)
+        per_update = time_one_run(timing_bank, cfg, traj, z, dtype, gen, timing_repeats)
+        per_scan, per_scan_cpu = (1e3 * statistics.median(t) for t in scan_times[speed_constraints])
+    return JTCReport(traj, results, speed_constraints, true_class, cfg["filter"]["particles"], *per_update,
+                     per_scan, per_scan_cpu, runs, seed, threads, compile_step, os.getloadavg()[0])
 
-    K = traj.states.shape[0] - 1
-    with_c, without_c = results[True]["class_probability_correct"], results[False]["class_probability_correct"]
+
+def format_report(r: JTCReport) -> str:
+    """The per-scan table and the timings that ``torchtrack scenario jtc`` prints."""
+    main, tc = r.results[r.speed_constraints], r.true_class
+    K = r.trajectory.states.shape[0] - 1
+    with_c, without_c = r.results[True]["class_probability_correct"], r.results[False]["class_probability_correct"]
     rows = [[k, float(with_c[k - 1]), float(without_c[k - 1]), float(main["rmse_position"][k - 1]),
              float(main["rmse_speed"][k - 1]), float(main["mode_probability_correct"][k - 1])]
             for k in range(1, K + 1) if k % 5 == 0 or k in (1, 16, 23, 37, 47, 56, 70)]
-    print(f"JTC bank, {cfg['filter']['particles']} particles per class, {args.runs} runs, true class "
-          f"{true_class}; RMSE and mode columns {'with' if main_setting else 'without'} speed constraints")
-    print(format_table(["scan", f"P(c{true_class}) with", f"P(c{true_class}) without", "RMSE pos [m]",
-                        "RMSE speed [m/s]", "P(correct mode)"], rows))
     late = slice(39, K)
-    print(f"\nmin over scans 40-{K} of mean P(true class): with speed constraints "
-          f"{float(with_c[late].min()):.3f}, without {float(without_c[late].min()):.3f}")
-    print(f"time per update (one run, both classes, {cfg['filter']['particles']} particles each; median over "
-          f"the scans, best of {len(per_update_passes)} passes): {per_update:.3f} ms wall, {per_update_cpu:.3f} ms CPU"
-          f"  [all passes: {', '.join(f'{t:.2f}' for t in per_update_passes)} ms]")
-    print(f"time per scan, all {args.runs} runs at once (median): {per_scan:.1f} ms wall, {per_scan_cpu:.1f} ms CPU"
-          f"   [threads: {args.threads}; load average {os.getloadavg()[0]:.1f}; CPU time excludes waiting for a core]")
-    payload = {
+    return "\n".join([
+        f"JTC bank, {r.particles} particles per class, {r.runs} runs, true class "
+        f"{tc}; RMSE and mode columns {'with' if r.speed_constraints else 'without'} speed constraints",
+        format_table(["scan", f"P(c{tc}) with", f"P(c{tc}) without", "RMSE pos [m]", "RMSE speed [m/s]",
+                      "P(correct mode)"], rows),
+        f"\nmin over scans 40-{K} of mean P(true class): with speed constraints "
+        f"{float(with_c[late].min()):.3f}, without {float(without_c[late].min()):.3f}",
+        f"time per update (one run, both classes, {r.particles} particles each; median over the scans, best of "
+        f"{len(r.per_update_ms_each_pass)} passes): {r.per_update_ms:.3f} ms wall, {r.per_update_cpu_ms:.3f} ms CPU"
+        f"  [all passes: {', '.join(f'{t:.2f}' for t in r.per_update_ms_each_pass)} ms]",
+        f"time per scan, all {r.runs} runs at once (median): {r.per_scan_ms:.1f} ms wall, {r.per_scan_cpu_ms:.1f} ms "
+        f"CPU   [threads: {r.threads}; load average {r.load_average:.1f}; CPU time excludes waiting for a core]"])
+
+
+def report_json(r: JTCReport) -> dict:
+    """The numbers of ``--json``."""
+    main = r.results[r.speed_constraints]
+    return {
         "class_probability_correct": main["class_probability_correct"],
         "rmse_position": main["rmse_position"],
         "rmse_speed": main["rmse_speed"],
         "mode_probability_correct": main["mode_probability_correct"],
-        "time_per_update_ms": per_update,
-        "time_per_scan_all_runs_ms": per_scan,
-        "time_per_update_cpu_ms": per_update_cpu,
-        "time_per_update_ms_each_pass": per_update_passes,
-        "time_per_scan_all_runs_cpu_ms": per_scan_cpu,
-        "speed_constraints": main_setting,
-        "runs": args.runs,
-        "class_probability_correct_with_speed_constraints": with_c,
-        "class_probability_correct_without_speed_constraints": without_c,
+        "time_per_update_ms": r.per_update_ms,
+        "time_per_scan_all_runs_ms": r.per_scan_ms,
+        "time_per_update_cpu_ms": r.per_update_cpu_ms,
+        "time_per_update_ms_each_pass": r.per_update_ms_each_pass,
+        "time_per_scan_all_runs_cpu_ms": r.per_scan_cpu_ms,
+        "speed_constraints": r.speed_constraints,
+        "runs": r.runs,
+        "class_probability_correct_with_speed_constraints": r.results[True]["class_probability_correct"],
+        "class_probability_correct_without_speed_constraints": r.results[False]["class_probability_correct"],
         "mode1_probability": main["mode1_probability"],
-        "particles_per_class": cfg["filter"]["particles"],
-        "threads": args.threads,
-        "compiled": args.compile,
-        "load_average_1min": os.getloadavg()[0],
-        "seed": args.seed,
+        "particles_per_class": r.particles,
+        "threads": r.threads,
+        "compiled": r.compiled,
+        "load_average_1min": r.load_average,
+        "seed": r.seed,
     }
-    write_json(args.json, payload)
-    if args.plot is not None:
-        from torchtrack.scenarios._jtc_plots import plot_all
-
-        paths = plot_all(args.plot, traj, results, main_setting, true_class)
-        print("\nplots: " + ", ".join(str(p) for p in paths))
-    return 0

@@ -9,6 +9,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import NamedTuple
 
 import torch
 
@@ -16,19 +17,11 @@ from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter
-from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
 from torchtrack.models import ConstantPosition, ConstantVelocity, LinearPosition
 from torchtrack.sim import maneuver as sim
 
-NAME = "maneuver"
-HELP = "Kalman refinement and chi-square maneuver detection (the maneuver paper)"
-DESCRIPTION = __doc__
 DEFAULT_CONFIG = preset_path("maneuver")
-RUNS = 100
-PARAMS = ("the Kalman filter's q and sigma of the constant-velocity and maneuver experiments (a 'kalman' file, "
-          "motion cv, noise pwca)")
-"""What a fitted-parameter file (``--params``) sets in this scenario."""
 
 
 def load_config(path: Path) -> dict:
@@ -117,62 +110,80 @@ def run_maneuver(cfg: dict, fcfg: dict, runs: int, gen: torch.Generator, params:
     false_alarms = float(res_det.detected[outside].double().sum()) / (outside.sum() * runs) * 100
     err_plain = res_plain.mean[in_window, :, :2] - seq.truth[in_window, :, :2]
     err_det = res_det.mean[in_window, :, :2] - seq.truth[in_window, :, :2]
+    rmse_kf, rmse_det = _rmse(err_plain), _rmse(err_det)
     return {"seq": seq, "plain": res_plain, "detecting": res_det, "window": in_window,
             "detection_rate": rates, "median_detection_delay": delays,
             "false_alarms_per_100_scans": false_alarms,
-            "rmse_position_kf": _rmse(err_plain), "rmse_position_detecting_kf": _rmse(err_det)}
+            "rmse_position_kf": rmse_kf, "rmse_position_detecting_kf": rmse_det,
+            "rmse_reduction": 1 - rmse_det / rmse_kf}
 
 
-def run(args) -> int:
-    if args.runs < 1:
-        raise TorchtrackError(f"--runs must be >= 1; got {args.runs}")
-    cfg = load_config(args.config)
-    gen = torch.Generator().manual_seed(args.seed)
+class ManeuverReport(NamedTuple):
+    """The three experiments' results (the dicts of :func:`run_stationary`, :func:`run_constant_velocity` and
+    :func:`run_maneuver`), the scenario config and the settings they ran with."""
+    stationary: dict
+    constant_velocity: dict
+    maneuver: dict
+    config: dict
+    runs: int
+    seed: int
+    params: Path | None
+
+
+def run_experiments(config: Path, runs: int, seed: int, params: Path | None = None) -> ManeuverReport:
+    """All three experiments from the scenario YAML ``config``, ``runs`` Monte Carlo runs batched, one generator
+    seeded with ``seed``; ``params``: a fitted-parameter file for the Kalman filter (:func:`fitted_kalman`)."""
+    cfg = load_config(config)
+    gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
-        st = run_stationary(cfg["stationary"], args.runs, gen)
-        cv = run_constant_velocity(cfg["constant_velocity"], cfg["filter"], args.runs, gen, args.params)
-        mv = run_maneuver(cfg["maneuver"], cfg["filter"], args.runs, gen, args.params)
-    onsets = cfg["maneuver"]["onsets"]
+        st = run_stationary(cfg["stationary"], runs, gen)
+        cv = run_constant_velocity(cfg["constant_velocity"], cfg["filter"], runs, gen, params)
+        mv = run_maneuver(cfg["maneuver"], cfg["filter"], runs, gen, params)
+    return ManeuverReport(st, cv, mv, cfg, runs, seed, params)
 
-    print(f"Maneuver paper, {args.runs} Monte Carlo runs (seed {args.seed})\n")
-    print(format_table(["experiment", "RMSE measured", "RMSE estimated", "note"], [
-        ["stationary (arcsec)", st["rmse_measured"], st["rmse_estimated"],
-         f"final error {st['final_error']:.3f}"],
-        ["constant velocity (m)", cv["rmse_measured"], cv["rmse_estimated"],
-         f"velocity RMSE {cv['rmse_velocity']:.3f} m/s"],
-    ]))
-    print()
+
+def format_report(r: ManeuverReport) -> str:
+    """The tables that ``torchtrack scenario maneuver`` prints."""
+    st, cv, mv, cfg = r.stationary, r.constant_velocity, r.maneuver, r.config
+    onsets = cfg["maneuver"]["onsets"]
     rows = [[f"scan {o}", mv["detection_rate"][i],
              "-" if mv["median_detection_delay"][i] is None else f"{mv['median_detection_delay'][i]:.0f}"]
             for i, o in enumerate(onsets)]
-    print(format_table(["maneuver onset", f"detected within {cfg['filter']['detection_delay']} scans",
-                        "median delay (scans)"], rows))
-    print(f"\nfalse alarms per 100 scans outside maneuvers: {mv['false_alarms_per_100_scans']:.3f}")
-    improvement = 1 - mv["rmse_position_detecting_kf"] / mv["rmse_position_kf"]
-    print(format_table(["filter", "position RMSE over maneuver windows (m)"], [
-        ["Kalman filter", mv["rmse_position_kf"]],
-        ["with maneuver detection", mv["rmse_position_detecting_kf"]],
-    ]))
-    print(f"RMSE reduction: {100 * improvement:.1f}%")
+    return "\n".join([
+        f"Maneuver paper, {r.runs} Monte Carlo runs (seed {r.seed})\n",
+        format_table(["experiment", "RMSE measured", "RMSE estimated", "note"], [
+            ["stationary (arcsec)", st["rmse_measured"], st["rmse_estimated"],
+             f"final error {st['final_error']:.3f}"],
+            ["constant velocity (m)", cv["rmse_measured"], cv["rmse_estimated"],
+             f"velocity RMSE {cv['rmse_velocity']:.3f} m/s"],
+        ]),
+        "",
+        format_table(["maneuver onset", f"detected within {cfg['filter']['detection_delay']} scans",
+                      "median delay (scans)"], rows),
+        f"\nfalse alarms per 100 scans outside maneuvers: {mv['false_alarms_per_100_scans']:.3f}",
+        format_table(["filter", "position RMSE over maneuver windows (m)"], [
+            ["Kalman filter", mv["rmse_position_kf"]],
+            ["with maneuver detection", mv["rmse_position_detecting_kf"]],
+        ]),
+        f"RMSE reduction: {100 * mv['rmse_reduction']:.1f}%",
+    ])
 
-    write_json(args.json, {
-        "maneuver_onsets": onsets,
+
+def report_json(r: ManeuverReport) -> dict:
+    """The numbers of ``--json``."""
+    mv = r.maneuver
+    return {
+        "maneuver_onsets": r.config["maneuver"]["onsets"],
         "detection_rate": mv["detection_rate"],
         "median_detection_delay": mv["median_detection_delay"],
         "false_alarms_per_100_scans": mv["false_alarms_per_100_scans"],
         "rmse_position_kf": mv["rmse_position_kf"],
         "rmse_position_detecting_kf": mv["rmse_position_detecting_kf"],
-        "rmse_reduction": improvement,
-        "stationary": {k: st[k] for k in ("rmse_measured", "rmse_estimated", "final_error")},
-        "constant_velocity": {k: cv[k] for k in ("rmse_measured", "rmse_estimated", "rmse_velocity")},
-        "threshold": cfg["filter"]["threshold"],
-        "runs": args.runs,
-        "seed": args.seed,
-        "params": None if args.params is None else str(args.params),
-    })
-    if args.plot is not None:
-        from torchtrack.scenarios._maneuver_plots import plot_all
-
-        paths = plot_all(args.plot, st, cv, mv, cfg)
-        print("\nplots: " + ", ".join(str(p) for p in paths))
-    return 0
+        "rmse_reduction": mv["rmse_reduction"],
+        "stationary": {k: r.stationary[k] for k in ("rmse_measured", "rmse_estimated", "final_error")},
+        "constant_velocity": {k: r.constant_velocity[k] for k in ("rmse_measured", "rmse_estimated", "rmse_velocity")},
+        "threshold": r.config["filter"]["threshold"],
+        "runs": r.runs,
+        "seed": r.seed,
+        "params": None if r.params is None else str(r.params),
+    }

@@ -14,7 +14,6 @@ over steps and runs (the paper: 0.87, 0.99, 2.61).
 
 from __future__ import annotations
 
-import argparse
 from pathlib import Path
 from typing import NamedTuple
 
@@ -25,28 +24,15 @@ from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.pmb import PMBFilter
 from torchtrack.filters.pmb_sensor import JointSensorPMB, SensorState, v2f_update
-from torchtrack.io.outputs import write_json
 from torchtrack.metrics.ospa import ospa
 from torchtrack.metrics.table import format_table
 from torchtrack.models import ConstantVelocity, LinearPosition
 from torchtrack.threads import torch_threads
 
-NAME = "pedestrian"
-HELP = "feature tracking with an uncertain sensor position: joint filter vs variance inflation vs naive (PMB paper)"
-DESCRIPTION = __doc__
 DEFAULT_CONFIG = preset_path("pedestrian")
-RUNS = 10
 VARIANTS = ("joint", "inflated", "naive")
 EXTRA_VARIANTS = ("inflated_kf",)   # variance inflation around a Kalman-filtered sensor state
 PAPER_OSPA = {"joint": 0.87, "inflated": 0.99, "naive": 2.61}
-
-
-def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--steps", type=int, default=None, help="shorten the recording to this many steps")
-    parser.add_argument("--p-survival", type=float, default=None,
-                        help="feature survival probability (config default 0.99; the paper states 0.7)")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: the tensors are small, more threads only spin)")
 
 
 def load_config(path: Path) -> dict:
@@ -191,45 +177,60 @@ def ospa_per_step(truth: Truth, run: Run, c: float, p: float) -> torch.Tensor:
     return ospa(X, run.position, c=c, p=p, x_mask=xm, y_mask=run.mask).total
 
 
-def run(args) -> int:
-    with torch_threads(args.threads):
-        return _run(args)
+class PedestrianReport(NamedTuple):
+    """Every variant's run over the same simulated recording and its OSPA against the truth."""
+    truth: Truth
+    variants: dict[str, Run]             # VARIANTS + EXTRA_VARIANTS
+    ospa_per_step: dict[str, torch.Tensor]   # (T,) mean over runs
+    mean_ospa: dict[str, float]
+    config: dict
+    runs: int
+    steps: int
+    p_survival: float
+    seed: int
 
 
-def _run(args) -> int:
-    cfg = load_config(args.config)
-    if args.runs < 1:
-        raise TorchtrackError(f"--runs must be >= 1; got {args.runs}")
-    scene, fcfg = cfg["scene"], cfg["filter"]
-    steps = scene["steps"] if args.steps is None else args.steps
-    if steps < 1:
-        raise TorchtrackError(f"--steps must be >= 1; got {steps}")
-    p_survival = fcfg["p_survival"] if args.p_survival is None else args.p_survival
-    gen = torch.Generator().manual_seed(args.seed)
-    truth = make_truth(scene, steps)
-    rec = simulate(scene, truth, args.runs, gen)
-    filt = build_filter(fcfg, scene, p_survival)
-    runs, per_step, mean = {}, {}, {}
-    for variant in VARIANTS + EXTRA_VARIANTS:
-        runs[variant] = run_variant(variant, filt, rec, cfg)
-        o = ospa_per_step(truth, runs[variant], cfg["ospa"]["c"], cfg["ospa"]["p"])
-        per_step[variant] = o.mean(1)
-        mean[variant] = float(o.mean())
+def run_variants(config: Path, runs: int, seed: int, *, steps: int | None = None, p_survival: float | None = None,
+                 threads: int = 1) -> PedestrianReport:
+    """Simulate ``runs`` recordings of the scenario YAML ``config`` (``steps`` long; None: the config's) and run
+    every variant on them, on ``threads`` torch threads; ``p_survival`` None: the config's."""
+    with torch_threads(threads):
+        cfg = load_config(config)
+        scene, fcfg = cfg["scene"], cfg["filter"]
+        steps = scene["steps"] if steps is None else steps
+        if steps < 1:
+            raise TorchtrackError(f"--steps must be >= 1; got {steps}")
+        p_survival = fcfg["p_survival"] if p_survival is None else p_survival
+        gen = torch.Generator().manual_seed(seed)
+        truth = make_truth(scene, steps)
+        rec = simulate(scene, truth, runs, gen)
+        filt = build_filter(fcfg, scene, p_survival)
+        variants, per_step, mean = {}, {}, {}
+        for variant in VARIANTS + EXTRA_VARIANTS:
+            variants[variant] = run_variant(variant, filt, rec, cfg)
+            o = ospa_per_step(truth, variants[variant], cfg["ospa"]["c"], cfg["ospa"]["p"])
+            per_step[variant] = o.mean(1)
+            mean[variant] = float(o.mean())
+    return PedestrianReport(truth, variants, per_step, mean, cfg, runs, steps, p_survival, seed)
+
+
+def format_report(r: PedestrianReport) -> str:
+    """The OSPA table that ``torchtrack scenario pedestrian`` prints."""
+    mean, ospa_cfg = r.mean_ospa, r.config["ospa"]
     rows = [[v, mean[v], PAPER_OSPA.get(v, "-")] for v in VARIANTS + EXTRA_VARIANTS]
-    print(f"pedestrian scenario: {args.runs} runs x {steps} steps, p_S = {p_survival}, OSPA c = "
-          f"{cfg['ospa']['c']} m, p = {cfg['ospa']['p']}")
-    print(format_table(["filter", "mean OSPA", "paper"], rows))
     ordered = mean["joint"] <= mean["inflated"] < mean["naive"]
-    print(f"paper's ordering joint <= inflated < naive: {'reproduced' if ordered else 'NOT reproduced'}"
-          f" (joint <= inflated_kf: {mean['joint'] <= mean['inflated_kf']})")
-    write_json(args.json, {"mean_ospa": {v: mean[v] for v in VARIANTS},
-                           "ospa_per_step": {v: per_step[v] for v in VARIANTS}, "runs": args.runs,
-                           "steps": steps, "p_survival": p_survival, "paper_mean_ospa": PAPER_OSPA,
-                           "seed": args.seed, "extra_mean_ospa": {v: mean[v] for v in EXTRA_VARIANTS},
-                           "extra_ospa_per_step": {v: per_step[v] for v in EXTRA_VARIANTS}})
-    if args.plot is not None:
-        from torchtrack.scenarios._pedestrian_plots import plot_all
+    return "\n".join([
+        f"pedestrian scenario: {r.runs} runs x {r.steps} steps, p_S = {r.p_survival}, OSPA c = "
+        f"{ospa_cfg['c']} m, p = {ospa_cfg['p']}",
+        format_table(["filter", "mean OSPA", "paper"], rows),
+        f"paper's ordering joint <= inflated < naive: {'reproduced' if ordered else 'NOT reproduced'}"
+        f" (joint <= inflated_kf: {mean['joint'] <= mean['inflated_kf']})"])
 
-        plot_all(args.plot, truth, runs, {v: per_step[v] for v in VARIANTS}, mean)
-        print(f"figures written to {args.plot}")
-    return 0
+
+def report_json(r: PedestrianReport) -> dict:
+    """The numbers of ``--json``."""
+    return {"mean_ospa": {v: r.mean_ospa[v] for v in VARIANTS},
+            "ospa_per_step": {v: r.ospa_per_step[v] for v in VARIANTS}, "runs": r.runs,
+            "steps": r.steps, "p_survival": r.p_survival, "paper_mean_ospa": PAPER_OSPA,
+            "seed": r.seed, "extra_mean_ospa": {v: r.mean_ospa[v] for v in EXTRA_VARIANTS},
+            "extra_ospa_per_step": {v: r.ospa_per_step[v] for v in EXTRA_VARIANTS}}

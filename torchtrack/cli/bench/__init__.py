@@ -1,4 +1,5 @@
-"""``torchtrack bench NAME``: throughput against a reference timed in the same run."""
+"""``torchtrack bench NAME``: throughput against a reference timed in the same run, one command module each in
+this package (the workloads and references are library modules of ``torchtrack.bench``)."""
 
 from torchtrack.cli import add_subcommands
 from torchtrack.cli._common import add_common_options
@@ -8,7 +9,7 @@ HELP = "measure throughput against a reference implementation timed in the same 
 
 
 def add_arguments(parser) -> None:
-    add_subcommands(parser, "torchtrack.bench", "workload", parser.get_default("_argv_rest") or [],
+    add_subcommands(parser, "torchtrack.cli.bench", "workload", parser.get_default("_argv_rest") or [],
                     options=lambda p, _: add_common_options(p))
 
 

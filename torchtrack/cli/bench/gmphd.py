@@ -1,0 +1,35 @@
+"""``torchtrack bench gmphd``: the options and the output of :mod:`torchtrack.bench.gmphd`."""
+
+import argparse
+
+import torch
+
+from torchtrack.bench import gmphd
+from torchtrack.bench.gmphd import WORKLOADS
+from torchtrack.io.outputs import write_json
+
+NAME = "gmphd"
+HELP = "GM-PHD steps/s (Stone Soup tutorial setting and a WPAFB-scale frame) vs a per-component NumPy GM-PHD"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--workload", choices=[*WORKLOADS, "all"], default="all", help="workload (default all)")
+    parser.add_argument("--steps", type=int, default=None, help="steps timed for torchtrack (default: workload's)")
+    parser.add_argument("--reference-steps", type=int, default=20, help="steps timed for the NumPy reference "
+                        "(default 20)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed passes of the whole sequence, the fastest kept "
+                        "(default 5; slower passes are the machine's noise)")
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+
+
+def run(args) -> int:
+    torch.set_num_threads(max(1, args.threads))
+    overhead = gmphd.op_overhead_us()
+    print(f"one tiny torch op costs {overhead:.1f} us of CPU now (about 1-2 us on an idle core)")
+    results = {}
+    for wname in list(WORKLOADS) if args.workload == "all" else [args.workload]:
+        result = gmphd.measure(wname, overhead, args.steps, args.reference_steps, args.repeats, args.seed)
+        print(gmphd.format_workload(wname, result))
+        results[wname] = result.payload()
+    write_json(args.json, results if len(results) > 1 else next(iter(results.values())))
+    return 0

@@ -1,0 +1,25 @@
+"""``torchtrack bench kf``: the options and the output of :mod:`torchtrack.bench.kf`."""
+
+from torchtrack.bench import kf
+from torchtrack.io.outputs import write_json
+
+NAME = "kf"
+HELP = "batched Kalman filter throughput vs NumPy and a per-track loop"
+DESCRIPTION = kf.__doc__
+
+
+def add_arguments(parser) -> None:
+    parser.add_argument("--tracks", type=int, default=100_000, help="tracks (default 100000)")
+    parser.add_argument("--steps", type=int, default=100, help="time steps (default 100)")
+    parser.add_argument("--general-steps", type=int, default=10, help="steps timed for the general path")
+    parser.add_argument("--loop-tracks", type=int, default=200, help="tracks for the per-track loop")
+    parser.add_argument("--no-compile", action="store_true", help="time the eager fast and general paths")
+
+
+
+def run(args) -> int:
+    result = kf.measure(args.tracks, args.steps, args.general_steps, args.loop_tracks, not args.no_compile,
+                        args.seed)
+    print(kf.format_report(result))
+    write_json(args.json, result.payload())
+    return 0
