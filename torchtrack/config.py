@@ -100,7 +100,7 @@ class OutOfRange(TorchtrackError):
     :func:`from_mapping` name the file and the dotted key instead of the class."""
 
     def __init__(self, owner: str, key: str, reason: str):
-        super().__init__(f"{owner}: {key} {reason}")
+        super().__init__(f"{owner}.{key} {reason}")
         self.key, self.reason = key, reason
 
 
@@ -117,8 +117,9 @@ class Checked:
                 raise self.refuse(*found)
 
     def refuse(self, key: str, reason: str) -> OutOfRange:
-        """The error for field ``key`` (``reason``: ``must be ...; got ...``)."""
-        return OutOfRange(type(self).__name__, key, reason)
+        """The error for field ``key`` (``reason``: ``must be ...; got ...``), named ``Class.key`` (or by the
+        section name a class sets in ``dotted_name``, e.g. ``registration.key``)."""
+        return OutOfRange(getattr(self, "dotted_name", type(self).__name__), key, reason)
 
 
 def preset_names() -> list[str]:
