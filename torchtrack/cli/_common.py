@@ -3,10 +3,38 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 
-from torchtrack.config import preset_path
+from torchtrack.config import Bounds, preset_path
 from torchtrack.errors import TorchtrackError
+
+
+def bounded(kind: type, **bounds) -> Callable[[str], int | float]:
+    """An argparse ``type``: the text as ``kind`` (int or float) within :class:`torchtrack.config.Bounds`
+    (``ge``, ``gt``, ``le``, ``lt``), otherwise a usage error (``argument --epochs: must be >= 1; got -1``)."""
+    limits = Bounds(**bounds)
+
+    def parse(text: str) -> int | float:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {'a whole number' if kind is int else 'a number'}; "
+                                             f"got {text!r}") from None
+        found = limits.problem("", value)
+        if found:
+            raise argparse.ArgumentTypeError(found[1])
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+positive_int = bounded(int, ge=1)
+nonnegative_int = bounded(int, ge=0)
+positive_float = bounded(float, gt=0)
+nonnegative_float = bounded(float, ge=0)
+probability = bounded(float, ge=0, le=1)
 
 
 def add_common_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:
@@ -42,7 +70,7 @@ def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, 
     """``--runs``, ``--config``, ``--plot DIR`` and ``--params FITTED.yaml``, which every ``torchtrack
     scenario`` takes; ``params`` says what a fitted-parameter file sets (None: the scenario has no tunable
     filter and ``--params`` is a usage error)."""
-    parser.add_argument("--runs", type=int, default=runs, help=f"Monte Carlo runs, batched (default {runs})")
+    parser.add_argument("--runs", type=positive_int, default=runs, help=f"Monte Carlo runs, batched (default {runs})")
     parser.add_argument("--config", type=config_file, default=default_config,
                         help="scenario YAML or preset name (default: the preset of the scenario's name)")
     parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
