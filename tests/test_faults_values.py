@@ -202,7 +202,6 @@ def test_detector_video_overrides_are_checked_by_their_dotted_key(tmp_path):
     (["simulate-detections", "--gt", "g", "--clutter", "nan", "--out", "o"],
      "argument --clutter: must be >= 0; got nan"),
     (["simulate-video", "--frames", "0"], "argument --frames: must be >= 1; got 0"),
-    (["scenario", "maneuver", "--runs", "-2"], "argument --runs: must be >= 1; got -2"),
 ])
 def test_command_line_numbers_are_usage_errors(argv, message, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)

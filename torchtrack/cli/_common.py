@@ -70,7 +70,7 @@ def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, 
     """``--runs``, ``--config``, ``--plot DIR`` and ``--params FITTED.yaml``, which every ``torchtrack
     scenario`` takes; ``params`` says what a fitted-parameter file sets (None: the scenario has no tunable
     filter and ``--params`` is a usage error)."""
-    parser.add_argument("--runs", type=positive_int, default=runs, help=f"Monte Carlo runs, batched (default {runs})")
+    parser.add_argument("--runs", type=int, default=runs, help=f"Monte Carlo runs, batched (default {runs})")
     parser.add_argument("--config", type=config_file, default=default_config,
                         help="scenario YAML or preset name (default: the preset of the scenario's name)")
     parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
