@@ -36,8 +36,9 @@ def _fields(cls, path=()):
     """``(path of names, owner class, field, type hint)`` of every field below ``cls``."""
     hints = typing.get_type_hints(cls)
     for f in dataclasses.fields(cls):
-        if dataclasses.is_dataclass(hints[f.name]):
-            yield from _fields(hints[f.name], path + (f.name,))
+        nested = [t for t in (hints[f.name], *typing.get_args(hints[f.name])) if dataclasses.is_dataclass(t)]
+        if nested:                                      # a section, or an optional one (``refine:``)
+            yield from _fields(nested[0], path + (f.name,))
         else:
             yield path + (f.name,), cls, f, hints[f.name]
 

@@ -197,6 +197,9 @@ def convert(value: Any, hint: Any, source: str, key: str) -> Any:
         options = typing.get_args(hint)
         if value is None and type(None) in options:
             return None
+        kinds = [t for t in options if t is not type(None)]
+        if len(kinds) == 1:                  # ``X | None``: X's own error, naming what is wrong inside it
+            return convert(value, kinds[0], source, key)
         exact = [t for t in options if t is not type(None) and isinstance(value, typing.get_origin(t) or t)
                  and not (t is int and isinstance(value, bool))]
         for t in exact + [t for t in options if t is not type(None) and t not in exact]:

@@ -62,6 +62,29 @@ class EarlyStopping(Checked):
 
 
 @dataclass(frozen=True)
+class RefineOptions(Checked):
+    """The optional ``refine:`` section (:func:`torchtrack.tuning.refine.refine`): a line search on the task
+    ``metric`` (``maximize`` it, or not) over ``parameters`` (None: the trainable ones) in steps of ``step``
+    (relative, see ``step_scale``), ``sweeps`` passes, within ``evaluations`` metric evaluations; ``average``
+    k > 1 ends at the centroid of the k best points (one evaluation kept for it); ``lookahead``: a step that
+    does not improve is followed by one twice as long."""
+
+    metric: str = "MOTA"
+    maximize: bool = True
+    parameters: list | None = None
+    step: float = option(0.5, gt=0)
+    sweeps: int = option(2, ge=1)
+    evaluations: int = option(12, ge=1)
+    average: int = option(1, ge=1)
+    lookahead: bool = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.average > 1 and self.evaluations < 2:
+            raise self.refuse("evaluations", f"must be >= 2 with average > 1; got {self.evaluations}")
+
+
+@dataclass(frozen=True)
 class TuneSections:
     """The sections of a tune config (``docs/tune.md``); each is read by the tunable filter ``filter`` names
     (:mod:`torchtrack.tuning.registry`), which checks its own keys. ``filter``, ``trainable`` and ``data`` are
@@ -78,7 +101,7 @@ class TuneSections:
     seed: int | None = None
     evaluate: Any = None
     grid: Any = None
-    refine: Any = None
+    refine: RefineOptions | None = None
 
 
 TUNE_KEYS = tuple(f.name for f in dataclasses.fields(TuneSections))
