@@ -216,7 +216,7 @@ def test_command_line_numbers_are_usage_errors(argv, message, tmp_path, capsys, 
 
 def test_video_dropout_rate_above_one(tmp_path, capsys):
     path = _write(tmp_path / "v.yaml", {"video": {"dropout_rate": 1.5}})
-    with pytest.raises(TorchtrackError, match=r"v\.yaml \(video config\): dropout_rate must be in \[0, 1\]; got 1\.5"):
+    with pytest.raises(TorchtrackError, match=r"v\.yaml: video\.dropout_rate must be in \[0, 1\]; got 1\.5$"):
         load_video_config(path)
     assert main(["simulate-video", "--config", str(path), "--out", str(tmp_path / "out")]) == 2
     assert _one_error_line(capsys).endswith("dropout_rate must be in [0, 1]; got 1.5")

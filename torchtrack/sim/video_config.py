@@ -79,10 +79,10 @@ class VideoConfig(Checked):
         return from_dict({**dataclasses.asdict(self), **changes}, "replace()")
 
 
-def from_dict(values: dict, source: str = "config") -> VideoConfig:
-    """Build a :class:`VideoConfig` (:func:`torchtrack.config.from_mapping`: unknown keys and values of the
-    wrong type are errors naming ``source`` and the key)."""
-    return from_mapping(VideoConfig, values, f"{source} (video config)")
+def from_dict(values: dict, source: str = "video config", prefix: str = "") -> VideoConfig:
+    """Build a :class:`VideoConfig` (:func:`torchtrack.config.from_mapping`: unknown keys, values of the wrong
+    type and values out of range are errors naming ``source`` and the key, under ``prefix``)."""
+    return from_mapping(VideoConfig, values, source, prefix)
 
 
 def load_video_config(path: str | Path | None) -> VideoConfig:
@@ -91,5 +91,5 @@ def load_video_config(path: str | Path | None) -> VideoConfig:
         return VideoConfig()
     data = read_mapping(path, "video config")
     if set(data) == {"video"}:
-        data = data["video"] or {}
+        return from_dict(data["video"] or {}, str(path), "video")
     return from_dict(data, str(path))
