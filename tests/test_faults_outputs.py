@@ -196,9 +196,10 @@ def test_a_failing_rerun_keeps_the_previous_set(tmp_path, capsys):
     assert "bad.txt" in capsys.readouterr().err
     assert _snapshot(out) == before and not (tmp_path / "out.partial").exists()
     # an argument error is found before anything is read or written
-    assert main(["track", "--detections", str(det), "--gt", str(gt), "--out", str(out), "--threshold", "-5"]) == 2
-    err = capsys.readouterr().err
-    assert err.count("\n") == 1 and "--threshold" in err
+    with pytest.raises(SystemExit) as exc:             # argparse's usage error, before anything is read
+        main(["track", "--detections", str(det), "--gt", str(gt), "--out", str(out), "--threshold", "-5"])
+    assert exc.value.code == 2
+    assert "argument --threshold: must be > 0; got -5.0" in capsys.readouterr().err
     assert _snapshot(out) == before and not (tmp_path / "out.partial").exists()
 
 

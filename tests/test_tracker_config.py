@@ -158,7 +158,7 @@ def test_every_section_goes_through_the_one_loader(tmp_path):
     video = load_video_config(path)
     assert video.jitter_perspective == 2e-6 and video.building_size == (10.0, 40.0) and video.frames == 12
     path.write_text("frames: twelve\n")
-    with pytest.raises(TorchtrackError, match=r"s\.yaml \(video config\): frames must be a whole number"):
+    with pytest.raises(TorchtrackError, match=r"s\.yaml: frames must be a whole number"):
         load_video_config(path)
     path.write_text("model: {widths: [8, 8, 8]}\ntrain: {lr: 1e-3}\n")
     det = load_config(path)

@@ -10,6 +10,11 @@ detector, tune): a mapping onto a (nested) dataclass whose fields carry the type
 class docstring, the meaning of each option. Unknown keys are refused by their full dotted path
 (``gmphd.filter.q_typo``); values are converted to the field's type where that is unambiguous (YAML reads
 ``1e-4`` as a string: a numeric string is accepted for a float field) and refused otherwise, naming the key.
+
+The allowed values of a field are declared beside its type and default with :func:`option` (``max_age: int =
+option(1, ge=0)``); a dataclass deriving from :class:`Checked` checks them whenever it is built, from YAML or in
+Python, and :func:`from_mapping` names the file and the dotted key of a value out of range
+(``s.yaml: sort.max_age must be >= 0; got -1``).
 """
 
 from __future__ import annotations
@@ -18,6 +23,7 @@ import dataclasses
 import types
 import typing
 from collections.abc import Mapping
+from dataclasses import MISSING, dataclass
 from importlib import resources
 from pathlib import Path
 from typing import Any, TypeVar
@@ -27,6 +33,93 @@ import yaml
 from torchtrack.errors import TorchtrackError
 
 T = TypeVar("T")
+
+
+@dataclass(frozen=True)
+class Bounds:
+    """The values a field allows: ``ge``/``gt``/``le``/``lt`` bounds on a number (on each item of a tuple),
+    ``one_of`` a set of choices, ``multiple_of`` an integer step, ``ordered`` a ``(low, high)`` pair with
+    ``low <= high``. ``None`` (an optional field unset) and booleans pass the numeric bounds; NaN fails them."""
+
+    ge: float | None = None
+    gt: float | None = None
+    le: float | None = None
+    lt: float | None = None
+    one_of: tuple = ()
+    multiple_of: int | None = None
+    ordered: bool = False
+
+    def problem(self, name: str, value: Any) -> tuple[str, str] | None:
+        """``(key, reason)`` where ``value`` of field ``name`` is out of bounds (``key``: ``name`` or one of its
+        items, ``name[i]``), else None."""
+        if value is None:
+            return None
+        if self.one_of and value not in self.one_of:
+            return name, f"must be one of {', '.join(map(repr, self.one_of))}; got {value!r}"
+        if isinstance(value, (tuple, list)):
+            for i, item in enumerate(value):
+                found = self.problem(f"{name}[{i}]", item)
+                if found:
+                    return found
+            if self.ordered and len(value) == 2 and not value[0] <= value[1]:
+                return name, f"must be a range [low, high] with low <= high; got {list(value)}"
+            return None
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return None
+        if not self._inside(value):
+            return name, f"must be {self.describe()}; got {value!r}"
+        if self.multiple_of and value % self.multiple_of:
+            return name, f"must be a multiple of {self.multiple_of}; got {value!r}"
+        return None
+
+    def _inside(self, value: float) -> bool:
+        return ((self.ge is None or value >= self.ge) and (self.gt is None or value > self.gt)
+                and (self.le is None or value <= self.le) and (self.lt is None or value < self.lt)
+                and value == value)
+
+    def describe(self) -> str:
+        low = (self.ge, "[") if self.ge is not None else (self.gt, "(") if self.gt is not None else None
+        high = (self.le, "]") if self.le is not None else (self.lt, ")") if self.lt is not None else None
+        if low and high:
+            return f"in {low[1]}{low[0]:g}, {high[0]:g}{high[1]}"
+        if low:
+            return f"{'>=' if low[1] == '[' else '>'} {low[0]:g}"
+        if high:
+            return f"{'<=' if high[1] == ']' else '<'} {high[0]:g}"
+        return "a number"
+
+
+def option(default: Any = MISSING, *, factory: Any = MISSING, **bounds: Any) -> Any:
+    """A dataclass field with its default (or ``factory``) and its :class:`Bounds` (``ge``, ``gt``, ``le``,
+    ``lt``, ``one_of``, ``multiple_of``, ``ordered``), checked by :class:`Checked`."""
+    return dataclasses.field(default=default, default_factory=factory, metadata={"bounds": Bounds(**bounds)})
+
+
+class OutOfRange(TorchtrackError):
+    """A field of a :class:`Checked` dataclass out of its bounds; ``key`` and ``reason`` let
+    :func:`from_mapping` name the file and the dotted key instead of the class."""
+
+    def __init__(self, owner: str, key: str, reason: str):
+        super().__init__(f"{owner}.{key} {reason}")
+        self.key, self.reason = key, reason
+
+
+class Checked:
+    """Base of a dataclass whose fields' :class:`Bounds` (declared with :func:`option`) are checked whenever it
+    is built; a subclass with its own ``__post_init__`` calls ``super().__post_init__()`` and raises
+    :meth:`refuse` for checks across fields."""
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            bounds = f.metadata.get("bounds")
+            found = bounds.problem(f.name, getattr(self, f.name)) if bounds is not None else None
+            if found:
+                raise self.refuse(*found)
+
+    def refuse(self, key: str, reason: str) -> OutOfRange:
+        """The error for field ``key`` (``reason``: ``must be ...; got ...``), named ``Class.key`` (or by the
+        section name a class sets in ``dotted_name``, e.g. ``registration.key``)."""
+        return OutOfRange(getattr(self, "dotted_name", type(self).__name__), key, reason)
 
 
 def preset_names() -> list[str]:
@@ -90,9 +183,10 @@ def from_mapping(cls: type[T], values: Mapping | None, source: str = "config", p
                                         getattr(base, name) if base is not None else None)
         else:
             kwargs[name] = convert(value, hint, source, key)
-    if base is not None:
-        return dataclasses.replace(base, **kwargs)
-    return cls(**kwargs)
+    try:
+        return dataclasses.replace(base, **kwargs) if base is not None else cls(**kwargs)
+    except OutOfRange as exc:
+        raise TorchtrackError(f"{source}: {_dotted(prefix, exc.key)} {exc.reason}") from None
 
 
 def convert(value: Any, hint: Any, source: str, key: str) -> Any:
@@ -103,6 +197,9 @@ def convert(value: Any, hint: Any, source: str, key: str) -> Any:
         options = typing.get_args(hint)
         if value is None and type(None) in options:
             return None
+        kinds = [t for t in options if t is not type(None)]
+        if len(kinds) == 1:                  # ``X | None``: X's own error, naming what is wrong inside it
+            return convert(value, kinds[0], source, key)
         exact = [t for t in options if t is not type(None) and isinstance(value, typing.get_origin(t) or t)
                  and not (t is int and isinstance(value, bool))]
         for t in exact + [t for t in options if t is not type(None) and t not in exact]:

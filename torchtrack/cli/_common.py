@@ -3,9 +3,10 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
 from pathlib import Path
 
-from torchtrack.config import preset_path
+from torchtrack.config import Bounds, preset_path
 from torchtrack.errors import TorchtrackError
 
 
@@ -13,6 +14,33 @@ def add_force_option(parser: argparse.ArgumentParser) -> None:
     """``--force`` of the commands that write an output folder (:class:`torchtrack.io.outputs.OutputFolder`)."""
     parser.add_argument("--force", action="store_true",
                         help="replace --out even when it holds something other than this command's output")
+
+
+def bounded(kind: type, **bounds) -> Callable[[str], int | float]:
+    """An argparse ``type``: the text as ``kind`` (int or float) within :class:`torchtrack.config.Bounds`
+    (``ge``, ``gt``, ``le``, ``lt``), otherwise a usage error (``argument --epochs: must be >= 1; got -1``)."""
+    limits = Bounds(**bounds)
+
+    def parse(text: str) -> int | float:
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {'a whole number' if kind is int else 'a number'}; "
+                                             f"got {text!r}") from None
+        found = limits.problem("", value)
+        if found:
+            raise argparse.ArgumentTypeError(found[1])
+        return value
+
+    parse.__name__ = kind.__name__
+    return parse
+
+
+positive_int = bounded(int, ge=1)
+nonnegative_int = bounded(int, ge=0)
+positive_float = bounded(float, gt=0)
+nonnegative_float = bounded(float, ge=0)
+probability = bounded(float, ge=0, le=1)
 
 
 def add_common_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:

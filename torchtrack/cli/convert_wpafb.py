@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, positive_float
 from torchtrack.io.mot import POINT_BOX_SIZE, write_motdata
 from torchtrack.io.outputs import check_output_file, write_json
 from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
@@ -33,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="MOTChallenge text file to write")
     parser.add_argument("--keep-frame-numbers", action="store_true",
                         help="keep the CSV's frame numbers (100-611 for AOI 02) instead of 1, 2, ...")
-    parser.add_argument("--box", type=float, default=POINT_BOX_SIZE,
+    parser.add_argument("--box", type=positive_float, default=POINT_BOX_SIZE,
                         help=f"box side in px around each vehicle (default {POINT_BOX_SIZE:g})")
     add_common_options(parser)
 

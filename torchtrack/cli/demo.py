@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, add_force_option, config_file
+from torchtrack.cli._common import add_common_options, add_force_option, config_file, positive_int
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.pipeline.config import load_pipeline_config
@@ -27,7 +27,7 @@ the output of torchtrack demo (or with --force).
 
 def add_arguments(parser) -> None:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default out/demo)")
-    parser.add_argument("--frames", type=int, default=None, metavar="N",
+    parser.add_argument("--frames", type=positive_int, default=None, metavar="N",
                         help="frames to generate (default: the embedded default, 60)")
     parser.add_argument("--truth", choices=("moving", "all"), default="moving",
                         help="moving: the moving vehicles are the targets, parked ones don't-care (the "

@@ -6,7 +6,7 @@ import argparse
 import math
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, bounded, positive_float
 from torchtrack.io.mot import read_mot
 from torchtrack.io.outputs import write_json
 from torchtrack.io.wpafb import moving_mask
@@ -42,14 +42,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt", type=Path, required=True, help="ground truth, MOTChallenge text")
     parser.add_argument("--pred", type=Path, required=True, help="tracker output, MOTChallenge text")
     gate = parser.add_mutually_exclusive_group()
-    gate.add_argument("--threshold", type=float, default=10.0, metavar="PX",
+    gate.add_argument("--threshold", type=positive_float, default=10.0, metavar="PX",
                       help="centre-distance gate in pixels (default 10)")
-    gate.add_argument("--iou", type=float, default=None, metavar="T", help="IoU gate instead (e.g. 0.5)")
+    gate.add_argument("--iou", type=bounded(float, gt=0, le=1), default=None, metavar="T",
+                      help="IoU gate instead (e.g. 0.5)")
     parser.add_argument("--moving", action="store_true",
                         help="score only objects that moved > 5 px over the last 15 frames (paper's rule)")
     parser.add_argument("--count-zero-conf", action="store_true",
                         help="score ground-truth lines with conf 0 as objects (default: ignored, as MOTChallenge)")
-    parser.add_argument("--ospa", type=float, default=None, metavar="C",
+    parser.add_argument("--ospa", type=positive_float, default=None, metavar="C",
                         help="also report the mean per-frame OSPA (p=1) and GOSPA (p=2, alpha=2) of the "
                              "centres with cut-off C px")
     add_common_options(parser)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, config_file
+from torchtrack.cli._common import add_common_options, bounded, config_file, positive_float, positive_int
 from torchtrack.detector.evaluate import PRIORS
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
@@ -34,10 +34,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--weights", type=Path, default=None, help="checkpoint (default: shipped weights)")
     parser.add_argument("--config", type=config_file, default=None,
                         help="video config of the held-out sequences (default: the checkpoint's training data)")
-    parser.add_argument("--sequences", type=int, default=4, help="held-out synthetic sequences (default 4)")
-    parser.add_argument("--frames", type=int, default=20, help="frames per sequence (default 20)")
-    parser.add_argument("--radius", type=float, default=10.0, help="match distance in px (default 10)")
-    parser.add_argument("--threshold", type=float, default=None, help="score threshold (default: checkpoint's)")
+    parser.add_argument("--sequences", type=positive_int, default=4, help="held-out synthetic sequences (default 4)")
+    parser.add_argument("--frames", type=bounded(int, ge=2), default=20, help="frames per sequence (default 20)")
+    parser.add_argument("--radius", type=positive_float, default=10.0, help="match distance in px (default 10)")
+    parser.add_argument("--threshold", type=bounded(float, ge=0, lt=1), default=None,
+                        help="score threshold (default: checkpoint's)")
     parser.add_argument("--wpafb", type=Path, default=None, help="WPAFB AOI 02 folder (default: the located data set, "
                         "see torchtrack data --help; skipped where there is none)")
     parser.add_argument("--no-wpafb", action="store_true", help="skip the real frames")
@@ -46,7 +47,7 @@ def add_arguments(parser) -> None:
                              "(stream, default: as in use), the previous truth (truth: a perfect feedback) or "
                              "none (empty); velocities are continued only with stream; the real frames always "
                              "stream")
-    parser.add_argument("--threads", type=int, default=1,
+    parser.add_argument("--threads", type=positive_int, default=1,
                         help="torch intra-op threads (default 1: fastest when other processes load the CPU)")
     add_common_options(parser)
 

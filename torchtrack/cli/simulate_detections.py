@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, nonnegative_float, positive_float, positive_int, probability
 from torchtrack.io.mot import POINT_BOX_SIZE, read_mot, write_motdata
 from torchtrack.io.outputs import check_output_file, write_json
 from torchtrack.metrics.table import format_table
@@ -34,16 +34,16 @@ example (the WPAFB benchmark defaults):
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--gt", type=Path, required=True, help="ground truth, MOTChallenge text")
-    parser.add_argument("--pd", type=float, default=0.9, help="detection probability (default 0.9)")
-    parser.add_argument("--sigma", type=float, default=1.0, metavar="PX",
+    parser.add_argument("--pd", type=probability, default=0.9, help="detection probability (default 0.9)")
+    parser.add_argument("--sigma", type=positive_float, default=1.0, metavar="PX",
                         help="position noise standard deviation in px (default 1)")
-    parser.add_argument("--clutter", type=float, default=30.0, metavar="N",
+    parser.add_argument("--clutter", type=nonnegative_float, default=30.0, metavar="N",
                         help="mean number of false detections per frame (default 30)")
-    parser.add_argument("--velocity-sigma", type=float, default=None, metavar="V",
+    parser.add_argument("--velocity-sigma", type=positive_float, default=None, metavar="V",
                         help="add a velocity per detection with this noise in px/frame (default: none)")
-    parser.add_argument("--image-size", type=int, nargs=2, default=None, metavar=("W", "H"),
+    parser.add_argument("--image-size", type=positive_int, nargs=2, default=None, metavar=("W", "H"),
                         help="clutter region in px (default: just covering the truth centres)")
-    parser.add_argument("--box", type=float, default=POINT_BOX_SIZE,
+    parser.add_argument("--box", type=positive_float, default=POINT_BOX_SIZE,
                         help=f"box side in px written around each detection (default {POINT_BOX_SIZE:g})")
     parser.add_argument("--out", type=Path, required=True, help="detections file to write")
     add_common_options(parser)

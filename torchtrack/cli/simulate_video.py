@@ -6,7 +6,7 @@ from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options, add_force_option, config_file
+from torchtrack.cli._common import add_common_options, add_force_option, bounded, config_file, positive_int
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.outputs import OutputFolder, write_json
 
@@ -27,8 +27,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--out", type=Path, required=True, help="output folder")
     parser.add_argument("--config", type=config_file, default=None,
                         help="YAML config or preset name (default: built-in, same as the preset video)")
-    parser.add_argument("--frames", type=int, default=None, help="number of frames (overrides the config)")
-    parser.add_argument("--size", type=int, nargs=2, default=None, metavar=("H", "W"),
+    parser.add_argument("--frames", type=positive_int, default=None, help="number of frames (overrides the config)")
+    parser.add_argument("--size", type=bounded(int, ge=32), nargs=2, default=None, metavar=("H", "W"),
                         help="frame height and width (overrides the config)")
     parser.add_argument("--format", choices=["png", "mp4", "avi"], default="png",
                         help="frames as PNG files (default) or one video file")

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import torch
 
-from torchtrack.cli._common import add_common_options, add_force_option, config_file
+from torchtrack.cli._common import add_common_options, add_force_option, config_file, positive_float, positive_int
 from torchtrack.cli._frames import add_frame_options, frame_inputs_given, run_frame_inputs
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import Tracker, tracker_names
@@ -58,7 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(with --detections; --tracker must be the file's, not with --config)")
     parser.add_argument("--gt", type=Path, default=None, help="ground truth (MOTChallenge) to score against")
     parser.add_argument("--out", type=Path, default=Path("out/track"), help="output folder (default out/track)")
-    parser.add_argument("--threshold", type=float, default=10.0, help="CLEAR-MOT centre distance in px "
+    parser.add_argument("--threshold", type=positive_float, default=10.0, help="CLEAR-MOT centre distance in px "
                         "(default 10)")
     parser.add_argument("--compare", action="store_true", help="run every tracker and print the Table 1 "
                         "comparison")
@@ -67,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--benchmark", default=None, metavar="CONFIG",
                         help="run the WPAFB real-data benchmark: wpafb (the shipped preset), another preset "
                              "name or a config path")
-    parser.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1: the per-frame "
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1: the per-frame "
                         "work is small, more threads only add overhead)")
     add_force_option(parser)
     add_common_options(parser)

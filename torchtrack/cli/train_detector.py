@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, config_file
-from torchtrack.errors import TorchtrackError
+from torchtrack.cli._common import add_common_options, config_file, nonnegative_int, positive_int
 from torchtrack.io.outputs import write_json
 
 NAME = "train-detector"
@@ -24,15 +23,15 @@ def add_arguments(parser) -> None:
     parser.add_argument("--config", type=config_file, default="detector",
                         help="YAML config or preset name (default: the preset detector, configs/detector.yaml)")
     parser.add_argument("--out", type=Path, default=None, help="checkpoint folder (overrides train.out)")
-    parser.add_argument("--epochs", type=int, default=None, help="number of epochs (overrides train.epochs)")
+    parser.add_argument("--epochs", type=positive_int, default=None, help="number of epochs (overrides train.epochs)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     parser.add_argument("--export", type=Path, default=None, metavar="PT",
                         help="after training, write the best checkpoint's weights (no optimizer) to PT, with "
                              "the decoding threshold calibrated on the validation sequences")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--threads", type=int, default=None,
+    parser.add_argument("--threads", type=positive_int, default=None,
                         help="torch intra-op threads per process (1 is fastest on a busy machine)")
-    parser.add_argument("--workers", type=int, default=0,
+    parser.add_argument("--workers", type=nonnegative_int, default=0,
                         help="data-loading processes per training process (default 0: in the training process); "
                              "the result does not depend on it, since every sample is a pure function of its index")
     add_common_options(parser)
@@ -56,8 +55,6 @@ def run(args) -> int:
         changes["epochs"] = args.epochs
     if changes:
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **changes))
-    if args.workers < 0:
-        raise TorchtrackError(f"--workers must be >= 0, got {args.workers}")
     result = train(cfg, seed=args.seed, resume=args.resume, progress=not args.no_progress, workers=args.workers)
     import os
 

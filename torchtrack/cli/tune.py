@@ -37,19 +37,19 @@ Examples:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from torchtrack.cli._common import add_common_options, add_force_option, config_file
+    from torchtrack.cli._common import add_common_options, add_force_option, bounded, config_file, positive_int
 
     parser.add_argument("--config", type=config_file, required=True, metavar="YAML",
                         help="tune config: a path or a preset name (configs/tune-*.yaml, e.g. tune-kalman)")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="output folder (default: the config's output.dir, else out/tune-FILTER)")
-    parser.add_argument("--threads", type=int, default=1,
+    parser.add_argument("--threads", type=positive_int, default=1,
                         help="torch CPU threads (default 1: small per-step matrices are fastest on one thread)")
     parser.add_argument("--loss", default=None, help="override the config's loss (e.g. gospa)")
     parser.add_argument("--no-grid", action="store_true", help="skip the config's grid-search baseline")
     parser.add_argument("--no-refine", action="store_true", help="skip the config's line search on the task metric")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    parser.add_argument("--folds", type=int, default=None, metavar="K",
+    parser.add_argument("--folds", type=bounded(int, ge=2), default=None, metavar="K",
                         help="K-fold cross-validation: hold out each of K contiguous blocks of the frames (or "
                              "items) in turn, tune (and run the grid) on the rest, report per fold and the mean; "
                              "outputs under OUT/fold-1 ... OUT/fold-K")
@@ -124,11 +124,11 @@ def run(args) -> int:
 
     from torchtrack.io.outputs import OutputFolder, write_json
     from torchtrack.metrics.table import format_table
-    from torchtrack.tuning.config import apply_overrides, read_tune_config
+    from torchtrack.tuning.config import read_tune_config
     from torchtrack.tuning.tune import output_dir, tune
 
-    torch.set_num_threads(max(1, args.threads))
-    config = apply_overrides(read_tune_config(args.config), args.set)
+    torch.set_num_threads(args.threads)
+    config = read_tune_config(args.config, args.set)
     if args.loss:
         config["loss"] = args.loss
     if args.no_grid:

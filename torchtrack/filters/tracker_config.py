@@ -19,12 +19,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from torchtrack.config import from_mapping, preset_path, read_mapping
+from torchtrack.config import Checked, from_mapping, option, preset_path, read_mapping
 from torchtrack.errors import TorchtrackError
 
 
 @dataclass(frozen=True)
-class GMPHDFilterOptions:
+class GMPHDFilterOptions(Checked):
     """The GM-PHD recursion (Vo & Ma 2006) with a constant-velocity model ``[x, y, vx, vy]``.
 
     q: CV process-noise spectral density (px²/frame³). sigma: measurement noise std (px).
@@ -40,40 +40,40 @@ class GMPHDFilterOptions:
     target's detected velocity is wrong (a mixture with the clutter's velocity density).
     """
 
-    q: float = 2.0
-    sigma: float = 1.0
-    p_survival: float = 0.99
-    p_detection: float = 0.9
-    clutter_density: float = 1e-4
-    area: float | None = None
-    gate_probability: float = 0.999
-    prune_threshold: float = 5e-3
-    merge_threshold: float = 9.0
-    merge_rounds: int = 3
-    capacity: int = 1024
-    extract_threshold: float = 0.5
-    chunk: int = 4096
-    velocity_sigma: float | None = 1.5
-    velocity_clutter_density: float = 2.5e-3
-    velocity_outlier: float = 0.0
+    q: float = option(2.0, gt=0)
+    sigma: float = option(1.0, gt=0)
+    p_survival: float = option(0.99, gt=0, lt=1)
+    p_detection: float = option(0.9, gt=0, lt=1)
+    clutter_density: float = option(1e-4, gt=0)
+    area: float | None = option(None, gt=0)
+    gate_probability: float = option(0.999, gt=0, le=1)
+    prune_threshold: float = option(5e-3, gt=0)
+    merge_threshold: float = option(9.0, ge=0)
+    merge_rounds: int = option(3, ge=1)
+    capacity: int = option(1024, ge=1)
+    extract_threshold: float = option(0.5, gt=0)
+    chunk: int = option(4096, ge=1)
+    velocity_sigma: float | None = option(1.5, gt=0)
+    velocity_clutter_density: float = option(2.5e-3, gt=0)
+    velocity_outlier: float = option(0.0, ge=0, lt=1)
 
 
 @dataclass(frozen=True)
-class VelocityMapOptions:
+class VelocityMapOptions(Checked):
     """The velocity map of the adaptive birth (section 2.4): ``cell`` px per cell, ``shape = (rows, cols)``
     cells from ``origin = (x0, y0)``; a cell answers once it holds ``min_count`` velocities spread less than
     ``max_spread`` px/frame; ``decay`` (0, 1] forgets old velocities."""
 
-    cell: float = 10.0
+    cell: float = option(10.0, gt=0)
     origin: tuple[float, float] = (0.0, 0.0)
-    shape: tuple[int, int] = (512, 512)
-    min_count: int = 2
-    max_spread: float = 2.0
-    decay: float = 1.0
+    shape: tuple[int, int] = option((512, 512), ge=1)
+    min_count: int = option(2, ge=1)
+    max_spread: float = option(2.0, gt=0)
+    decay: float = option(1.0, gt=0, le=1)
 
 
 @dataclass(frozen=True)
-class GMPHDBirthOptions:
+class GMPHDBirthOptions(Checked):
     """Adaptive measurement-driven birth (section 2.4, eq. 4–6).
 
     birth_weight: weight of each birth component. sigma_pos: position std (px). sigma_vel_unknown: velocity
@@ -83,13 +83,13 @@ class GMPHDBirthOptions:
     use_detector_velocity, use_velocity_map: the two enhancements of eq. 6.
     """
 
-    birth_weight: float = 0.05
-    sigma_pos: float = 2.0
-    sigma_vel_unknown: float = 8.0
-    sigma_vel_detector: float = 1.5
-    sigma_vel_map: float = 2.0
-    distance_threshold: float = 5.0
-    suppress_weight: float = 0.05
+    birth_weight: float = option(0.05, gt=0)
+    sigma_pos: float = option(2.0, gt=0)
+    sigma_vel_unknown: float = option(8.0, gt=0)
+    sigma_vel_detector: float = option(1.5, gt=0)
+    sigma_vel_map: float = option(2.0, gt=0)
+    distance_threshold: float = option(5.0, ge=0)
+    suppress_weight: float = option(0.05, ge=0)
     use_detector_velocity: bool = True
     use_velocity_map: bool = True
     velocity_map: VelocityMapOptions = field(default_factory=VelocityMapOptions)
@@ -106,7 +106,7 @@ POSITIONS_ONLY: dict = {"filter": {"q": 1.0, "clutter_density": 3e-4}, "birth": 
 
 
 @dataclass(frozen=True)
-class GMPHDConfig:
+class GMPHDConfig(Checked):
     """The labelled GM-PHD tracker (:class:`~torchtrack.filters.gmphd_tracker.GMPHDTracker`); the defaults are
     the enhanced GM-PHD of Aguilar, Ortner & Zerubia (2023) with this project's extensions.
 
@@ -132,24 +132,20 @@ class GMPHDConfig:
     filter: GMPHDFilterOptions = field(default_factory=GMPHDFilterOptions)
     birth: GMPHDBirthOptions = field(default_factory=GMPHDBirthOptions)
     label_fix: bool = True
-    fix_separation: float = 8.0
+    fix_separation: float = option(8.0, ge=0)
     merge_priority: bool = True
-    confirm_new: bool | int = True
-    confirm_misses: int = 0
-    settled_velocity_var: float = 4.0
-    handover_frames: int = 8
-    handover_distance: float = 20.0
-    coast_threshold: float | None = 0.03
-    tone_sigma: float | None = None
-    tone_outlier: float = 0.1
-    tone_rate: float = 0.1
-    tone_handover_gap: float = 6.0
-    dtype: str = "float32"
+    confirm_new: bool | int = option(True, ge=1)
+    confirm_misses: int = option(0, ge=0)
+    settled_velocity_var: float = option(4.0, ge=0)
+    handover_frames: int = option(8, ge=0)
+    handover_distance: float = option(20.0, ge=0)
+    coast_threshold: float | None = option(0.03, gt=0)
+    tone_sigma: float | None = option(None, gt=0)
+    tone_outlier: float = option(0.1, gt=0, lt=1)
+    tone_rate: float = option(0.1, gt=0, le=1)
+    tone_handover_gap: float = option(6.0, gt=0)
+    dtype: str = option("float32", one_of=("float32", "float64"))
     positions_only: dict = field(default_factory=lambda: _copy(POSITIONS_ONLY))
-
-    def __post_init__(self) -> None:
-        if self.dtype not in ("float32", "float64"):
-            raise TorchtrackError(f"dtype must be float32 or float64; got {self.dtype!r}")
 
     def for_input(self, velocities: bool, source: str = "config", prefix: str = "") -> GMPHDConfig:
         """The options for detections with (``velocities``) or without the detector's velocities."""
@@ -169,48 +165,54 @@ no label fix and none of its extensions, births at rest, position-only update; s
 
 
 @dataclass(frozen=True)
-class SORTConfig:
+class SORTConfig(Checked):
     """SORT (Bewley et al. 2016) on centre distance: q, sigma: CV process noise and measurement std (px);
     sigma_vel: velocity std of a new track (px/frame); max_distance: assignment gate (px); max_age: frames a
     track survives unmatched; min_hits: consecutive hits before it is reported."""
 
-    q: float = 1.0
-    sigma: float = 1.0
-    sigma_vel: float = 10.0
-    max_distance: float = 20.0
-    max_age: int = 1
-    min_hits: int = 3
+    q: float = option(1.0, ge=0)
+    sigma: float = option(1.0, gt=0)
+    sigma_vel: float = option(10.0, gt=0)
+    max_distance: float = option(20.0, gt=0)
+    max_age: int = option(1, ge=0)
+    min_hits: int = option(3, ge=0)
 
 
 @dataclass(frozen=True)
-class GreedyConfig:
+class GreedyConfig(Checked):
     """CenterTrack's greedy matching: max_distance (px) between a detection moved back by its velocity and a
     previous track; max_age: frames an unmatched track is remembered (0: CenterTrack's default)."""
 
-    max_distance: float = 10.0
-    max_age: int = 0
+    max_distance: float = option(10.0, gt=0)
+    max_age: int = option(0, ge=0)
 
 
 @dataclass(frozen=True)
-class PMBConfig:
+class PMBConfig(Checked):
     """The TOMB/P tracker (:mod:`torchtrack.filters.pmb_tracker`): q, sigma: CV process noise and measurement
     std; p_survival, p_detection; clutter_rate: false detections per frame over ``region`` ``[x0, y0, x1, y1]``
     (px), which the birth intensity also covers; birth_weight; sigma_vel: birth velocity std (px/frame);
     capacity: Bernoulli cap; estimate_threshold: existence above which a Bernoulli is reported; gate: gate
     probability; lbp_iterations: loopy belief propagation iterations."""
 
-    q: float = 1.0
-    sigma: float = 2.0
-    p_survival: float = 0.99
-    p_detection: float = 0.9
-    clutter_rate: float = 1.0
+    q: float = option(1.0, gt=0)
+    sigma: float = option(2.0, gt=0)
+    p_survival: float = option(0.99, ge=0, le=1)
+    p_detection: float = option(0.9, ge=0, le=1)
+    clutter_rate: float = option(1.0, ge=0)
     region: tuple[float, float, float, float] = (0.0, 0.0, 1024.0, 1024.0)
-    birth_weight: float = 0.1
-    sigma_vel: float = 5.0
-    capacity: int = 512
-    estimate_threshold: float = 0.5
-    gate: float = 0.9999
-    lbp_iterations: int = 30
+    birth_weight: float = option(0.1, ge=0)
+    sigma_vel: float = option(5.0, gt=0)
+    capacity: int = option(512, ge=1)
+    estimate_threshold: float = option(0.5, gt=0, lt=1)
+    gate: float = option(0.9999, gt=0, le=1)
+    lbp_iterations: int = option(30, ge=1)
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        x0, y0, x1, y1 = self.region
+        if not (x0 < x1 and y0 < y1):
+            raise self.refuse("region", f"must be [x0, y0, x1, y1] with x0 < x1 and y0 < y1; got {list(self.region)}")
 
 
 DEFAULTS: dict[str, Any] = {"gmphd": GMPHDConfig(), "labelled-gmphd": LABELLED_GMPHD, "sort": SORTConfig(),

@@ -7,9 +7,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from torchtrack.config import from_mapping, read_mapping
-from torchtrack.errors import TorchtrackError
-from torchtrack.filters.tracker_config import tracker_config
+from torchtrack.config import Checked, from_mapping, option, read_mapping
+from torchtrack.filters.tracker_config import DEFAULTS, tracker_config
 from torchtrack.pipeline.registration import RegistrationConfig
 
 SELECTED_TRACKERS: dict = {
@@ -31,7 +30,7 @@ The GM-PHD keeps these options on the first frame too, which has no velocities (
 
 
 @dataclass
-class PipelineConfig:
+class PipelineConfig(Checked):
     """Every knob of the tracker stream and of :func:`torchtrack.pipeline.track_video.track_video`.
 
     tracker / tracker_options: the tracker's name and its options (``make_tracker(name, options)``).
@@ -65,53 +64,40 @@ class PipelineConfig:
     threads made the detector 10–20 times slower, spinning against each other).
     """
 
-    tracker: str = "gmphd"
+    tracker: str = option("gmphd", one_of=tuple(DEFAULTS))
     tracker_options: dict = field(default_factory=dict)
     trackers: dict = field(default_factory=lambda: copy.deepcopy(SELECTED_TRACKERS))
-    min_speed: float = 2.0
-    min_motion: float = 5.0
+    min_speed: float = option(2.0, ge=0)
+    min_motion: float = option(5.0, ge=0)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
-    detection_threshold: float | None = None
-    weak_threshold: float | None = 0.15
-    weak_distance: float = 2.5
+    detection_threshold: float | None = option(None, ge=0, lt=1)
+    weak_threshold: float | None = option(0.15, gt=0, lt=1)
+    weak_distance: float = option(2.5, gt=0)
     weak_continues_pending: bool = False
-    output_lag: int = 3
-    lag_distance: float = 3.0
-    prior: str = "detections"
-    threshold: float = 10.0
+    output_lag: int = option(3, ge=0)
+    lag_distance: float = option(3.0, gt=0)
+    prior: str = option("detections", one_of=("detections", "tracks"))
+    threshold: float = option(10.0, gt=0)
     video: bool = True
-    video_fps: float = 10.0
-    trail: int = 12
-    box: int | None = None
-    scale: int = 1
+    video_fps: float = option(10.0, gt=0)
+    trail: int = option(12, ge=0)
+    box: int | None = option(None, ge=1)
+    scale: int = option(1, ge=1)
     draw_truth: bool = True
-    snapshots: tuple[int, ...] = (1,)
-    dtype: str = "float64"
-    threads: int = 1
+    snapshots: tuple[int, ...] = option((1,), ge=1)
+    dtype: str = option("float64", one_of=("float32", "float64"))
+    threads: int = option(1, ge=1)
 
     def __post_init__(self) -> None:
-        if self.prior not in ("detections", "tracks"):
-            raise TorchtrackError(f"pipeline config: prior must be 'detections' or 'tracks', got {self.prior!r}")
-        for name in ("min_speed", "min_motion", "output_lag"):
-            if not getattr(self, name) >= 0:
-                raise TorchtrackError(f"pipeline config: {name} must be >= 0, got {getattr(self, name)!r}")
-        if isinstance(self.output_lag, bool) or not isinstance(self.output_lag, int):
-            raise TorchtrackError(f"pipeline config: output_lag must be a whole number of frames, "
-                                  f"got {self.output_lag!r}")
-        for name in ("weak_distance", "lag_distance"):
-            if not getattr(self, name) > 0:
-                raise TorchtrackError(f"pipeline config: {name} must be > 0, got {getattr(self, name)!r}")
-        if self.weak_threshold is not None and not 0 < self.weak_threshold < 1:
-            raise TorchtrackError(f"pipeline config: weak_threshold must be in (0, 1) or null, "
-                                  f"got {self.weak_threshold!r}")
-        if not isinstance(self.trackers, dict) or not all(isinstance(v, dict) for v in self.trackers.values()):
-            raise TorchtrackError("pipeline config: trackers must map tracker names to option mappings")
-        if self.dtype not in ("float32", "float64"):
-            raise TorchtrackError(f"pipeline config: dtype must be float32 or float64, got {self.dtype!r}")
         if isinstance(self.registration, dict):
             self.registration = from_mapping(RegistrationConfig, self.registration, "pipeline config", "registration")
-        self.snapshots = tuple(int(s) for s in self.snapshots)
+        self.snapshots = tuple(self.snapshots)
+        super().__post_init__()
+        if isinstance(self.output_lag, bool) or not isinstance(self.output_lag, int):
+            raise self.refuse("output_lag", f"must be a whole number of frames; got {self.output_lag!r}")
+        if not isinstance(self.trackers, dict) or not all(isinstance(v, dict) for v in self.trackers.values()):
+            raise self.refuse("trackers", "must map tracker names to option mappings")
 
     def options_for(self, name: str) -> dict | None:
         """The options tracker ``name`` runs with in the pipeline (``None``: its defaults)."""

@@ -22,16 +22,17 @@ in reference coordinates stay valid for the whole sequence and are drawn back in
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import NamedTuple
+from typing import ClassVar, NamedTuple
 
 import cv2
 import numpy as np
 
+from torchtrack.config import Checked, option
 from torchtrack.errors import TorchtrackError
 
 
 @dataclass
-class RegistrationConfig:
+class RegistrationConfig(Checked):
     """Settings of :class:`Registration` (the ``registration:`` section of ``configs/pipeline.yaml``).
 
     ``method``: ``lk`` (keyframe corners + Lucas–Kanade flow + RANSAC), ``orb`` (ORB features +
@@ -42,21 +43,17 @@ class RegistrationConfig:
     motion to recover is small).
     """
 
-    method: str = "lk"
+    dotted_name: ClassVar[str] = "registration"
+    method: str = option("lk", one_of=("lk", "orb", "none"))
     ecc: bool = False
-    features: int = 500
-    window: int = 11
-    levels: int = 2
-    refresh_every: int = 15
-    min_inliers: int = 40
-    ransac_threshold: float = 0.7
-    ecc_iterations: int = 30
-    ecc_epsilon: float = 1e-5
-
-    def __post_init__(self) -> None:
-        if self.method not in ("lk", "orb", "none"):
-            raise TorchtrackError(f"registration.method: unknown method {self.method!r}; "
-                                  "expected lk, orb or none")
+    features: int = option(500, ge=4)
+    window: int = option(11, ge=3)
+    levels: int = option(2, ge=0)
+    refresh_every: int = option(15, ge=1)
+    min_inliers: int = option(40, ge=4)
+    ransac_threshold: float = option(0.7, gt=0)
+    ecc_iterations: int = option(30, ge=1)
+    ecc_epsilon: float = option(1e-5, gt=0)
 
 
 class RegistrationResult(NamedTuple):

@@ -13,6 +13,8 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.errors import TorchtrackError
+
 STATIONARY_LAT_LON_ARCSEC = (10 * 3600 + 4 * 60.0, 76 * 3600 + 21 * 60.0)
 
 
@@ -34,7 +36,16 @@ def stationary(scans: int, runs: int, sigma: float, generator: torch.Generator,
 
 def turn_rates(scans: int, onsets: list[int], turn_deg: list[float], duration: int, dt: float) -> Tensor:
     """Per-scan turn rate (rad/s): maneuver ``i`` turns by ``turn_deg[i]`` over ``duration`` scans
-    starting so that the position at scan ``onsets[i]`` (1-based) is the first one off the straight line."""
+    starting so that the position at scan ``onsets[i]`` (1-based) is the first one off the straight line.
+    An onset outside scans ``1..scans`` (a maneuver that never happens), a ``turn_deg`` per onset missing, or
+    ``duration < 1`` is an error."""
+    if len(turn_deg) != len(onsets):
+        raise TorchtrackError(f"maneuver: turn_deg needs one angle per onset ({len(onsets)}); got {len(turn_deg)}")
+    if duration < 1:
+        raise TorchtrackError(f"maneuver: turn_scans must be >= 1; got {duration}")
+    for i, onset in enumerate(onsets):
+        if not 1 <= onset <= scans:
+            raise TorchtrackError(f"maneuver: onsets[{i}] must be a scan in [1, {scans}] (scans); got {onset}")
     omega = torch.zeros(scans, dtype=torch.float64)
     for onset, deg in zip(onsets, turn_deg):
         omega[onset - 1: onset - 1 + duration] = math.radians(deg) / (duration * dt)

@@ -21,7 +21,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -29,10 +29,60 @@ import torch
 import yaml
 from torch import nn
 
-from torchtrack.config import from_mapping, read_mapping
+from torchtrack.config import Checked, from_mapping, option, read_mapping
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.outputs import write_yaml
 from torchtrack.tuning.parameters import get_raw, get_values, set_raw, set_values, tunable_parameters
+
+
+@dataclass(frozen=True)
+class OptimizerOptions(Checked):
+    """The ``optimizer:`` section (:func:`torchtrack.tuning.trainer.fit`): ``name`` adam or lbfgs; ``lr``
+    (default 0.05 for Adam, 1.0 for L-BFGS); ``lr_final`` (Adam: cosine decay to it over ``steps``; None:
+    constant); ``steps`` (default 200 for Adam, 20 for L-BFGS); ``batch_size`` items per step (default 8 for
+    Adam, all for L-BFGS); ``max_iter`` L-BFGS iterations per step; ``eval_every`` steps between held-out
+    evaluations (default one epoch)."""
+
+    name: str = option("adam", one_of=("adam", "lbfgs"))
+    lr: float | None = option(None, gt=0)
+    lr_final: float | None = option(None, ge=0)
+    steps: int | None = option(None, ge=1)
+    batch_size: int | None = option(None, ge=1)
+    max_iter: int = option(10, ge=1)
+    eval_every: int | None = option(None, ge=1)
+
+
+@dataclass(frozen=True)
+class EarlyStopping(Checked):
+    """The ``early_stopping:`` section: stop after ``patience`` held-out evaluations without an improvement of
+    ``min_delta``; ``restore_best``: end with the best evaluation's parameters (false: the last ones)."""
+
+    patience: int = option(5, ge=1)
+    min_delta: float = option(1e-4, ge=0)
+    restore_best: bool = True
+
+
+@dataclass(frozen=True)
+class RefineOptions(Checked):
+    """The optional ``refine:`` section (:func:`torchtrack.tuning.refine.refine`): a line search on the task
+    ``metric`` (``maximize`` it, or not) over ``parameters`` (None: the trainable ones) in steps of ``step``
+    (relative, see ``step_scale``), ``sweeps`` passes, within ``evaluations`` metric evaluations; ``average``
+    k > 1 ends at the centroid of the k best points (one evaluation kept for it); ``lookahead``: a step that
+    does not improve is followed by one twice as long."""
+
+    metric: str = "MOTA"
+    maximize: bool = True
+    parameters: list | None = None
+    step: float = option(0.5, gt=0)
+    sweeps: int = option(2, ge=1)
+    evaluations: int = option(12, ge=1)
+    average: int = option(1, ge=1)
+    lookahead: bool = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.average > 1 and self.evaluations < 2:
+            raise self.refuse("evaluations", f"must be >= 2 with average > 1; got {self.evaluations}")
 
 
 @dataclass(frozen=True)
@@ -46,22 +96,23 @@ class TuneSections:
     trainable: Any = None
     data: Any = None
     loss: Any = None
-    optimizer: Any = None
-    early_stopping: Any = None
+    optimizer: OptimizerOptions = field(default_factory=OptimizerOptions)
+    early_stopping: EarlyStopping = field(default_factory=EarlyStopping)
     output: Any = None
     seed: int | None = None
     evaluate: Any = None
     grid: Any = None
-    refine: Any = None
+    refine: RefineOptions | None = None
 
 
 TUNE_KEYS = tuple(f.name for f in dataclasses.fields(TuneSections))
 
 
-def read_tune_config(path: str | os.PathLike) -> dict:
-    """A tune config with its keys checked (``filter``, ``trainable`` and ``data`` required)."""
-    cfg = read_mapping(path, "tune config")
-    from_mapping(TuneSections, cfg, str(path))     # unknown sections and bad types, named
+def read_tune_config(path: str | os.PathLike, overrides: Iterable[str] = ()) -> dict:
+    """A tune config with the ``KEY=VALUE`` ``overrides`` applied (:func:`apply_overrides`) and its keys and
+    values checked (``filter``, ``trainable`` and ``data`` required)."""
+    cfg = apply_overrides(read_mapping(path, "tune config"), overrides)
+    from_mapping(TuneSections, cfg, str(path))     # unknown sections, bad types and values out of range, named
     for key in ("filter", "trainable", "data"):
         if key not in cfg:
             raise TorchtrackError(f"{path}: missing required key {key!r}")

@@ -34,12 +34,12 @@ from typing import Any
 
 from torch import Tensor, nn
 
+from torchtrack.config import from_mapping
 from torchtrack.errors import TorchtrackError
+from torchtrack.tuning.config import RefineOptions
 from torchtrack.tuning.parameters import get_values, set_raw, tunable_parameters
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys, search_scores
+from torchtrack.tuning.registry import Tunable, TuneData, search_scores
 from torchtrack.tuning.trainer import step_scale
-
-REFINE_KEYS = ("metric", "maximize", "parameters", "step", "sweeps", "evaluations", "average", "lookahead")
 
 
 def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data: TuneData,
@@ -52,24 +52,16 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     searched and the one at the chosen point (``final``), the values, the number of metric
     evaluations, items and frames filtered, and the seconds spent. ``lookahead`` (default true): a first
     step of ``δ`` in a direction that does not improve is followed by one of ``2δ`` (see above)."""
-    check_keys(config, REFINE_KEYS, "refine")
-    metric = str(config.get("metric", "MOTA"))
-    sign = 1.0 if config.get("maximize", True) else -1.0
-    names = list(config.get("parameters") or trainable)
+    options = from_mapping(RefineOptions, config, "tune config", "refine")
+    metric, sign = options.metric, 1.0 if options.maximize else -1.0
+    names = list(options.parameters or trainable)
     params = tunable_parameters(module)
     unknown = [n for n in names if n not in params]
     if unknown:
         raise TorchtrackError(f"refine: unknown parameter(s) {', '.join(map(repr, unknown))}; valid names: "
                               f"{', '.join(sorted(params))}")
-    delta = float(config.get("step", 0.5))
-    sweeps, budget = int(config.get("sweeps", 2)), int(config.get("evaluations", 12))
-    average = int(config.get("average", 1))
-    lookahead = config.get("lookahead", True)
-    if not isinstance(lookahead, bool):
-        raise TorchtrackError(f"refine.lookahead must be true or false; got {lookahead!r}")
-    if delta <= 0 or sweeps < 1 or average < 1 or budget < 1 + (average > 1):
-        raise TorchtrackError(f"refine needs step > 0, sweeps >= 1, average >= 1 and evaluations >= 1 (2 with "
-                              f"average > 1); got {delta}, {sweeps}, {average}, {budget}")
+    delta, sweeps, budget, average = options.step, options.sweeps, options.evaluations, options.average
+    lookahead = options.lookahead
     if not data.train:
         raise TorchtrackError("the training set is empty: refine has nothing to score")
     base: dict[str, Tensor] = {n: params[n].raw.detach().clone() for n in names}

@@ -20,13 +20,12 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
+from torchtrack.config import from_mapping
 from torchtrack.errors import TorchtrackError
 from torchtrack.params import Positive
+from torchtrack.tuning.config import EarlyStopping, OptimizerOptions
 from torchtrack.tuning.parameters import get_values, select_trainable
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys
-
-OPTIMIZER_KEYS = ("name", "lr", "lr_final", "steps", "batch_size", "max_iter", "eval_every")
-EARLY_KEYS = ("patience", "min_delta", "restore_best")
+from torchtrack.tuning.registry import Tunable, TuneData
 
 
 class NonFiniteLoss(RuntimeError):
@@ -139,10 +138,8 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
     ``restore_best`` (default true: end with the parameters of the best held-out evaluation; false:
     keep the last ones).
     """
-    optimizer = dict(optimizer or {})
-    early_stopping = dict(early_stopping or {})
-    check_keys(optimizer, OPTIMIZER_KEYS, "optimizer")
-    check_keys(early_stopping, EARLY_KEYS, "early_stopping")
+    opts = from_mapping(OptimizerOptions, optimizer, "tune config", "optimizer")
+    stop = from_mapping(EarlyStopping, early_stopping, "tune config", "early_stopping")
     loss = loss or tunable.losses[0]
     if loss not in tunable.losses:
         raise TorchtrackError(f"unknown loss {loss!r} for filter {tunable.name!r}; choose from "
@@ -150,19 +147,12 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
     if not data.train:
         raise TorchtrackError("the training set is empty: data selects no training sequence/window")
     generator = generator or torch.Generator().manual_seed(0)
-    name = str(optimizer.get("name", "adam")).lower()
-    if name not in ("adam", "lbfgs"):
-        raise TorchtrackError(f"optimizer.name must be 'adam' or 'lbfgs'; got {name!r}")
+    name = opts.name
     n_train = len(data.train)
-    batch_size = int(optimizer.get("batch_size", n_train if name == "lbfgs" else min(8, n_train)))
-    if batch_size < 1:
-        raise TorchtrackError(f"optimizer.batch_size must be >= 1; got {batch_size}")
-    batch_size = min(batch_size, n_train)
-    steps = int(optimizer.get("steps", 20 if name == "lbfgs" else 200))
-    eval_every = int(optimizer.get("eval_every", max(1, math.ceil(n_train / batch_size))))
-    patience = int(early_stopping.get("patience", 5))
-    min_delta = float(early_stopping.get("min_delta", 1e-4))
-    restore_best = bool(early_stopping.get("restore_best", True))
+    batch_size = min(opts.batch_size or (n_train if name == "lbfgs" else 8), n_train)
+    steps = opts.steps or (20 if name == "lbfgs" else 200)
+    eval_every = opts.eval_every or max(1, math.ceil(n_train / batch_size))
+    patience, min_delta, restore_best = stop.patience, stop.min_delta, stop.restore_best
 
     params = select_trainable(module, trainable)
     result = FitResult(start=get_values(module, trainable))
@@ -170,14 +160,12 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
     leaves = list(scaled.u.values())
     schedule = None
     if name == "adam":
-        lr = float(optimizer.get("lr", 0.05))
-        opt = torch.optim.Adam(leaves, lr=lr)
-        if "lr_final" in optimizer:
+        opt = torch.optim.Adam(leaves, lr=opts.lr or 0.05)
+        if opts.lr_final is not None:
             schedule = torch.optim.lr_scheduler.CosineAnnealingLR(opt, T_max=max(steps - 1, 1),
-                                                                  eta_min=float(optimizer["lr_final"]))
+                                                                  eta_min=opts.lr_final)
     else:
-        opt = torch.optim.LBFGS(leaves, lr=float(optimizer.get("lr", 1.0)),
-                                max_iter=int(optimizer.get("max_iter", 10)), line_search_fn="strong_wolfe")
+        opt = torch.optim.LBFGS(leaves, lr=opts.lr or 1.0, max_iter=opts.max_iter, line_search_fn="strong_wolfe")
 
     last_good = scaled.snapshot()
     best = (math.inf, None, last_good)

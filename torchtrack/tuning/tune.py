@@ -103,7 +103,7 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     plot_path = Path(output["plot"]) if "plot" in output and out is None else out_dir / "loss.png"
     data = tunable.load_data(cfg["data"] or {}, generator)
     do_eval = bool(cfg.get("evaluate", True))
-    batch_eval = max(1, int((cfg.get("optimizer") or {}).get("batch_size", 8)))
+    batch_eval = (cfg.get("optimizer") or {}).get("batch_size") or 8
 
     # held-out metrics before and after (the training set stands in when nothing is held out)
     held = data.held_out or data.train
