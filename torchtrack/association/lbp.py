@@ -104,20 +104,35 @@ def scaled_weights(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> tuple[Te
     return a, torch.exp(log_a0).unsqueeze(-1)
 
 
+def _positions(v: Tensor, dim: int) -> Tensor:
+    """``0, 1, …`` along ``dim`` of ``v`` in its dtype, shaped for :func:`_top`: ``(m, 1)`` or ``(1, n)``."""
+    positions = torch.arange(v.shape[dim], dtype=v.dtype, device=v.device)
+    return positions.unsqueeze(-1) if dim == -1 else positions.unsqueeze(0)
+
+
+def _top(above: Tensor, dim: int, positions: Tensor) -> Tensor:
+    """Index along ``dim`` (kept) of the term above half its line's sum, 0 where there is none, from the
+    0/1 comparison ``above``: at most one term per line is above half, so it is the product with
+    ``positions`` (:func:`_positions`), one matrix-vector pass."""
+    return (above @ positions if dim == -1 else positions @ above).long()
+
+
 def _sum_of_others(v: Tensor, floor: Tensor | float, dim: int) -> tuple[Tensor, Tensor]:
     """``floor + Σ_{k≠j} v_k`` along ``dim`` for every ``j`` (``v ≥ 0``), and the full sum ``floor + Σ_k v_k``.
 
-    ``total − v_j``, except for a term above half the total (at most one per line), whose remainder
-    is summed without it (no cancellation). The choice is arithmetic, with a 0/1 ``step`` and
-    ``lerp`` (exact at weights 0 and 1), which is several times faster than boolean masks. The sums
-    are floored at the smallest normal number, so that every remainder is > 0 (a line whose sum is 0
-    has no feasible option). Differentiable.
+    One term per line, ``v_top`` (the one above half the sum, or else the first), is left out of the
+    sum: ``rest = floor + Σ_{k≠top} v_k`` is its remainder, and every other term's is
+    ``(rest + v_top) − v_j`` with ``v_j`` at most half the sum, so the subtraction loses at most a
+    factor 2 of relative accuracy. ``rest`` is floored at the smallest normal number, so that every
+    remainder is > 0 (a line whose sum is 0 has no feasible option). Differentiable (the position is
+    a constant).
     """
-    tiny = torch.finfo(v.dtype).tiny
-    total = (v.sum(dim, keepdim=True) + floor).clamp_min(tiny)
-    step = torch.gt(v, 0.5 * total).to(v.dtype).detach()
-    rest = ((v - v * step).sum(dim, keepdim=True) + floor).clamp_min(tiny)
-    return torch.lerp(total - v, rest.expand_as(v), step), total
+    with torch.no_grad():
+        above = torch.gt(v, 0.5 * (v.sum(dim, keepdim=True) + floor)).to(v.dtype)
+        top = _top(above, dim, _positions(v, dim))
+    rest = (v.scatter(dim, top, 0.0).sum(dim, keepdim=True) + floor).clamp_min(torch.finfo(v.dtype).tiny)
+    total = rest + v.gather(dim, top)
+    return (total - v).scatter(dim, top, rest), total
 
 
 def _iterate_functional(a: Tensor, a0: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
@@ -137,16 +152,20 @@ def _iterate_functional(a: Tensor, a0: Tensor, iterations: int, tol: float | Non
     return prod, iterations, False
 
 
-def _others_inplace(v: Tensor, floor: Tensor | float, dim: int, out: Tensor) -> Tensor:
-    """:func:`_sum_of_others` without autograd and without a buffer of its own: the remainders go to
-    ``out``, ``v`` is overwritten (with ``total − v``); returns the full sum. ``out`` first holds the
-    0/1 ``keep = 1 − step``, whose dot product with ``v`` is the remainder of a dominant term."""
-    tiny = torch.finfo(v.dtype).tiny
-    total = v.sum(dim, keepdim=True).add_(floor).clamp_min_(tiny)
-    torch.le(v, total * 0.5, out=out)
-    rest = torch.linalg.vecdot(v, out, dim=dim).unsqueeze(dim).add_(floor).clamp_min_(tiny)
-    torch.sub(total, v, out=v)
-    torch.lerp(rest.expand_as(out), v, out, out=out)
+def _others_inplace(v: Tensor, floor: Tensor | float, dim: int, out: Tensor, positions: Tensor) -> Tensor:
+    """:func:`_sum_of_others` without autograd, into ``out``; ``v`` is overwritten (its left-out term
+    zeroed), ``positions`` is :func:`_positions`. Returns the full sum. A tensor ``floor`` (the miss
+    weights) may be 0, so ``rest`` is floored; a number ``floor`` (1, new targets) needs no floor."""
+    torch.gt(v, v.sum(dim, keepdim=True).add_(floor).mul_(0.5), out=out)
+    top = _top(out, dim, positions)
+    total = v.gather(dim, top)
+    v.scatter_(dim, top, 0.0)
+    rest = v.sum(dim, keepdim=True).add_(floor)
+    if isinstance(floor, Tensor):
+        rest.clamp_min_(torch.finfo(v.dtype).tiny)
+    total.add_(rest)
+    torch.sub(total, v, out=out)
+    out.scatter_(dim, top, rest)
     return total
 
 
@@ -154,11 +173,12 @@ def _iterate_inplace(a: Tensor, a0: Tensor, iterations: int, tol: float | None) 
     """The same iteration in two buffers (no autograd); returns ``a_ij ν_ji``."""
     prod = a.clone()
     mu = torch.empty_like(a)
+    rows, cols = _positions(a, -1), _positions(a, -2)
     last = None
     for it in range(1, iterations + 1):
-        t = _others_inplace(prod, a0, -1, mu)
+        t = _others_inplace(prod, a0, -1, mu, rows)
         torch.div(a, mu, out=mu)
-        s = _others_inplace(mu, 1.0, -2, prod)
+        s = _others_inplace(mu, 1.0, -2, prod, cols)
         torch.div(a, prod, out=prod)
         if tol is not None and (it % 2 == 0 or it == iterations):
             stat = torch.cat([(a0 / t).flatten(), s.flatten().reciprocal()])
@@ -195,6 +215,8 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     a, a0 = scaled_weights(log_w, log_miss, log_new)
     a, a0 = a.expand(*batch, n, m), a0.expand(*batch, n, 1)
     tiny = torch.finfo(a.dtype).tiny
+    if n == 0 or m == 0:                                            # nothing to associate
+        return LBPResult(a, (a0 / a0.clamp_min(tiny)).squeeze(-1), a.new_ones(*batch, m), a, 0, True)
     if torch.is_grad_enabled() and (a.requires_grad or a0.requires_grad):
         prod, it, converged = _iterate_functional(a, a0, iterations, tol)
         others, t = _sum_of_others(prod, a0, -1)
@@ -205,7 +227,7 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     t = (prod.sum(-1, keepdim=True) + a0).clamp_min_(tiny)
     assoc = prod / t
     mu = torch.empty_like(prod)
-    _others_inplace(prod, a0, -1, mu)                              # prod is overwritten
+    _others_inplace(prod, a0, -1, mu, _positions(prod, -1))     # prod is overwritten
     torch.div(a, mu, out=mu)
     s = mu.sum(-2, keepdim=True).add_(1.0).clamp_min_(tiny)
     return LBPResult(assoc, (a0 / t).squeeze(-1), s.reciprocal().squeeze(-2), mu.div_(s), it, converged)
