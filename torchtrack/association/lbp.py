@@ -113,25 +113,24 @@ def _positions(v: Tensor, dim: int) -> Tensor:
 def _top(above: Tensor, dim: int, positions: Tensor) -> Tensor:
     """Index along ``dim`` (kept) of the term above half its line's sum, 0 where there is none, from the
     0/1 comparison ``above``: at most one term per line is above half, so it is the product with
-    ``positions`` (:func:`_positions`), one matrix-vector pass."""
-    return (above @ positions if dim == -1 else positions @ above).long()
+    ``positions`` (:func:`_positions`), one matrix-vector pass. (Two near-equal terms that both pass a
+    rounded half give a sum of positions, clamped into range: any position serves such a line.)"""
+    return (above @ positions if dim == -1 else positions @ above).long().clamp_(max=positions.numel() - 1)
 
 
 def _sum_of_others(v: Tensor, floor: Tensor | float, dim: int) -> tuple[Tensor, Tensor]:
     """``floor + Σ_{k≠j} v_k`` along ``dim`` for every ``j`` (``v ≥ 0``), and the full sum ``floor + Σ_k v_k``.
 
-    One term per line, ``v_top`` (the one above half the sum, or else the first), is left out of the
-    sum: ``rest = floor + Σ_{k≠top} v_k`` is its remainder, and every other term's is
-    ``(rest + v_top) − v_j`` with ``v_j`` at most half the sum, so the subtraction loses at most a
-    factor 2 of relative accuracy. ``rest`` is floored at the smallest normal number, so that every
-    remainder is > 0 (a line whose sum is 0 has no feasible option). Differentiable (the position is
-    a constant).
+    One term per line, ``v_top`` (the one above half the sum, or else the first), is left out of a
+    second sum: ``rest = floor + Σ_{k≠top} v_k`` is its remainder, while every other term's is
+    ``total − v_j`` with ``v_j`` at most half the total, so the subtraction loses at most a factor 2
+    of relative accuracy. ``rest`` is floored at the smallest normal number, so that every remainder
+    is > 0 (a line whose sum is 0 has no feasible option). Differentiable (the position is a constant).
     """
+    total = v.sum(dim, keepdim=True) + floor
     with torch.no_grad():
-        above = torch.gt(v, 0.5 * (v.sum(dim, keepdim=True) + floor)).to(v.dtype)
-        top = _top(above, dim, _positions(v, dim))
+        top = _top(torch.gt(v, 0.5 * total).to(v.dtype), dim, _positions(v, dim))
     rest = (v.scatter(dim, top, 0.0).sum(dim, keepdim=True) + floor).clamp_min(torch.finfo(v.dtype).tiny)
-    total = rest + v.gather(dim, top)
     return (total - v).scatter(dim, top, rest), total
 
 
@@ -156,14 +155,13 @@ def _others_inplace(v: Tensor, floor: Tensor | float, dim: int, out: Tensor, pos
     """:func:`_sum_of_others` without autograd, into ``out``; ``v`` is overwritten (its left-out term
     zeroed), ``positions`` is :func:`_positions`. Returns the full sum. A tensor ``floor`` (the miss
     weights) may be 0, so ``rest`` is floored; a number ``floor`` (1, new targets) needs no floor."""
-    torch.gt(v, v.sum(dim, keepdim=True).add_(floor).mul_(0.5), out=out)
+    total = v.sum(dim, keepdim=True).add_(floor)
+    torch.gt(v, total * 0.5, out=out)
     top = _top(out, dim, positions)
-    total = v.gather(dim, top)
     v.scatter_(dim, top, 0.0)
     rest = v.sum(dim, keepdim=True).add_(floor)
     if isinstance(floor, Tensor):
         rest.clamp_min_(torch.finfo(v.dtype).tiny)
-    total.add_(rest)
     torch.sub(total, v, out=out)
     out.scatter_(dim, top, rest)
     return total
