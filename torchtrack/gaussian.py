@@ -53,9 +53,14 @@ SMALL_N = 4
 SMALL_BATCH = 64
 
 
+def _batch_size(*tensors: Tensor) -> int:
+    """The largest number of matrices in the batches of ``tensors`` (from the shapes alone: no tensor
+    operation and no ``torch.broadcast_shapes``, which cost microseconds per call)."""
+    return max(math.prod(t.shape[:-2]) for t in tensors)
+
+
 def _is_small(A: Tensor, B: Tensor | None = None) -> bool:
-    batch = A[..., 0, 0].numel() if B is None else max(A[..., 0, 0].numel(), B[..., 0, 0].numel())
-    return A.shape[-1] <= SMALL_N and batch >= SMALL_BATCH
+    return A.shape[-1] <= SMALL_N and _batch_size(A, *(() if B is None else (B,))) >= SMALL_BATCH
 
 
 def cholesky_entries(S) -> tuple[list[list[Tensor]], Tensor]:
@@ -134,7 +139,7 @@ def cholesky(P: Tensor, what: str = "covariance", check: bool = True) -> Tensor:
     synchronisation); without it a failed factor is left as returned by ``cholesky_ex``.
     """
     L, info = _cholesky_unrolled(P) if _is_small(P) else torch.linalg.cholesky_ex(P)
-    if check and bool((info != 0).any()):
+    if check and bool(info.any()):
         bad = int((info != 0).sum())
         raise TorchtrackError(f"{what} is not positive definite ({bad} of {info.numel()} matrices failed "
                               "Cholesky factorisation)")
@@ -245,8 +250,7 @@ def gain_from_cholesky(L: Tensor, C: Tensor) -> KalmanGain:
 def small_matmul(A: Tensor, B: Tensor) -> Tensor:
     """``A @ B`` (batches broadcast); for many matrices with a short inner dimension (≤ ``SMALL_N``) the
     sum over it is unrolled into elementwise products (batched GEMMs of tiny matrices are slow)."""
-    batch = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
-    if A.shape[-1] > SMALL_N or math.prod(batch) < SMALL_BATCH:
+    if A.shape[-1] > SMALL_N or _batch_size(A, B) < SMALL_BATCH:
         return A @ B
     out = A[..., :, 0:1] * B[..., 0:1, :]
     for k in range(1, A.shape[-1]):
