@@ -29,10 +29,15 @@ competing for two measurements) the result is exact.
 Each sum is formed once per pass and the sums "over all but one" come from it: ``t_i − a_ij ν_ji``
 and ``s_j − μ_ij``. That subtraction loses the digits of a small remainder under one dominant
 term (a track almost sure of one measurement), so the term that is more than half its sum — at
-most one per row and per column — takes its remainder from a second, masked sum instead
+most one per row and per column — takes its remainder from a second sum without it
 (:func:`_sum_of_others`); every other term is at most half the sum, which bounds the subtraction's
-relative error by ``2 ε``. The iteration is therefore elementwise passes and reductions over the
-``n × m`` matrix, with no loop over tracks; without autograd it writes into two preallocated buffers.
+relative error by ``2 ε``. Because there is at most one such term per line, its position is the
+product of the 0/1 comparison with the positions ``0, 1, …`` (a matrix-vector product, no host
+synchronisation), and it is left out of the second sum by writing one zero per line (a scatter);
+a line without one leaves out its first term, whose remainder is then exact as well. A pass is
+therefore two reductions, one comparison, one matrix-vector product and two elementwise passes
+over the ``n × m`` matrix (the cancelling version: one reduction, two elementwise passes), with no
+loop over tracks; without autograd it writes into two preallocated buffers.
 
 Weights come in the **log domain**; ``-inf`` marks a pair outside the gate, padding tracks have
 all their ``w_ij = -inf`` and padding measurements all their ``w_ij = -inf`` (their outputs are
