@@ -10,6 +10,7 @@ ch. 5): predicted state ``x⁻, P⁻``; measurement ``z = H x + v``, ``v ~ N(0, 
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -28,9 +29,24 @@ class GaussianState(NamedTuple):
     cov: Tensor
 
 
+@functools.lru_cache(maxsize=256)
+def _cached_scalar(value: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    with torch.inference_mode(False):       # usable in autograd graphs even when first made while streaming
+        return torch.tensor(value, dtype=dtype, device=device)
+
+
+def scalar(value: float, like: Tensor) -> Tensor:
+    """A cached 0-dim tensor ``value`` of ``like``'s dtype and device (no gradient).
+
+    ``x * scalar(c, x)`` computes exactly what ``x * c`` does (a Python number is cast to ``x``'s dtype)
+    but with one tensor operation instead of five (the number is not converted on every call).
+    """
+    return _cached_scalar(float(value), like.dtype, like.device)
+
+
 def symmetrize(P: Tensor, dims: tuple[int, int] = (-1, -2)) -> Tensor:
     """``(P + Pᵀ) / 2`` over the matrix dimensions ``dims`` (the last two; ``(0, 1)`` for batch-last storage)."""
-    return 0.5 * (P + P.transpose(*dims))
+    return (P + P.transpose(*dims)) * scalar(0.5, P)
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -171,7 +187,7 @@ def matmul(A: Tensor, B: Tensor) -> Tensor:
 
 def log_det_from_cholesky(L: Tensor) -> Tensor:
     """``log |P|`` from the Cholesky factor ``L`` of ``P``; shape ``(*batch,)``."""
-    return 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+    return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1) * scalar(2.0, L)
 
 
 def mahalanobis_sq(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
@@ -187,7 +203,7 @@ def mahalanobis_sq(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
 
 def gaussian_log_likelihood(nis: Tensor, log_det: Tensor, m: int) -> Tensor:
     """``log N(ν; 0, S) = −½ (νᵀ S⁻¹ ν + log |S| + m log 2π)`` from the NIS and ``log |S|`` (broadcast)."""
-    return -0.5 * (nis + log_det + m * LOG_2PI)
+    return (nis + log_det + scalar(m * LOG_2PI, nis)) * scalar(-0.5, nis)
 
 
 def log_prob_from_cholesky(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
@@ -247,11 +263,19 @@ def gain_from_cholesky(L: Tensor, C: Tensor) -> KalmanGain:
     return KalmanGain(L, Linv, W, small_matmul(W, Linv))
 
 
+def batched_matmul(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B``, as ``torch.bmm`` itself for two 3-D operands with the same batch size (``@`` spends
+    several tensor operations on broadcasting bookkeeping before it reaches the same kernel)."""
+    if A.dim() == 3 and B.dim() == 3 and A.shape[0] == B.shape[0]:
+        return torch.bmm(A, B)
+    return A @ B
+
+
 def small_matmul(A: Tensor, B: Tensor) -> Tensor:
     """``A @ B`` (batches broadcast); for many matrices with a short inner dimension (≤ ``SMALL_N``) the
     sum over it is unrolled into elementwise products (batched GEMMs of tiny matrices are slow)."""
     if A.shape[-1] > SMALL_N or _batch_size(A, B) < SMALL_BATCH:
-        return A @ B
+        return batched_matmul(A, B)
     out = A[..., :, 0:1] * B[..., 0:1, :]
     for k in range(1, A.shape[-1]):
         out = out + A[..., :, k:k + 1] * B[..., k:k + 1, :]
@@ -275,7 +299,7 @@ def innovations_likelihood(gain: KalmanGain, nu: Tensor) -> tuple[Tensor, Tensor
     """:func:`innovation_likelihood` for many innovations per factor: ``ν (*, k, m)`` against the
     factors of ``gain`` ``(*, m, m)`` → NIS and log ℓ ``(*, k)``; the whitening ``L⁻¹`` is applied to
     all ``k`` innovations by one batched GEMM."""
-    white = nu @ gain.chol_inv.transpose(-1, -2)
+    white = batched_matmul(nu, gain.chol_inv.transpose(-1, -2))
     nis = (white * white).sum(-1)
     return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol).unsqueeze(-1), nu.shape[-1])
 
