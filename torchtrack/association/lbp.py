@@ -56,6 +56,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.gaussian import scalar
 
 LOG_NEW_FLOOR = {dt: 2.0 * float(torch.log(torch.tensor(torch.finfo(dt).tiny, dtype=torch.float64)))
                  for dt in (torch.float64, torch.float32, torch.float16, torch.bfloat16)}
@@ -156,16 +157,30 @@ def _iterate_functional(a: Tensor, a0: Tensor, iterations: int, tol: float | Non
     return prod, iterations, False
 
 
-def _others_inplace(v: Tensor, floor: Tensor | float, dim: int, out: Tensor, positions: Tensor) -> Tensor:
+class _Lines(NamedTuple):
+    """Constants of one direction for :func:`_others_inplace`, made once per call."""
+
+    positions: Tensor   # :func:`_positions`
+    zeros: Tensor       # zeros of the shape of a line index (what is written at the left-out term)
+    floor: Tensor       # the floor: ``a_i0`` (rows) or 1 (columns)
+
+
+def _lines(a: Tensor, dim: int, floor: Tensor) -> _Lines:
+    zeros = a.new_zeros(a.shape[:-2] + ((a.shape[-2], 1) if dim == -1 else (1, a.shape[-1])))
+    return _Lines(_positions(a, dim), zeros, floor)
+
+
+def _others_inplace(v: Tensor, dim: int, out: Tensor, lines: _Lines) -> Tensor:
     """:func:`_sum_of_others` without autograd, into ``out``; ``v`` is overwritten (its left-out term
-    zeroed), ``positions`` is :func:`_positions`. Returns the full sum. A tensor ``floor`` (the miss
-    weights) may be 0, so ``rest`` is floored; a number ``floor`` (1, new targets) needs no floor."""
-    total = v.sum(dim, keepdim=True).add_(floor)
-    torch.gt(v, total * 0.5, out=out)
-    top = _top(out, dim, positions)
-    v.scatter_(dim, top, 0.0)
-    rest = v.sum(dim, keepdim=True).add_(floor)
-    if isinstance(floor, Tensor):
+    zeroed). Returns the full sum. The rows' floor (the miss weights) may be 0, so their ``rest`` is
+    floored; the columns' floor is 1. (Constants are tensors: a Python number costs a conversion per
+    operation.)"""
+    total = v.sum(dim, keepdim=True).add_(lines.floor)
+    torch.gt(v, total * scalar(0.5, v), out=out)
+    top = _top(out, dim, lines.positions)
+    v.scatter_(dim, top, lines.zeros)
+    rest = v.sum(dim, keepdim=True).add_(lines.floor)
+    if dim == -1:
         rest.clamp_min_(torch.finfo(v.dtype).tiny)
     torch.sub(total, v, out=out)
     out.scatter_(dim, top, rest)
@@ -176,12 +191,12 @@ def _iterate_inplace(a: Tensor, a0: Tensor, iterations: int, tol: float | None) 
     """The same iteration in two buffers (no autograd); returns ``a_ij ν_ji``."""
     prod = a.clone()
     mu = torch.empty_like(a)
-    rows, cols = _positions(a, -1), _positions(a, -2)
+    rows, cols = _lines(a, -1, a0), _lines(a, -2, scalar(1.0, a))
     last = None
     for it in range(1, iterations + 1):
-        t = _others_inplace(prod, a0, -1, mu, rows)
+        t = _others_inplace(prod, -1, mu, rows)
         torch.div(a, mu, out=mu)
-        s = _others_inplace(mu, 1.0, -2, prod, cols)
+        s = _others_inplace(mu, -2, prod, cols)
         torch.div(a, prod, out=prod)
         if tol is not None and (it % 2 == 0 or it == iterations):
             stat = torch.cat([(a0 / t).flatten(), s.flatten().reciprocal()])
@@ -230,7 +245,7 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     t = (prod.sum(-1, keepdim=True) + a0).clamp_min_(tiny)
     assoc = prod / t
     mu = torch.empty_like(prod)
-    _others_inplace(prod, a0, -1, mu, _positions(prod, -1))     # prod is overwritten
+    _others_inplace(prod, -1, mu, _lines(prod, -1, a0))         # prod is overwritten
     torch.div(a, mu, out=mu)
     s = mu.sum(-2, keepdim=True).add_(1.0).clamp_min_(tiny)
     return LBPResult(assoc, (a0 / t).squeeze(-1), s.reciprocal().squeeze(-2), mu.div_(s), it, converged)
