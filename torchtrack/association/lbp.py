@@ -111,8 +111,9 @@ def scaled_weights(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> tuple[Te
 
 
 def _positions(v: Tensor, dim: int) -> Tensor:
-    """``0, 1, …`` along ``dim`` of ``v`` in its dtype, shaped for :func:`_top`: ``(m, 1)`` or ``(1, n)``."""
-    positions = torch.arange(v.shape[dim], dtype=v.dtype, device=v.device)
+    """``0, 1, …`` along ``dim`` of ``v``, shaped for :func:`_top`: ``(m, 1)`` or ``(1, n)``; in ``v``'s
+    dtype, at least float32 (whose integers are exact up to 2^24; float16's only up to 2048)."""
+    positions = torch.arange(v.shape[dim], dtype=torch.promote_types(v.dtype, torch.float32), device=v.device)
     return positions.unsqueeze(-1) if dim == -1 else positions.unsqueeze(0)
 
 
@@ -121,6 +122,7 @@ def _top(above: Tensor, dim: int, positions: Tensor) -> Tensor:
     0/1 comparison ``above``: at most one term per line is above half, so it is the product with
     ``positions`` (:func:`_positions`), one matrix-vector pass. (Two near-equal terms that both pass a
     rounded half give a sum of positions, clamped into range: any position serves such a line.)"""
+    above = above.to(positions.dtype)
     return (above @ positions if dim == -1 else positions @ above).long().clamp_(max=positions.numel() - 1)
 
 
