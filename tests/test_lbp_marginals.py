@@ -214,17 +214,21 @@ def _relative_close(actual: torch.Tensor, expected: torch.Tensor, rtol: float) -
     torch.testing.assert_close(actual.double(), expected, rtol=rtol, atol=0)
 
 
+@pytest.mark.parametrize("autograd", [False, True])
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
-def test_forest_at_extreme_magnitudes(dtype):
+def test_forest_at_extreme_magnitudes(dtype, autograd):
     """A tree (track 0 - z0 - track 1, track 0 - z1) where track 0 is e^40 times surer of z0 than of
     anything else: the remainder of its dominant term is 2e-35 of the sum, below float64's epsilon,
-    and track 1's marginals hinge on it. Every marginal, small ones included, to a few rounding errors."""
+    and track 1's marginals hinge on it. Every marginal, small ones included, to a few rounding errors,
+    in the in-place iteration and in the differentiable one (inputs that require gradients)."""
     log_w = torch.tensor([[40.0, 0.0], [40.0, NEG]], dtype=torch.float64)
     log_miss = torch.tensor([0.0, 0.0], dtype=torch.float64)
     log_new = torch.tensor([0.0, 0.0], dtype=torch.float64)
     assoc, miss, new = exact_marginals(log_w, log_miss, log_new)
     assert 0.3 < float(assoc[1, 0]) < 0.7                   # the answer is not saturated
-    res = lbp_marginals(log_w.to(dtype), log_miss.to(dtype), log_new.to(dtype), iterations=20)
+    res = lbp_marginals(log_w.to(dtype).requires_grad_(autograd), log_miss.to(dtype), log_new.to(dtype),
+                        iterations=20)
+    res = res._replace(**{k: getattr(res, k).detach() for k in ("assoc", "miss", "new", "meas_assoc")})
     rtol = 1e-5 if dtype == torch.float32 else 1e-12
     _relative_close(res.assoc, assoc, rtol)
     _relative_close(res.meas_assoc, assoc, rtol)

@@ -10,6 +10,7 @@ ch. 5): predicted state ``x⁻, P⁻``; measurement ``z = H x + v``, ``v ~ N(0, 
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import NamedTuple
 
@@ -28,9 +29,24 @@ class GaussianState(NamedTuple):
     cov: Tensor
 
 
+@functools.lru_cache(maxsize=256)
+def _cached_scalar(value: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    with torch.inference_mode(False):       # usable in autograd graphs even when first made while streaming
+        return torch.tensor(value, dtype=dtype, device=device)
+
+
+def scalar(value: float, like: Tensor) -> Tensor:
+    """A cached 0-dim tensor ``value`` of ``like``'s dtype and device (no gradient).
+
+    ``x * scalar(c, x)`` computes exactly what ``x * c`` does (a Python number is cast to ``x``'s dtype)
+    but with one tensor operation instead of five (the number is not converted on every call).
+    """
+    return _cached_scalar(float(value), like.dtype, like.device)
+
+
 def symmetrize(P: Tensor, dims: tuple[int, int] = (-1, -2)) -> Tensor:
     """``(P + Pᵀ) / 2`` over the matrix dimensions ``dims`` (the last two; ``(0, 1)`` for batch-last storage)."""
-    return 0.5 * (P + P.transpose(*dims))
+    return (P + P.transpose(*dims)) * scalar(0.5, P)
 
 
 def chi2_quantile(p: float, dof: int) -> float:
@@ -53,9 +69,14 @@ SMALL_N = 4
 SMALL_BATCH = 64
 
 
+def _batch_size(*tensors: Tensor) -> int:
+    """The largest number of matrices in the batches of ``tensors`` (from the shapes alone: no tensor
+    operation and no ``torch.broadcast_shapes``, which cost microseconds per call)."""
+    return max(math.prod(t.shape[:-2]) for t in tensors)
+
+
 def _is_small(A: Tensor, B: Tensor | None = None) -> bool:
-    batch = A[..., 0, 0].numel() if B is None else max(A[..., 0, 0].numel(), B[..., 0, 0].numel())
-    return A.shape[-1] <= SMALL_N and batch >= SMALL_BATCH
+    return A.shape[-1] <= SMALL_N and _batch_size(A, *(() if B is None else (B,))) >= SMALL_BATCH
 
 
 def cholesky_entries(S) -> tuple[list[list[Tensor]], Tensor]:
@@ -134,7 +155,7 @@ def cholesky(P: Tensor, what: str = "covariance", check: bool = True) -> Tensor:
     synchronisation); without it a failed factor is left as returned by ``cholesky_ex``.
     """
     L, info = _cholesky_unrolled(P) if _is_small(P) else torch.linalg.cholesky_ex(P)
-    if check and bool((info != 0).any()):
+    if check and bool(info.any()):
         bad = int((info != 0).sum())
         raise TorchtrackError(f"{what} is not positive definite ({bad} of {info.numel()} matrices failed "
                               "Cholesky factorisation)")
@@ -166,7 +187,7 @@ def matmul(A: Tensor, B: Tensor) -> Tensor:
 
 def log_det_from_cholesky(L: Tensor) -> Tensor:
     """``log |P|`` from the Cholesky factor ``L`` of ``P``; shape ``(*batch,)``."""
-    return 2.0 * torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1)
+    return torch.log(torch.diagonal(L, dim1=-2, dim2=-1)).sum(-1) * scalar(2.0, L)
 
 
 def mahalanobis_sq(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
@@ -182,7 +203,7 @@ def mahalanobis_sq(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
 
 def gaussian_log_likelihood(nis: Tensor, log_det: Tensor, m: int) -> Tensor:
     """``log N(ν; 0, S) = −½ (νᵀ S⁻¹ ν + log |S| + m log 2π)`` from the NIS and ``log |S|`` (broadcast)."""
-    return -0.5 * (nis + log_det + m * LOG_2PI)
+    return (nis + log_det + scalar(m * LOG_2PI, nis)) * scalar(-0.5, nis)
 
 
 def log_prob_from_cholesky(x: Tensor, mean: Tensor, L: Tensor) -> Tensor:
@@ -242,12 +263,19 @@ def gain_from_cholesky(L: Tensor, C: Tensor) -> KalmanGain:
     return KalmanGain(L, Linv, W, small_matmul(W, Linv))
 
 
+def batched_matmul(A: Tensor, B: Tensor) -> Tensor:
+    """``A @ B``, as ``torch.bmm`` itself for two 3-D operands with the same batch size (``@`` spends
+    several tensor operations on broadcasting bookkeeping before it reaches the same kernel)."""
+    if A.dim() == 3 and B.dim() == 3 and A.shape[0] == B.shape[0]:
+        return torch.bmm(A, B)
+    return A @ B
+
+
 def small_matmul(A: Tensor, B: Tensor) -> Tensor:
     """``A @ B`` (batches broadcast); for many matrices with a short inner dimension (≤ ``SMALL_N``) the
     sum over it is unrolled into elementwise products (batched GEMMs of tiny matrices are slow)."""
-    batch = torch.broadcast_shapes(A.shape[:-2], B.shape[:-2])
-    if A.shape[-1] > SMALL_N or math.prod(batch) < SMALL_BATCH:
-        return A @ B
+    if A.shape[-1] > SMALL_N or _batch_size(A, B) < SMALL_BATCH:
+        return batched_matmul(A, B)
     out = A[..., :, 0:1] * B[..., 0:1, :]
     for k in range(1, A.shape[-1]):
         out = out + A[..., :, k:k + 1] * B[..., k:k + 1, :]
@@ -271,7 +299,7 @@ def innovations_likelihood(gain: KalmanGain, nu: Tensor) -> tuple[Tensor, Tensor
     """:func:`innovation_likelihood` for many innovations per factor: ``ν (*, k, m)`` against the
     factors of ``gain`` ``(*, m, m)`` → NIS and log ℓ ``(*, k)``; the whitening ``L⁻¹`` is applied to
     all ``k`` innovations by one batched GEMM."""
-    white = nu @ gain.chol_inv.transpose(-1, -2)
+    white = batched_matmul(nu, gain.chol_inv.transpose(-1, -2))
     nis = (white * white).sum(-1)
     return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol).unsqueeze(-1), nu.shape[-1])
 

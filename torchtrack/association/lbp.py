@@ -29,10 +29,15 @@ competing for two measurements) the result is exact.
 Each sum is formed once per pass and the sums "over all but one" come from it: ``t_i − a_ij ν_ji``
 and ``s_j − μ_ij``. That subtraction loses the digits of a small remainder under one dominant
 term (a track almost sure of one measurement), so the term that is more than half its sum — at
-most one per row and per column — takes its remainder from a second, masked sum instead
+most one per row and per column — takes its remainder from a second sum without it
 (:func:`_sum_of_others`); every other term is at most half the sum, which bounds the subtraction's
-relative error by ``2 ε``. The iteration is therefore elementwise passes and reductions over the
-``n × m`` matrix, with no loop over tracks; without autograd it writes into two preallocated buffers.
+relative error by ``2 ε``. Because there is at most one such term per line, its position is the
+product of the 0/1 comparison with the positions ``0, 1, …`` (a matrix-vector product, no host
+synchronisation), and it is left out of the second sum by writing one zero per line (a scatter);
+a line without one leaves out its first term, whose remainder is then exact as well. A pass is
+therefore two reductions, one comparison, one matrix-vector product and two elementwise passes
+over the ``n × m`` matrix (the cancelling version: one reduction, two elementwise passes), with no
+loop over tracks; without autograd it writes into two preallocated buffers.
 
 Weights come in the **log domain**; ``-inf`` marks a pair outside the gate, padding tracks have
 all their ``w_ij = -inf`` and padding measurements all their ``w_ij = -inf`` (their outputs are
@@ -51,6 +56,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.gaussian import scalar
 
 LOG_NEW_FLOOR = {dt: 2.0 * float(torch.log(torch.tensor(torch.finfo(dt).tiny, dtype=torch.float64)))
                  for dt in (torch.float64, torch.float32, torch.float16, torch.bfloat16)}
@@ -104,20 +110,36 @@ def scaled_weights(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> tuple[Te
     return a, torch.exp(log_a0).unsqueeze(-1)
 
 
+def _positions(v: Tensor, dim: int) -> Tensor:
+    """``0, 1, …`` along ``dim`` of ``v``, shaped for :func:`_top`: ``(m, 1)`` or ``(1, n)``; in ``v``'s
+    dtype, at least float32 (whose integers are exact up to 2^24; float16's only up to 2048)."""
+    positions = torch.arange(v.shape[dim], dtype=torch.promote_types(v.dtype, torch.float32), device=v.device)
+    return positions.unsqueeze(-1) if dim == -1 else positions.unsqueeze(0)
+
+
+def _top(above: Tensor, dim: int, positions: Tensor) -> Tensor:
+    """Index along ``dim`` (kept) of the term above half its line's sum, 0 where there is none, from the
+    0/1 comparison ``above``: at most one term per line is above half, so it is the product with
+    ``positions`` (:func:`_positions`), one matrix-vector pass. (Two near-equal terms that both pass a
+    rounded half give a sum of positions, clamped into range: any position serves such a line.)"""
+    above = above.to(positions.dtype)
+    return (above @ positions if dim == -1 else positions @ above).long().clamp_(max=positions.numel() - 1)
+
+
 def _sum_of_others(v: Tensor, floor: Tensor | float, dim: int) -> tuple[Tensor, Tensor]:
     """``floor + Σ_{k≠j} v_k`` along ``dim`` for every ``j`` (``v ≥ 0``), and the full sum ``floor + Σ_k v_k``.
 
-    ``total − v_j``, except for a term above half the total (at most one per line), whose remainder
-    is summed without it (no cancellation). The choice is arithmetic, with a 0/1 ``step`` and
-    ``lerp`` (exact at weights 0 and 1), which is several times faster than boolean masks. The sums
-    are floored at the smallest normal number, so that every remainder is > 0 (a line whose sum is 0
-    has no feasible option). Differentiable.
+    One term per line, ``v_top`` (the one above half the sum, or else the first), is left out of a
+    second sum: ``rest = floor + Σ_{k≠top} v_k`` is its remainder, while every other term's is
+    ``total − v_j`` with ``v_j`` at most half the total, so the subtraction loses at most a factor 2
+    of relative accuracy. ``rest`` is floored at the smallest normal number, so that every remainder
+    is > 0 (a line whose sum is 0 has no feasible option). Differentiable (the position is a constant).
     """
-    tiny = torch.finfo(v.dtype).tiny
-    total = (v.sum(dim, keepdim=True) + floor).clamp_min(tiny)
-    step = torch.gt(v, 0.5 * total).to(v.dtype).detach()
-    rest = ((v - v * step).sum(dim, keepdim=True) + floor).clamp_min(tiny)
-    return torch.lerp(total - v, rest.expand_as(v), step), total
+    total = v.sum(dim, keepdim=True) + floor
+    with torch.no_grad():
+        top = _top(torch.gt(v, 0.5 * total).to(v.dtype), dim, _positions(v, dim))
+    rest = (v.scatter(dim, top, 0.0).sum(dim, keepdim=True) + floor).clamp_min(torch.finfo(v.dtype).tiny)
+    return (total - v).scatter(dim, top, rest), total
 
 
 def _iterate_functional(a: Tensor, a0: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
@@ -137,16 +159,33 @@ def _iterate_functional(a: Tensor, a0: Tensor, iterations: int, tol: float | Non
     return prod, iterations, False
 
 
-def _others_inplace(v: Tensor, floor: Tensor | float, dim: int, out: Tensor) -> Tensor:
-    """:func:`_sum_of_others` without autograd and without a buffer of its own: the remainders go to
-    ``out``, ``v`` is overwritten (with ``total − v``); returns the full sum. ``out`` first holds the
-    0/1 ``keep = 1 − step``, whose dot product with ``v`` is the remainder of a dominant term."""
-    tiny = torch.finfo(v.dtype).tiny
-    total = v.sum(dim, keepdim=True).add_(floor).clamp_min_(tiny)
-    torch.le(v, total * 0.5, out=out)
-    rest = torch.linalg.vecdot(v, out, dim=dim).unsqueeze(dim).add_(floor).clamp_min_(tiny)
-    torch.sub(total, v, out=v)
-    torch.lerp(rest.expand_as(out), v, out, out=out)
+class _Lines(NamedTuple):
+    """Constants of one direction for :func:`_others_inplace`, made once per call."""
+
+    positions: Tensor   # :func:`_positions`
+    zeros: Tensor       # zeros of the shape of a line index (what is written at the left-out term)
+    floor: Tensor       # the floor: ``a_i0`` (rows) or 1 (columns)
+
+
+def _lines(a: Tensor, dim: int, floor: Tensor) -> _Lines:
+    zeros = a.new_zeros(a.shape[:-2] + ((a.shape[-2], 1) if dim == -1 else (1, a.shape[-1])))
+    return _Lines(_positions(a, dim), zeros, floor)
+
+
+def _others_inplace(v: Tensor, dim: int, out: Tensor, lines: _Lines) -> Tensor:
+    """:func:`_sum_of_others` without autograd, into ``out``; ``v`` is overwritten (its left-out term
+    zeroed). Returns the full sum. The rows' floor (the miss weights) may be 0, so their ``rest`` is
+    floored; the columns' floor is 1. (Constants are tensors: a Python number costs a conversion per
+    operation.)"""
+    total = v.sum(dim, keepdim=True).add_(lines.floor)
+    torch.gt(v, total * scalar(0.5, v), out=out)
+    top = _top(out, dim, lines.positions)
+    v.scatter_(dim, top, lines.zeros)
+    rest = v.sum(dim, keepdim=True).add_(lines.floor)
+    if dim == -1:
+        rest.clamp_min_(torch.finfo(v.dtype).tiny)
+    torch.sub(total, v, out=out)
+    out.scatter_(dim, top, rest)
     return total
 
 
@@ -154,11 +193,12 @@ def _iterate_inplace(a: Tensor, a0: Tensor, iterations: int, tol: float | None) 
     """The same iteration in two buffers (no autograd); returns ``a_ij ν_ji``."""
     prod = a.clone()
     mu = torch.empty_like(a)
+    rows, cols = _lines(a, -1, a0), _lines(a, -2, scalar(1.0, a))
     last = None
     for it in range(1, iterations + 1):
-        t = _others_inplace(prod, a0, -1, mu)
+        t = _others_inplace(prod, -1, mu, rows)
         torch.div(a, mu, out=mu)
-        s = _others_inplace(mu, 1.0, -2, prod)
+        s = _others_inplace(mu, -2, prod, cols)
         torch.div(a, prod, out=prod)
         if tol is not None and (it % 2 == 0 or it == iterations):
             stat = torch.cat([(a0 / t).flatten(), s.flatten().reciprocal()])
@@ -195,6 +235,8 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     a, a0 = scaled_weights(log_w, log_miss, log_new)
     a, a0 = a.expand(*batch, n, m), a0.expand(*batch, n, 1)
     tiny = torch.finfo(a.dtype).tiny
+    if n == 0 or m == 0:                                            # nothing to associate
+        return LBPResult(a, (a0 / a0.clamp_min(tiny)).squeeze(-1), a.new_ones(*batch, m), a, 0, True)
     if torch.is_grad_enabled() and (a.requires_grad or a0.requires_grad):
         prod, it, converged = _iterate_functional(a, a0, iterations, tol)
         others, t = _sum_of_others(prod, a0, -1)
@@ -205,7 +247,7 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     t = (prod.sum(-1, keepdim=True) + a0).clamp_min_(tiny)
     assoc = prod / t
     mu = torch.empty_like(prod)
-    _others_inplace(prod, a0, -1, mu)                              # prod is overwritten
+    _others_inplace(prod, -1, mu, _lines(prod, -1, a0))         # prod is overwritten
     torch.div(a, mu, out=mu)
     s = mu.sum(-2, keepdim=True).add_(1.0).clamp_min_(tiny)
     return LBPResult(assoc, (a0 / t).squeeze(-1), s.reciprocal().squeeze(-2), mu.div_(s), it, converged)

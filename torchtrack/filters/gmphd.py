@@ -50,7 +50,6 @@ stop-gradient *selections*; weights, means and covariances stay differentiable w
 
 from __future__ import annotations
 
-import functools
 import logging
 import math
 from typing import NamedTuple
@@ -66,6 +65,7 @@ from torchtrack.gaussian import (
     innovations_likelihood,
     kalman_gain,
     posterior_cov,
+    scalar,
 )
 from torchtrack.models import ConstantVelocity, LinearPosition, MeasurementModel, MotionModel
 from torchtrack.params import Positive, Probability
@@ -75,21 +75,6 @@ _F = GMPHDFilterOptions()   # the keyword defaults below (one source: tracker_co
 log = logging.getLogger(__name__)
 
 NEG_INF = float("-inf")
-
-
-@functools.lru_cache(maxsize=256)
-def _cached_scalar(value: float, dtype: torch.dtype, device: torch.device) -> Tensor:
-    with torch.inference_mode(False):       # usable in autograd graphs even when first made while streaming
-        return torch.tensor(value, dtype=dtype, device=device)
-
-
-def scalar(value: float, like: Tensor) -> Tensor:
-    """A cached 0-dim tensor ``value`` of ``like``'s dtype and device (no gradient).
-
-    ``x * scalar(c, x)`` computes exactly what ``x * c`` does (a Python number is cast to ``x``'s dtype)
-    but with one tensor operation instead of five (the number is not converted on every call).
-    """
-    return _cached_scalar(float(value), like.dtype, like.device)
 
 
 class MixtureState(NamedTuple):
