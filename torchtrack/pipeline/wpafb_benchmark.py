@@ -95,9 +95,10 @@ class SubsetResult:
     def title(self, subset: str, config: BenchmarkConfig) -> str:
         """The line printed above the subset's Table 1."""
         d = config.detections
+        velocity = "positions only" if d.velocity_sigma is None else f"velocity noise {d.velocity_sigma} px/frame"
         return (f"WPAFB AOI 02, {subset} vehicles ({len(set(self.truth.id.tolist()))} trajectories, "
                 f"{self.truth.size} boxes, {self.detections.size} detections; p_D {d.pd}, sigma {d.sigma} px, "
-                f"clutter {d.clutter:g}/frame, velocity noise {d.velocity_sigma} px/frame; "
+                f"clutter {d.clutter:g}/frame, {velocity}; "
                 f"CLEAR-MOT at {config.threshold:g} px)")
 
 
