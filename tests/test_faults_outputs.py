@@ -363,3 +363,20 @@ def test_staged_paths_name_their_final_place(tmp_path):
         (staging / "sub" / "a.txt").write_text("a")
         final = folder.final(staging / "sub" / "a.txt")
     assert final == tmp_path / "out" / "sub" / "a.txt" and final.read_text() == "a"
+
+
+def test_scenario_figures_are_one_set_and_a_foreign_folder_is_refused_before_the_experiment(tmp_path, capsys):
+    plots = tmp_path / "plots"
+    assert main(["scenario", "maneuver", "--runs", "2", "--plot", str(plots)]) == 0
+    first = _snapshot(plots)
+    assert {"stationary.png", "constant_velocity.png", "maneuver.png"} <= {Path(p).name for p in first}
+    assert main(["scenario", "maneuver", "--runs", "2", "--plot", str(plots)]) == 0      # our own: replaced
+    assert not (tmp_path / "plots.partial").exists()
+    foreign = tmp_path / "foreign"
+    foreign.mkdir()
+    (foreign / "keep.txt").write_text("mine")
+    capsys.readouterr()
+    assert main(["scenario", "maneuver", "--runs", "2", "--plot", str(foreign)]) == 2
+    captured = capsys.readouterr()
+    assert "--force" in captured.err and "RMSE" not in captured.out        # refused before the experiment ran
+    assert _snapshot(foreign) == {"keep.txt": b"mine"} and not (tmp_path / "foreign.partial").exists()

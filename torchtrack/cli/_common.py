@@ -79,7 +79,10 @@ def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, 
     parser.add_argument("--runs", type=int, default=runs, help=f"Monte Carlo runs, batched (default {runs})")
     parser.add_argument("--config", type=config_file, default=default_config,
                         help="scenario YAML or preset name (default: the preset of the scenario's name)")
-    parser.add_argument("--plot", type=Path, default=None, metavar="DIR", help="write the figures here")
+    parser.add_argument("--plot", type=Path, default=None, metavar="DIR",
+                        help="write the figures into this folder, as one set (OutputFolder)")
+    parser.add_argument("--force", action="store_true",
+                        help="replace --plot even when it holds something other than this scenario's figures")
     if params is None:
         parser.add_argument("--params", action=_NoFittedParams, metavar="FITTED", help=argparse.SUPPRESS)
     else:

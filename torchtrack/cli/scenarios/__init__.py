@@ -6,9 +6,13 @@ defaults its command module declares: ``DEFAULT_CONFIG``, ``RUNS`` and ``PARAMS`
 sets; absent where ``torchtrack tune`` fits none of its filters).
 """
 
+from contextlib import AbstractContextManager, nullcontext
+from pathlib import Path
+
 from torchtrack.cli import add_subcommands
 from torchtrack.cli._common import add_common_options, add_scenario_options
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import OutputFolder
 
 NAME = "scenario"
 HELP = "run one of the papers' experiments, batched over Monte Carlo runs"
@@ -26,6 +30,15 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     return args._run(args)
+
+
+def plot_folder(args, name: str) -> AbstractContextManager[Path | None]:
+    """``--plot DIR`` as an output folder written as one set (``None`` without ``--plot``): entered before the
+    experiment, so that a folder that cannot be used is refused before any work; the figures go to the
+    staging folder it yields and appear in ``DIR`` together once the command completes."""
+    if args.plot is None:
+        return nullcontext(None)
+    return OutputFolder(args.plot, f"torchtrack scenario {name}", args.force, flag="--plot", inputs=[args.config])
 
 
 def check_runs(runs: int) -> None:
