@@ -31,8 +31,8 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.gmphd import scalar
 from torchtrack.filters.tracker_config import GMPHDBirthOptions
+from torchtrack.gaussian import scalar
 from torchtrack.params import Positive
 
 _B = GMPHDBirthOptions()   # the keyword defaults of AdaptiveBirth (one source: tracker_config)
