@@ -38,14 +38,17 @@ GRIDS: dict[str, dict[str, list]] = {
               "filter.velocity_sigma": [1.0], "filter.velocity_outlier": [0.3], "filter.p_detection": [0.8, 0.9],
               "filter.q": [0.5, 1.0, 2.0],
               "filter.clutter_density": [1e-4, 1e-5], "birth.birth_weight": [0.05],
-              "handover_distance": [10.0], "coast_threshold": [0.03, 0.1], "tone_sigma": [None, 4.0]},
+              "handover_distance": [10.0], "coast_threshold": [0.03, 0.1], "tone_sigma": [None, 4.0],
+              "positions_only": [{}]},
     "labelled-gmphd": {"filter.p_detection": [0.8, 0.9], "filter.q": [1.0, 2.0],
                        "filter.clutter_density": [1e-4, 3e-4]},
     "sort": {"max_distance": [10.0, 20.0, 30.0], "max_age": [1, 3], "min_hits": [1, 3]},
     "greedy": {"max_distance": [10.0, 20.0], "max_age": [0, 2]},
     "pmb": {},
 }
-"""Option grids per tracker; a dotted key ``section.key`` sets ``options[section][key]``."""
+"""Option grids per tracker; a dotted key ``section.key`` sets ``options[section][key]``. The GM-PHD's
+``positions_only: {}`` keeps the chosen options on the pipeline's first frame, which has no detector velocities
+(as ``SELECTED_TRACKERS`` does)."""
 
 
 @dataclass
