@@ -1,0 +1,154 @@
+"""HOTA (Luiten et al., "HOTA: a higher order metric for evaluating multi-object tracking", IJCV 2021).
+
+Computed as TrackEval's ``HOTA`` metric class does, so the numbers agree with it (tests compare them):
+
+1. **Global alignment.** For every frame with similarities ``S`` (objects × hypotheses), each pair adds
+   ``S_ij / (sum_k S_kj + sum_k S_ik - S_ij)`` (0 where that denominator is <= eps) to its id pair's
+   co-occurrence ``P``; with ``n_o``, ``n_h`` the number of frames each id is present in, the alignment
+   score is ``A = P / (n_o + n_h - P)``.
+2. **Per-frame matching.** In every frame with both objects and hypotheses, one Hungarian assignment
+   maximises ``A * S``; for each ``alpha`` in 0.05, 0.10, ..., 0.95 the assigned pairs with
+   ``S >= alpha - eps`` are the true positives TP(alpha); the other objects are FN, the other hypotheses FP.
+3. **Scores per alpha** (eq. 3–10 of the paper): ``DetRe = TP / (TP + FN)``, ``DetPr = TP / (TP + FP)``,
+   ``DetA = TP / (TP + FN + FP)``; with ``c`` the number of TPs of an id pair,
+   ``AssA = sum_TP c / (n_o + n_h - c) / TP``, ``AssRe = sum_TP c / n_o / TP``,
+   ``AssPr = sum_TP c / n_h / TP``; ``HOTA = sqrt(DetA * AssA)``; ``LocA`` = mean ``S`` over the TPs
+   (1 when there are none). Denominators are clamped at 1 (at 1e-10 for LocA), as TrackEval does.
+
+The reported scores are the means of these over the 19 alphas. Similarities: **centre mode** (default)
+``S = max(0, 1 - d / threshold)`` with ``d`` the distance between box centres in pixels (TrackEval's
+euclidean similarity with ``zero_distance = threshold``); **IoU mode** the IoU of the boxes (TrackEval's
+``_calculate_box_ious``, boxes of zero area overlap nothing).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.io.mot import MOTData
+from torchtrack.metrics.clear_mot import drop_ignored
+
+ALPHAS = np.arange(0.05, 0.99, 0.05)
+"""The 19 localisation thresholds alpha = 0.05, 0.10, ..., 0.95 (TrackEval's ``array_labels``)."""
+
+KEYS = ("HOTA", "DetA", "AssA", "LocA", "DetRe", "DetPr", "AssRe", "AssPr")
+
+_EPS = np.finfo(float).eps
+
+
+def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(n, m) IoU of boxes ``a`` (n, 4) and ``b`` (m, 4) in ``x, y, w, h``; 0 for boxes of zero area."""
+    a_min, a_max = a[:, None, :2], a[:, None, :2] + a[:, None, 2:]
+    b_min, b_max = b[None, :, :2], b[None, :, :2] + b[None, :, 2:]
+    inter = np.prod(np.maximum(np.minimum(a_max, b_max) - np.maximum(a_min, b_min), 0), axis=-1)
+    area_a, area_b = a[:, 2] * a[:, 3], b[:, 2] * b[:, 3]
+    union = area_a[:, None] + area_b[None, :] - inter
+    inter[area_a <= _EPS, :] = 0
+    inter[:, area_b <= _EPS] = 0
+    inter[union <= _EPS] = 0
+    return inter / np.where(union <= _EPS, 1.0, union)
+
+
+def centre_similarity(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndarray:
+    """(n, m) ``max(0, 1 - d / threshold)`` of centres ``a`` (n, 2) and ``b`` (m, 2), ``d`` Euclidean."""
+    d = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=-1)
+    return np.maximum(0.0, 1.0 - d / threshold)
+
+
+def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None = None,
+         ignore: np.ndarray | None = None, count_zero_conf: bool = False) -> dict:
+    """HOTA and its parts of tracker output ``pred`` against ground truth ``gt``.
+
+    Args:
+        gt: ground truth (ids >= 0, one line per object and frame).
+        pred: tracker output (ids >= 0).
+        threshold: ``D`` of the centre similarity ``max(0, 1 - d / D)`` in pixels (used unless ``iou``).
+        iou: use the IoU of the boxes as the similarity; ``iou`` is then the IoU gate with which
+            predictions are assigned to don't-care objects (TrackEval uses 0.5).
+        ignore: optional (K,) bool over ``gt``'s lines marking don't-care objects; they, and the
+            predictions assigned to them, are removed first (:func:`~torchtrack.metrics.clear_mot.drop_ignored`,
+            same gate as :func:`~torchtrack.metrics.clear_mot.clear_mot`: ``d <= threshold`` or ``IoU >= iou``).
+        count_zero_conf: score ground-truth lines whose ``conf`` is 0 as objects (by default they are
+            don't-care objects, handled like ``ignore``, as ``clear_mot`` does).
+
+    Returns:
+        dict with :data:`KEYS` (fractions, means over :data:`ALPHAS`), ``alpha`` (19,) and ``per_alpha``:
+        a dict of the same keys plus ``TP, FN, FP`` as (19,) float64 arrays.
+    """
+    if iou is None and not threshold > 0:
+        raise TorchtrackError(f"threshold must be positive, got {threshold}")
+    if iou is not None and not 0 < iou <= 1:
+        raise TorchtrackError(f"iou must be in (0, 1], got {iou}")
+    for data, what in ((gt, "ground truth"), (pred, "prediction")):
+        if data.size and data.id.min() < 0:
+            raise TorchtrackError(f"{what} has negative ids (unlabelled detections?); HOTA needs track ids")
+    if not count_zero_conf and np.any(gt.conf == 0):
+        ignore = (gt.conf == 0) | (False if ignore is None else np.asarray(ignore, dtype=bool))
+    if ignore is not None:
+        gt, pred = drop_ignored(gt, pred, ignore, threshold, iou)
+    gt, pred = gt.sorted(), pred.sorted()
+    _, g = np.unique(gt.id, return_inverse=True)
+    hyp_ids, h = np.unique(pred.id, return_inverse=True)
+    n_hyp = max(hyp_ids.size, 1)
+    gf, pf = (gt.boxes(), pred.boxes()) if iou is not None else (gt.centers(), pred.centers())
+    frames = np.intersect1d(gt.frame, pred.frame)
+    g_lo, g_hi = np.searchsorted(gt.frame, frames, "left"), np.searchsorted(gt.frame, frames, "right")
+    p_lo, p_hi = np.searchsorted(pred.frame, frames, "left"), np.searchsorted(pred.frame, frames, "right")
+
+    def similarity(a: int, b: int, c: int, e: int) -> np.ndarray:
+        if iou is not None:
+            return box_iou(gf[a:b], pf[c:e])
+        return centre_similarity(gf[a:b], pf[c:e], threshold)
+
+    # pass 1: similarity-weighted co-occurrence of id pairs (step 1), kept sparse over the pairs with S > 0
+    sims, keys, soft = [], [], []
+    for a, b, c, e in zip(g_lo, g_hi, p_lo, p_hi):
+        s = similarity(a, b, c, e)
+        denom = s.sum(0)[None, :] + s.sum(1)[:, None] - s
+        i, j = np.nonzero(s > 0)
+        sims.append(s)
+        keys.append(g[a + i] * n_hyp + h[c + j])
+        soft.append(s[i, j] / np.where(denom[i, j] > _EPS, denom[i, j], np.inf))
+    gt_count = np.bincount(g).astype(np.float64)
+    hyp_count = np.bincount(h).astype(np.float64)
+    all_keys = np.concatenate(keys) if keys else np.zeros(0, np.int64)
+    pair_keys, pair_of = np.unique(all_keys, return_inverse=True)
+    co = np.bincount(pair_of, weights=np.concatenate(soft) if soft else None, minlength=pair_keys.size)
+    alignment = co / (gt_count[pair_keys // n_hyp] + hyp_count[pair_keys % n_hyp] - co)
+
+    # pass 2: per-frame Hungarian on A * S (step 2); the TPs of every alpha at once
+    offsets = np.cumsum([0] + [k.size for k in keys])
+    match_keys, match_sims = [], []
+    for t, s in enumerate(sims):
+        score = np.zeros_like(s)
+        i, j = np.nonzero(s > 0)
+        score[i, j] = alignment[pair_of[offsets[t]:offsets[t + 1]]] * s[i, j]
+        r, k = linear_sum_assignment(-score)
+        match_sims.append(s[r, k])
+        match_keys.append(g[g_lo[t] + r] * n_hyp + h[p_lo[t] + k])
+    m_sims = np.concatenate(match_sims) if match_sims else np.zeros(0)
+    m_keys = np.concatenate(match_keys) if match_keys else np.zeros(0, np.int64)
+    hit = m_sims[:, None] >= ALPHAS[None, :] - _EPS  # (matches, 19)
+    tp = hit.sum(0).astype(np.float64)
+    fn, fp = gt.size - tp, pred.size - tp
+    loc = (m_sims[:, None] * hit).sum(0)
+
+    # step 3: association per alpha from the TP count c of each id pair
+    uniq, pair = np.unique(m_keys, return_inverse=True)
+    c = np.zeros((uniq.size, ALPHAS.size))
+    np.add.at(c, pair, hit)
+    n_o, n_h = gt_count[uniq // n_hyp][:, None], hyp_count[uniq % n_hyp][:, None]
+    per_tp = np.maximum(1.0, tp)
+    ass_a = (c * c / np.maximum(1.0, n_o + n_h - c)).sum(0) / per_tp
+    ass_re = (c * c / np.maximum(1.0, n_o)).sum(0) / per_tp
+    ass_pr = (c * c / np.maximum(1.0, n_h)).sum(0) / per_tp
+    det_a = tp / np.maximum(1.0, tp + fn + fp)
+    per_alpha = {
+        "HOTA": np.sqrt(det_a * ass_a), "DetA": det_a, "AssA": ass_a,
+        "LocA": np.maximum(1e-10, loc) / np.maximum(1e-10, tp),
+        "DetRe": tp / np.maximum(1.0, tp + fn), "DetPr": tp / np.maximum(1.0, tp + fp),
+        "AssRe": ass_re, "AssPr": ass_pr, "TP": tp, "FN": fn, "FP": fp,
+    }
+    return {**{key: float(per_alpha[key].mean()) for key in KEYS}, "alpha": ALPHAS.copy(), "per_alpha": per_alpha}
