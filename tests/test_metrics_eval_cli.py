@@ -9,8 +9,9 @@ import pytest
 from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import from_points, read_mot, write_motdata
-from torchtrack.metrics import clear_mot
+from torchtrack.metrics import clear_mot, hota
 from torchtrack.metrics.clear_mot import KEYS
+from torchtrack.metrics.hota import KEYS as HOTA_KEYS
 
 mm = pytest.importorskip("motmetrics")
 TUD = Path(mm.__file__).parent / "data" / "TUD-Campus"
@@ -27,6 +28,9 @@ def test_eval_cli_table_and_json(tmp_path, capsys):
     ref = clear_mot(read_mot(TUD / "gt.txt"), read_mot(TUD / "test.txt"), iou=0.5)
     assert {k: got[k] for k in KEYS} == pytest.approx({k: ref[k] for k in KEYS})
     assert f"{100 * ref['MOTA']:.2f}" in out
+    ref_hota = hota(read_mot(TUD / "gt.txt"), read_mot(TUD / "test.txt"), iou=0.5)
+    assert {k: got[k] for k in HOTA_KEYS} == pytest.approx({k: ref_hota[k] for k in HOTA_KEYS}, abs=1e-12)
+    assert "HOTA%" in out and f"{100 * ref_hota['HOTA']:.2f}" in out
 
 
 def test_eval_cli_bad_file_exits_2_naming_the_line(tmp_path, capsys):

@@ -1,4 +1,4 @@
-"""``torchtrack eval``: CLEAR-MOT, MT/PT/ML, FRAG and IDF1 of a tracker output against ground truth."""
+"""``torchtrack eval``: CLEAR-MOT, MT/PT/ML, FRAG, IDF1 and HOTA of a tracker output against ground truth."""
 
 from __future__ import annotations
 
@@ -10,12 +10,13 @@ from torchtrack.cli._common import add_common_options, bounded, positive_float
 from torchtrack.io.mot import read_mot
 from torchtrack.io.outputs import write_json
 from torchtrack.io.wpafb import moving_mask
-from torchtrack.metrics import clear_mot, drop_ignored, mot_ospa_gospa
+from torchtrack.metrics import clear_mot, drop_ignored, hota, mot_ospa_gospa
 from torchtrack.metrics.clear_mot import KEYS
+from torchtrack.metrics.hota import KEYS as HOTA_KEYS
 from torchtrack.metrics.table import format_table
 
 NAME = "eval"
-HELP = "score tracks (MOTChallenge text) against ground truth: CLEAR-MOT, MT/PT/ML, IDF1"
+HELP = "score tracks (MOTChallenge text) against ground truth: CLEAR-MOT, MT/PT/ML, IDF1, HOTA"
 DESCRIPTION = """Score a tracker output against ground truth, both MOTChallenge text files.
 
 Matching: per frame, correspondences of the previous frames are kept while still within the gate, the
@@ -24,6 +25,10 @@ The gate is a centre distance (--threshold PX, default 10, the paper's) or an Io
 MOTA, MOTP, IDF1, precision and recall are printed in percent; the JSON holds fractions
 (keys MOTA, MOTP, IDF1, MT, PT, ML, FP, FN, IDS, FRAG, TP, GT, precision, recall, frames, ...).
 MOTP is the mean matched distance in pixels (centre mode) or the mean 1 - IoU (IoU mode).
+
+HOTA (Luiten et al. 2021, as TrackEval computes it) is printed in a second table, in percent, and written
+as the JSON keys HOTA, DetA, AssA, LocA, DetRe, DetPr, AssRe, AssPr (fractions, means over alpha = 0.05 ...
+0.95). Its similarity is the IoU with --iou, else max(0, 1 - d / PX) of the centre distance d.
 
 Ground-truth lines with conf 0 are don't-care objects, as in MOTChallenge and TrackEval: a prediction
 matched to one is dropped (neither a hit nor a false positive); --count-zero-conf scores them as objects.
@@ -70,6 +75,12 @@ def format_scores(scores: dict) -> str:
     return format_table(header, [row], floatfmt=".2f")
 
 
+def format_hota(scores: dict) -> str:
+    """The HOTA scores as one table row, in percent."""
+    return format_table([f"{key}%" for key in HOTA_KEYS], [[100 * scores[key] for key in HOTA_KEYS]],
+                        floatfmt=".2f")
+
+
 def run(args: argparse.Namespace) -> int:
     gt, pred = read_mot(args.gt), read_mot(args.pred)
     if args.moving:
@@ -78,6 +89,9 @@ def run(args: argparse.Namespace) -> int:
     gate = f"IoU >= {args.iou}" if args.iou is not None else f"centre distance <= {args.threshold} px"
     print(f"{args.pred} vs {args.gt} ({gate}{', moving objects only' if args.moving else ''})")
     print(format_scores(scores))
+    hota_scores = hota(gt, pred, threshold=args.threshold, iou=args.iou, count_zero_conf=args.count_zero_conf)
+    print(format_hota(hota_scores))
+    scores.update({key: hota_scores[key] for key in HOTA_KEYS})
     if args.ospa is not None:
         _, o, g = mot_ospa_gospa(gt, pred, c=args.ospa, p_ospa=1.0, p_gospa=2.0)
         om, gm = o.mean(), g.mean()
