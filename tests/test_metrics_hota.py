@@ -1,4 +1,4 @@
-"""HOTA against TrackEval's HOTA metric class (test-only reference) and a hand-worked case."""
+"""HOTA against TrackEval's HOTA metric class (test-only reference; skipped without it) and hand-worked cases."""
 
 import math
 import warnings
@@ -12,17 +12,15 @@ from torchtrack.io.mot import MOTData, concat_mot, empty_mot, from_points, read_
 from torchtrack.metrics import drop_ignored
 from torchtrack.metrics.hota import ALPHAS, KEYS, hota
 
-with warnings.catch_warnings():
-    warnings.simplefilter("ignore")
-    trackeval = pytest.importorskip("trackeval")
-mm = pytest.importorskip("motmetrics")
-MM_DATA = Path(mm.__file__).parent / "data"
-Dataset = trackeval.datasets._base_dataset._BaseDataset
-
 
 def trackeval_reference(gt: MOTData, pred: MOTData, threshold=10.0, iou=None) -> dict:
     """TrackEval's per-sequence data dict built from the two files (ids relabelled 0.., objects in id order
-    per frame, every frame from the first to the last, empty ones included) and its HOTA metric run on it."""
+    per frame, every frame from the first to the last, empty ones included) and its HOTA metric run on it.
+    Skips the test when TrackEval (test-only reference) is not installed."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # it warns about its optional dataset dependencies
+        trackeval = pytest.importorskip("trackeval")
+    Dataset = trackeval.datasets._base_dataset._BaseDataset
     gt, pred = gt.sorted(), pred.sorted()
     _, g = np.unique(gt.id, return_inverse=True)
     _, h = np.unique(pred.id, return_inverse=True)
@@ -100,7 +98,8 @@ def test_random_sequences_iou_similarity(seed):
 
 @pytest.mark.parametrize("name", ["TUD-Campus", "TUD-Stadtmitte"])
 def test_shipped_motchallenge_files_iou(name):
-    gt, pred = read_mot(MM_DATA / name / "gt.txt"), read_mot(MM_DATA / name / "test.txt")
+    mm_data = Path(pytest.importorskip("motmetrics").__file__).parent / "data"
+    gt, pred = read_mot(mm_data / name / "gt.txt"), read_mot(mm_data / name / "test.txt")
     assert not np.any(gt.conf == 0)
     ours = hota(gt, pred, iou=0.5)
     assert 0 < ours["HOTA"] < 1
@@ -112,8 +111,10 @@ def test_empty_inputs():
     none = empty_mot()
     for a, b in ((gt, none), (none, pred), (none, none)):
         ours = hota(a, b)
-        assert_same(ours, trackeval_reference(a, b))
-        assert ours["HOTA"] == 0 and ours["LocA"] == 1
+        assert ours["HOTA"] == 0 and ours["DetA"] == 0 and ours["AssA"] == 0 and ours["LocA"] == 1
+        assert np.all(ours["per_alpha"]["FN"] == a.size) and np.all(ours["per_alpha"]["FP"] == b.size)
+    for a, b in ((gt, none), (none, pred), (none, none)):
+        assert_same(hota(a, b), trackeval_reference(a, b))
 
 
 def test_hand_worked_identity_switch():
