@@ -9,7 +9,7 @@ Computed as TrackEval's ``HOTA`` metric class does, so the numbers agree with it
 2. **Per-frame matching.** In every frame with both objects and hypotheses, one Hungarian assignment
    maximises ``A * S``; for each ``alpha`` in 0.05, 0.10, ..., 0.95 the assigned pairs with
    ``S >= alpha - eps`` are the true positives TP(alpha); the other objects are FN, the other hypotheses FP.
-3. **Scores per alpha** (eq. 3–10 of the paper): ``DetRe = TP / (TP + FN)``, ``DetPr = TP / (TP + FP)``,
+3. **Scores per alpha**: ``DetRe = TP / (TP + FN)``, ``DetPr = TP / (TP + FP)``,
    ``DetA = TP / (TP + FN + FP)``; with ``c`` the number of TPs of an id pair,
    ``AssA = sum_TP c / (n_o + n_h - c) / TP``, ``AssRe = sum_TP c / n_o / TP``,
    ``AssPr = sum_TP c / n_h / TP``; ``HOTA = sqrt(DetA * AssA)``; ``LocA`` = mean ``S`` over the TPs
