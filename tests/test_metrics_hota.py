@@ -1,5 +1,6 @@
 """HOTA against TrackEval's HOTA metric class (test-only reference; skipped without it) and hand-worked cases."""
 
+import importlib
 import math
 import warnings
 from pathlib import Path
@@ -11,6 +12,8 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData, concat_mot, empty_mot, from_points, read_mot
 from torchtrack.metrics import drop_ignored
 from torchtrack.metrics.hota import ALPHAS, KEYS, hota
+
+hota_module = importlib.import_module("torchtrack.metrics.hota")
 
 
 def trackeval_reference(gt: MOTData, pred: MOTData, threshold=10.0, iou=None) -> dict:
@@ -104,6 +107,29 @@ def test_shipped_motchallenge_files_iou(name):
     ours = hota(gt, pred, iou=0.5)
     assert 0 < ours["HOTA"] < 1
     assert_same(ours, trackeval_reference(gt, pred, iou=0.5))
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("iou", [None, 0.5])
+def test_sparse_path_gives_the_same_scores(seed, iou, monkeypatch):
+    gt, pred = random_tracks(seed, noise=1.5)
+    dense = hota(gt, pred, iou=iou)
+    monkeypatch.setattr(hota_module, "DENSE_LIMIT", 0)
+    sparse = hota(gt, pred, iou=iou)
+    for key in (*KEYS, "TP", "FN", "FP"):
+        np.testing.assert_allclose(sparse["per_alpha"][key], dense["per_alpha"][key], rtol=0, atol=1e-12)
+
+
+def test_tens_of_thousands_in_one_frame():
+    n = 30000  # a dense (n, n) matrix would need 7 GB
+    xy = 50.0 * np.stack(np.unravel_index(np.arange(n), (200, 150)), axis=1)  # a grid, 50 px apart
+    gt = from_points(np.ones(n, int), np.arange(n), xy[:, 0], xy[:, 1])
+    pred = from_points(np.ones(n, int), np.arange(n) + 5, xy[:, 0] + 1.3, xy[:, 1])  # 1.3 px off: S = 0.87
+    r = hota(gt, pred, threshold=10.0)
+    # isolated objects: every one matched with S = 0.87, a TP for alpha <= 0.85 (17 alphas)
+    assert np.array_equal(r["per_alpha"]["TP"], np.where(np.arange(19) < 17, n, 0.0))
+    assert r["DetA"] == pytest.approx(17 / 19) and r["AssA"] == pytest.approx(17 / 19)
+    assert r["LocA"] == pytest.approx((17 * 0.87 + 2) / 19)
 
 
 def test_empty_inputs():

@@ -26,9 +26,10 @@ from __future__ import annotations
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from torchtrack.association.assignment import by_component, gated_pairs
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData
-from torchtrack.metrics.clear_mot import drop_ignored
+from torchtrack.metrics.clear_mot import DENSE_LIMIT, drop_ignored
 
 ALPHAS = np.arange(0.05, 0.99, 0.05)
 """The 19 localisation thresholds alpha = 0.05, 0.10, ..., 0.95 (TrackEval's ``array_labels``)."""
@@ -39,22 +40,64 @@ _EPS = np.finfo(float).eps
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(n, m) IoU of boxes ``a`` (n, 4) and ``b`` (m, 4) in ``x, y, w, h``; 0 for boxes of zero area."""
-    a_min, a_max = a[:, None, :2], a[:, None, :2] + a[:, None, 2:]
-    b_min, b_max = b[None, :, :2], b[None, :, :2] + b[None, :, 2:]
+    """IoU of boxes ``a`` (..., 4) and ``b`` (..., 4) in ``x, y, w, h``, broadcast over the leading axes;
+    0 where a box has zero area. Corners and areas are formed as TrackEval forms them (``x + w`` first)."""
+    a_min, a_max = a[..., :2], a[..., :2] + a[..., 2:]
+    b_min, b_max = b[..., :2], b[..., :2] + b[..., 2:]
     inter = np.prod(np.maximum(np.minimum(a_max, b_max) - np.maximum(a_min, b_min), 0), axis=-1)
-    area_a, area_b = a[:, 2] * a[:, 3], b[:, 2] * b[:, 3]
-    union = area_a[:, None] + area_b[None, :] - inter
-    inter[area_a <= _EPS, :] = 0
-    inter[:, area_b <= _EPS] = 0
-    inter[union <= _EPS] = 0
-    return inter / np.where(union <= _EPS, 1.0, union)
+    area_a, area_b = np.prod(a_max - a_min, axis=-1), np.prod(b_max - b_min, axis=-1)
+    union = area_a + area_b - inter
+    ok = (area_a > _EPS) & (area_b > _EPS) & (union > _EPS)
+    return np.where(ok, inter / np.where(union > _EPS, union, 1.0), 0.0)
 
 
 def centre_similarity(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndarray:
-    """(n, m) ``max(0, 1 - d / threshold)`` of centres ``a`` (n, 2) and ``b`` (m, 2), ``d`` Euclidean."""
-    d = np.linalg.norm(a[:, None, :] - b[None, :, :], axis=-1)
-    return np.maximum(0.0, 1.0 - d / threshold)
+    """``max(0, 1 - d / threshold)`` of centres ``a`` (..., 2) and ``b`` (..., 2), ``d`` Euclidean, broadcast."""
+    return np.maximum(0.0, 1.0 - np.linalg.norm(a - b, axis=-1) / threshold)
+
+
+def _frame_pairs(a: np.ndarray, b: np.ndarray, threshold: float, iou: bool) -> tuple[np.ndarray, ...]:
+    """``(i, j, S_ij)`` of the pairs of features ``a`` (n, k), ``b`` (m, k) with similarity S > 0, in row-major
+    order; a frame with more than :data:`DENSE_LIMIT` pairs is searched with k-d trees on the centres."""
+    n, m = a.shape[0], b.shape[0]
+    if n * m <= DENSE_LIMIT:
+        s = box_iou(a[:, None], b[None, :]) if iou else centre_similarity(a[:, None], b[None, :], threshold)
+        i, j = np.nonzero(s > 0)
+        return i, j, s[i, j]
+    if iou:
+        # overlapping boxes have centres closer than the sum of their half diagonals
+        radius = 0.5 * (np.hypot(a[:, 2], a[:, 3]).max() + np.hypot(b[:, 2], b[:, 3]).max())
+        i, j, _ = gated_pairs(a[:, :2] + 0.5 * a[:, 2:], b[:, :2] + 0.5 * b[:, 2:], radius * (1 + 1e-9) + 1e-9)
+        sim = box_iou(a[i], b[j])
+    else:
+        i, j, _ = gated_pairs(a, b, threshold)
+        sim = centre_similarity(a[i], b[j], threshold)
+    order = np.argsort(i * m + j)
+    i, j, sim = i[order], j[order], sim[order]
+    keep = sim > 0
+    return i[keep], j[keep], sim[keep]
+
+
+def _max_score(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The assignment maximising the total of a dense block (NaN: no pair, score 0), solved as TrackEval does."""
+    return linear_sum_assignment(-np.nan_to_num(score, nan=0.0))
+
+
+def _assign(n: int, m: int, i: np.ndarray, j: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and columns assigned by the Hungarian algorithm maximising the total ``score`` of the pairs
+    ``(i, j)`` (all other pairs score 0); only assigned pairs among ``(i, j)`` are returned, as positions
+    into them. Dense frames give TrackEval's exact assignment; larger ones are solved per connected
+    component of the pairs (the same optimum; ties may break differently)."""
+    if i.size == 0:
+        return np.zeros(0, np.int64)
+    if n * m <= DENSE_LIMIT:
+        dense = np.zeros((n, m))
+        dense[i, j] = score
+        r, k = _max_score(dense)
+    else:
+        r, k, _ = by_component(n, m, i, j, score, _max_score)
+    pos = np.minimum(np.searchsorted(i * m + j, r * m + k), i.size - 1)
+    return pos[(i[pos] == r) & (j[pos] == k)]
 
 
 def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None = None,
@@ -97,37 +140,30 @@ def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None 
     g_lo, g_hi = np.searchsorted(gt.frame, frames, "left"), np.searchsorted(gt.frame, frames, "right")
     p_lo, p_hi = np.searchsorted(pred.frame, frames, "left"), np.searchsorted(pred.frame, frames, "right")
 
-    def similarity(a: int, b: int, c: int, e: int) -> np.ndarray:
-        if iou is not None:
-            return box_iou(gf[a:b], pf[c:e])
-        return centre_similarity(gf[a:b], pf[c:e], threshold)
-
-    # pass 1: similarity-weighted co-occurrence of id pairs (step 1), kept sparse over the pairs with S > 0
-    sims, keys, soft = [], [], []
+    # pass 1: similarity-weighted co-occurrence of id pairs (step 1), over the pairs with S > 0
+    pairs, keys, soft = [], [], []
     for a, b, c, e in zip(g_lo, g_hi, p_lo, p_hi):
-        s = similarity(a, b, c, e)
-        denom = s.sum(0)[None, :] + s.sum(1)[:, None] - s
-        i, j = np.nonzero(s > 0)
-        sims.append(s)
+        i, j, sim = _frame_pairs(gf[a:b], pf[c:e], threshold, iou is not None)
+        row_sum = np.bincount(i, weights=sim, minlength=b - a)
+        col_sum = np.bincount(j, weights=sim, minlength=e - c)
+        denom = col_sum[j] + row_sum[i] - sim
+        pairs.append((i, j, sim))
         keys.append(g[a + i] * n_hyp + h[c + j])
-        soft.append(s[i, j] / np.where(denom[i, j] > _EPS, denom[i, j], np.inf))
+        soft.append(sim / np.where(denom > _EPS, denom, np.inf))
     gt_count = np.bincount(g).astype(np.float64)
     hyp_count = np.bincount(h).astype(np.float64)
-    all_keys = np.concatenate(keys) if keys else np.zeros(0, np.int64)
-    pair_keys, pair_of = np.unique(all_keys, return_inverse=True)
+    pair_keys, pair_of = np.unique(np.concatenate(keys) if keys else np.zeros(0, np.int64), return_inverse=True)
     co = np.bincount(pair_of, weights=np.concatenate(soft) if soft else None, minlength=pair_keys.size)
     alignment = co / (gt_count[pair_keys // n_hyp] + hyp_count[pair_keys % n_hyp] - co)
 
     # pass 2: per-frame Hungarian on A * S (step 2); the TPs of every alpha at once
     offsets = np.cumsum([0] + [k.size for k in keys])
     match_keys, match_sims = [], []
-    for t, s in enumerate(sims):
-        score = np.zeros_like(s)
-        i, j = np.nonzero(s > 0)
-        score[i, j] = alignment[pair_of[offsets[t]:offsets[t + 1]]] * s[i, j]
-        r, k = linear_sum_assignment(-score)
-        match_sims.append(s[r, k])
-        match_keys.append(g[g_lo[t] + r] * n_hyp + h[p_lo[t] + k])
+    for t, (i, j, sim) in enumerate(pairs):
+        won = _assign(g_hi[t] - g_lo[t], p_hi[t] - p_lo[t], i, j,
+                      alignment[pair_of[offsets[t]:offsets[t + 1]]] * sim)
+        match_sims.append(sim[won])
+        match_keys.append(keys[t][won])
     m_sims = np.concatenate(match_sims) if match_sims else np.zeros(0)
     m_keys = np.concatenate(match_keys) if match_keys else np.zeros(0, np.int64)
     hit = m_sims[:, None] >= ALPHAS[None, :] - _EPS  # (matches, 19)
