@@ -18,7 +18,9 @@ Computed as TrackEval's ``HOTA`` metric class does, so the numbers agree with it
 The reported scores are the means of these over the 19 alphas. Similarities: **centre mode** (default)
 ``S = max(0, 1 - d / threshold)`` with ``d`` the distance between box centres in pixels (TrackEval's
 euclidean similarity with ``zero_distance = threshold``); **IoU mode** the IoU of the boxes (TrackEval's
-``_calculate_box_ious``, boxes of zero area overlap nothing).
+``_calculate_box_ious``, boxes of zero area overlap nothing). A frame with more than :data:`DENSE_LIMIT`
+(object, hypothesis) pairs is matched through a k-d tree search for the pairs with ``S > 0`` and one
+assignment per connected component: the same optimum in bounded memory (ties may break differently).
 """
 
 from __future__ import annotations
