@@ -157,9 +157,23 @@ def _idtp(keys: np.ndarray, n_hyp: int) -> int:
     return int(np.nansum(w))
 
 
-def _check(data: MOTData, what: str) -> None:
-    if data.size and data.id.min() < 0:
-        raise TorchtrackError(f"{what} has negative ids (unlabelled detections?); CLEAR-MOT needs track ids")
+def scored_sets(gt: MOTData, pred: MOTData, threshold: float, iou: float | None, ignore: np.ndarray | None,
+                count_zero_conf: bool, metric: str) -> tuple[MOTData, MOTData]:
+    """The arguments of a tracking metric (``metric``: its name, for the errors) checked, and the ``(gt, pred)``
+    it scores: the don't-care objects (``ignore``, and gt lines with ``conf`` 0 unless ``count_zero_conf``)
+    removed with the predictions matched to them (:func:`drop_ignored`), both sorted by frame and id."""
+    if iou is None and not threshold > 0:
+        raise TorchtrackError(f"threshold must be positive, got {threshold}")
+    if iou is not None and not 0 < iou <= 1:
+        raise TorchtrackError(f"iou must be in (0, 1], got {iou}")
+    for data, what in ((gt, "ground truth"), (pred, "prediction")):
+        if data.size and data.id.min() < 0:
+            raise TorchtrackError(f"{what} has negative ids (unlabelled detections?); {metric} needs track ids")
+    if not count_zero_conf and np.any(gt.conf == 0):
+        ignore = (gt.conf == 0) | (False if ignore is None else np.asarray(ignore, dtype=bool))
+    if ignore is not None:
+        gt, pred = drop_ignored(gt, pred, ignore, threshold, iou)
+    return gt.sorted(), pred.sorted()
 
 
 def drop_ignored(gt: MOTData, pred: MOTData, ignore: np.ndarray, threshold: float = 10.0,
@@ -214,18 +228,8 @@ def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | 
         recall, frames``) plus ``IDP, IDR, GT_objects, predictions``. Fractions are in [0, 1] (MOTA may
         be negative), counts are ints. The matching rule and definitions are in the module docstring.
     """
-    if iou is None and not threshold > 0:
-        raise TorchtrackError(f"threshold must be positive, got {threshold}")
-    if iou is not None and not 0 < iou <= 1:
-        raise TorchtrackError(f"iou must be in (0, 1], got {iou}")
-    _check(gt, "ground truth")
-    _check(pred, "prediction")
+    gt, pred = scored_sets(gt, pred, threshold, iou, ignore, count_zero_conf, "CLEAR-MOT")
     metric = _Distance(float(threshold), iou)
-    if not count_zero_conf and np.any(gt.conf == 0):
-        ignore = (gt.conf == 0) | (False if ignore is None else np.asarray(ignore, dtype=bool))
-    if ignore is not None:
-        gt, pred = drop_ignored(gt, pred, ignore, threshold, iou)
-    gt, pred = gt.sorted(), pred.sorted()
     gt_ids, g = np.unique(gt.id, return_inverse=True)
     hyp_ids, h = np.unique(pred.id, return_inverse=True)
     n_obj, n_hyp = gt_ids.size, hyp_ids.size

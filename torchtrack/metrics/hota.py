@@ -29,9 +29,8 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from torchtrack.association.assignment import by_component, gated_pairs
-from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData
-from torchtrack.metrics.clear_mot import DENSE_LIMIT, drop_ignored
+from torchtrack.metrics.clear_mot import DENSE_LIMIT, scored_sets
 
 ALPHAS = np.arange(0.05, 0.99, 0.05)
 """The 19 localisation thresholds alpha = 0.05, 0.10, ..., 0.95 (TrackEval's ``array_labels``)."""
@@ -122,18 +121,7 @@ def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None 
         dict with :data:`KEYS` (fractions, means over :data:`ALPHAS`), ``alpha`` (19,) and ``per_alpha``:
         a dict of the same keys plus ``TP, FN, FP`` as (19,) float64 arrays.
     """
-    if iou is None and not threshold > 0:
-        raise TorchtrackError(f"threshold must be positive, got {threshold}")
-    if iou is not None and not 0 < iou <= 1:
-        raise TorchtrackError(f"iou must be in (0, 1], got {iou}")
-    for data, what in ((gt, "ground truth"), (pred, "prediction")):
-        if data.size and data.id.min() < 0:
-            raise TorchtrackError(f"{what} has negative ids (unlabelled detections?); HOTA needs track ids")
-    if not count_zero_conf and np.any(gt.conf == 0):
-        ignore = (gt.conf == 0) | (False if ignore is None else np.asarray(ignore, dtype=bool))
-    if ignore is not None:
-        gt, pred = drop_ignored(gt, pred, ignore, threshold, iou)
-    gt, pred = gt.sorted(), pred.sorted()
+    gt, pred = scored_sets(gt, pred, threshold, iou, ignore, count_zero_conf, "HOTA")
     _, g = np.unique(gt.id, return_inverse=True)
     hyp_ids, h = np.unique(pred.id, return_inverse=True)
     n_hyp = max(hyp_ids.size, 1)
