@@ -26,7 +26,7 @@ from torchtrack.pipeline.track_video import track_video
 from torchtrack.pipeline.truth import wpafb_truth
 from torchtrack.sim.video import read_camera
 
-SCORE_COLUMNS = ["GT", "MT", "PT", "ML", "FP", "FN", "IDS", "MOTA", "MOTP", "IDF1"]
+SCORE_COLUMNS = ["GT", "MT", "PT", "ML", "FP", "FN", "IDS", "MOTA", "HOTA", "MOTP", "IDF1"]
 
 
 def add_frame_options(parser: argparse.ArgumentParser) -> None:

@@ -1,8 +1,10 @@
 """The one scoring call and the one Table 1 printer of every command that runs a tracker.
 
-:func:`score` is CLEAR-MOT (:func:`torchtrack.metrics.clear_mot`) with plain floats; :func:`format_table1`
-prints tracker → scores in the layout of Table 1 of Aguilar et al. (ICASSP 2023): GT trajectories, MT/PT/ML
-as % of them, FP, FN, IDS, MOTA %, MOTP (mean matched centre distance, px) and the tracker's frames per second.
+:func:`score` is CLEAR-MOT and IDF1 (:func:`torchtrack.metrics.clear_mot`) and HOTA
+(:func:`torchtrack.metrics.hota`, centre similarity at the same threshold) with plain floats;
+:func:`format_table1` prints tracker → scores in the layout of Table 1 of Aguilar et al. (ICASSP 2023): GT
+trajectories, MT/PT/ML as % of them, FP, FN, IDS, MOTA %, MOTP (mean matched centre distance, px) and the
+tracker's frames per second, with HOTA % and IDF1 % added beside MOTA.
 """
 
 from __future__ import annotations
@@ -13,26 +15,33 @@ import numpy as np
 
 from torchtrack.io.mot import MOTData
 from torchtrack.metrics.clear_mot import clear_mot
+from torchtrack.metrics.hota import KEYS as HOTA_KEYS
+from torchtrack.metrics.hota import hota
 
-TABLE1_HEADER = ["Method", "GT", "MT (%)", "PT (%)", "ML (%)", "FP", "FN", "IDS", "MOTA (%)", "MOTP (px)", "FPS"]
+TABLE1_HEADER = ["Method", "GT", "MT (%)", "PT (%)", "ML (%)", "FP", "FN", "IDS", "MOTA (%)", "HOTA (%)",
+                 "IDF1 (%)", "MOTP (px)", "FPS"]
 
 
 def score(gt: MOTData, tracks: MOTData, threshold: float = 10.0, ignore: np.ndarray | None = None) -> dict:
-    """CLEAR-MOT of ``tracks`` against ``gt`` at a centre distance of ``threshold`` px; ``ignore (K,)`` marks
-    don't-care truth lines (e.g. parked vehicles under the paper's moving-objects protocol)."""
-    return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in
-            clear_mot(gt, tracks, threshold=threshold, ignore=ignore).items()}
+    """CLEAR-MOT and IDF1 of ``tracks`` against ``gt`` at a centre distance of ``threshold`` px, and the HOTA
+    keys (``HOTA, DetA, AssA, LocA, DetRe, DetPr, AssRe, AssPr``, fractions) with the centre similarity
+    ``max(0, 1 - d / threshold)``; ``ignore (K,)`` marks don't-care truth lines (e.g. parked vehicles under
+    the paper's moving-objects protocol), removed with the predictions on them before either is scored."""
+    scores = clear_mot(gt, tracks, threshold=threshold, ignore=ignore)
+    found = hota(gt, tracks, threshold=threshold, ignore=ignore)
+    scores.update({k: found[k] for k in HOTA_KEYS})
+    return {k: (float(v) if isinstance(v, (float, np.floating)) else v) for k, v in scores.items()}
 
 
 def table1_row(name: str, m: Mapping) -> list:
-    """One row of Table 1 from a CLEAR-MOT dict with ``FPS`` (MT/PT/ML as % of GT; 0 where GT is 0)."""
+    """One row of Table 1 from a :func:`score` dict with ``FPS`` (MT/PT/ML as % of GT; 0 where GT is 0)."""
     gt = max(int(m["GT"]), 1)
     return [name, int(m["GT"]), 100 * m["MT"] / gt, 100 * m["PT"] / gt, 100 * m["ML"] / gt, int(m["FP"]),
-            int(m["FN"]), int(m["IDS"]), 100 * m["MOTA"], m["MOTP"], m["FPS"]]
+            int(m["FN"]), int(m["IDS"]), 100 * m["MOTA"], 100 * m["HOTA"], 100 * m["IDF1"], m["MOTP"], m["FPS"]]
 
 
 def format_table1(scores: Mapping[str, Mapping]) -> str:
-    """Table 1 with one row per tracker of ``scores`` (tracker name → CLEAR-MOT dict with ``FPS``)."""
+    """Table 1 with one row per tracker of ``scores`` (tracker name → :func:`score` dict with ``FPS``)."""
     return format_table(TABLE1_HEADER, [table1_row(name, m) for name, m in scores.items()], floatfmt=".2f")
 
 

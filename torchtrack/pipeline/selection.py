@@ -91,8 +91,8 @@ def option_sets(grid: dict[str, list]) -> list[dict]:
 
 def evaluate(name: str, options: dict | None, gate: tuple[float, float], data: list[SequenceDetections],
              config: PipelineConfig) -> dict:
-    """Pooled CLEAR-MOT of tracker ``name`` with ``options`` on the detections that pass
-    ``gate = (min_speed, min_motion)`` (:meth:`FrameDetections.moving`), over ``data``."""
+    """Pooled CLEAR-MOT and HOTA (:func:`~torchtrack.metrics.table.score`) of tracker ``name`` with ``options``
+    on the detections that pass ``gate = (min_speed, min_motion)`` (:meth:`FrameDetections.moving`), over ``data``."""
     run = config.replace(tracker=name, tracker_options={}, trackers={name: options or {}}, min_speed=gate[0],
                          min_motion=gate[1])
     parts, masks = [], []
@@ -130,7 +130,7 @@ def select(data: list[SequenceDetections], config: PipelineConfig, trackers: lis
            progress: bool = True, mota_tolerance: float = 0.0,
            ids_limit: tuple[str, float] | None = None) -> tuple[PipelineConfig, list[dict]]:
     """Grid search (module docstring) over the ``(min_speed, min_motion)`` ``gates``; returns the chosen
-    config and every evaluation (``tracker, min_speed, min_motion, options, MOTA, IDS, FP, FN, IDF1``).
+    config and every evaluation (``tracker, min_speed, min_motion, options, MOTA, HOTA, IDS, FP, FN, IDF1``).
 
     Per gate and tracker the option set with the highest IDF1 among those within ``mota_tolerance`` of the
     best MOTA is kept (0: the best MOTA): MOTA differences of a few thousandths are noise on a few
@@ -146,7 +146,7 @@ def select(data: list[SequenceDetections], config: PipelineConfig, trackers: lis
     for gate, name, options in tqdm(runs, desc="select-trackers", unit="run", disable=not progress):
         m = evaluate(name, options, gate, data, config)
         row = {"tracker": name, "min_speed": gate[0], "min_motion": gate[1], "options": options,
-               **{k: m[k] for k in ("MOTA", "IDS", "FP", "FN", "IDF1")}}
+               **{k: m[k] for k in ("MOTA", "HOTA", "IDS", "FP", "FN", "IDF1")}}
         log.append(row)
         rows.setdefault((gate, name), []).append(row)
     best = {key: choose(candidates, mota_tolerance) for key, candidates in rows.items()}

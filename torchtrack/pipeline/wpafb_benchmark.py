@@ -99,7 +99,7 @@ class SubsetResult:
         return (f"WPAFB AOI 02, {subset} vehicles ({len(set(self.truth.id.tolist()))} trajectories, "
                 f"{self.truth.size} boxes, {self.detections.size} detections; p_D {d.pd}, sigma {d.sigma} px, "
                 f"clutter {d.clutter:g}/frame, {velocity}; "
-                f"CLEAR-MOT at {config.threshold:g} px)")
+                f"CLEAR-MOT and HOTA at {config.threshold:g} px)")
 
 
 def run_benchmark(config: BenchmarkConfig, truth: MOTData, out: str | Path, seed: int,
