@@ -107,14 +107,17 @@ def test_benchmark_by_preset_name_scores_what_track_detections_scores(tmp_path, 
         alone = json.loads((tmp_path / "alone" / "metrics.json").read_text())
         bench = payload["subsets"][subset]["sort"]
         assert {k: alone[k] for k in ("MOTA", "IDS", "FP", "FN")} == {k: bench[k] for k in ("MOTA", "IDS", "FP", "FN")}
-        assert alone["MOTP"] == pytest.approx(bench["MOTP"], abs=1e-3)   # det.txt keeps 3 decimals
+        for key in ("MOTP", "HOTA", "IDF1"):                            # det.txt keeps 3 decimals
+            assert alone[key] == pytest.approx(bench[key], abs=1e-3), key
 
 
 def test_table1_rows_by_hand():
-    m = {"GT": 8, "MT": 2, "PT": 5, "ML": 1, "FP": 3, "FN": 4, "IDS": 1, "MOTA": 0.5, "MOTP": 1.25, "FPS": 10.0}
-    assert table1_row("x", m) == ["x", 8, 25.0, 62.5, 12.5, 3, 4, 1, 50.0, 1.25, 10.0]
+    m = {"GT": 8, "MT": 2, "PT": 5, "ML": 1, "FP": 3, "FN": 4, "IDS": 1, "MOTA": 0.5, "HOTA": 0.25, "IDF1": 0.75,
+         "MOTP": 1.25, "FPS": 10.0}
+    assert table1_row("x", m) == ["x", 8, 25.0, 62.5, 12.5, 3, 4, 1, 50.0, 25.0, 75.0, 1.25, 10.0]
     empty = {**m, "GT": 0, "MT": 0, "PT": 0, "ML": 0}
     assert table1_row("y", empty)[2:5] == [0.0, 0.0, 0.0]           # no trajectories: 0 %, not NaN
     text = format_table1({"x": m, "y": empty}).splitlines()
     assert all(h in text[0] for h in TABLE1_HEADER)
-    assert text[2].split() == ["x", "8", "25.00", "62.50", "12.50", "3", "4", "1", "50.00", "1.25", "10.00"]
+    assert text[2].split() == ["x", "8", "25.00", "62.50", "12.50", "3", "4", "1", "50.00", "25.00", "75.00", "1.25",
+                               "10.00"]
