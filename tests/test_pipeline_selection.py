@@ -40,9 +40,11 @@ def test_evaluate_scores_the_tracker_on_kept_detections(moving_pair):
     cfg = PipelineConfig()
     near = evaluate("greedy", {"max_distance": 10.0, "max_age": 0}, (0.0, 0.0), moving_pair, cfg)
     assert near["IDS"] == 0 and near["FN"] == 0 and near["FP"] == 12  # the static false alarm, every frame
+    assert near["HOTA"] == pytest.approx((24 / 36) ** 0.5, abs=1e-12)  # DetA 24 / (24 + 12), AssA 1, exact hits
     for gate in ((2.0, 0.0), (0.0, 5.0)):
         moving_only = evaluate("greedy", {"max_distance": 10.0, "max_age": 0}, gate, moving_pair, cfg)
         assert moving_only["FP"] == 0 and moving_only["MOTA"] == pytest.approx(1.0)
+        assert moving_only["HOTA"] == pytest.approx(1.0, abs=1e-12)
 
 
 def test_select_finds_the_min_speed_that_drops_the_static_false_alarm(moving_pair):
@@ -71,7 +73,7 @@ def test_select_with_an_identity_switch_limit_relative_to_a_reference(monkeypatc
 
     def scripted(name, options, gate, data, config):
         mota, ids = table[(name, options["x"])]
-        return {"MOTA": mota, "IDS": ids, "FP": 0, "FN": 0, "IDF1": 0.5}
+        return {"MOTA": mota, "IDS": ids, "FP": 0, "FN": 0, "IDF1": 0.5, "HOTA": 0.5}
 
     monkeypatch.setattr("torchtrack.pipeline.selection.evaluate", scripted)
     grids = {"gmphd": {"x": [1, 2]}, "sort": {"x": [1]}}
