@@ -8,7 +8,7 @@
    ``tracks.txt``, ``annotated.mp4``), keeping each frame's detections;
 3. run every other tracker on **the same detections** (the detector runs once) and score them all;
 4. print the CLEAR-MOT table in the layout of the paper's Table 1 (GT, MT/PT/ML %, FP, FN, IDS,
-   MOTA %, MOTP px, tracker FPS), and write ``metrics.json`` and the plots
+   MOTA %, HOTA % and IDF1 % added, MOTP px, tracker FPS), and write ``metrics.json`` and the plots
    ``tracks_first_frame.png`` and ``scores.png``.
 
 Scoring follows the paper: the targets are the moving vehicles (``truth="moving"``: the generator's
