@@ -25,10 +25,13 @@ assignment per connected component: the same optimum in bounded memory (ties may
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from torchtrack.association.assignment import by_component, gated_pairs
+from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData
 from torchtrack.metrics.clear_mot import DENSE_LIMIT, scored_sets
 
@@ -170,11 +173,29 @@ def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None 
     ass_a = (c * c / np.maximum(1.0, n_o + n_h - c)).sum(0) / per_tp
     ass_re = (c * c / np.maximum(1.0, n_o)).sum(0) / per_tp
     ass_pr = (c * c / np.maximum(1.0, n_h)).sum(0) / per_tp
+    return _scores(tp, fn, fp, ass_a, ass_re, ass_pr, np.maximum(1e-10, loc) / np.maximum(1e-10, tp))
+
+
+def _scores(tp: np.ndarray, fn: np.ndarray, fp: np.ndarray, ass_a: np.ndarray, ass_re: np.ndarray,
+            ass_pr: np.ndarray, loc_a: np.ndarray) -> dict:
+    """The result of :func:`hota` from the per-alpha (19,) counts and association and localisation scores."""
     det_a = tp / np.maximum(1.0, tp + fn + fp)
     per_alpha = {
-        "HOTA": np.sqrt(det_a * ass_a), "DetA": det_a, "AssA": ass_a,
-        "LocA": np.maximum(1e-10, loc) / np.maximum(1e-10, tp),
+        "HOTA": np.sqrt(det_a * ass_a), "DetA": det_a, "AssA": ass_a, "LocA": loc_a,
         "DetRe": tp / np.maximum(1.0, tp + fn), "DetPr": tp / np.maximum(1.0, tp + fp),
         "AssRe": ass_re, "AssPr": ass_pr, "TP": tp, "FN": fn, "FP": fp,
     }
     return {**{key: float(per_alpha[key].mean()) for key in KEYS}, "alpha": ALPHAS.copy(), "per_alpha": per_alpha}
+
+
+def combine(results: Sequence[dict]) -> dict:
+    """HOTA of several sequences together (results of :func:`hota`), as TrackEval's ``combine_sequences``: TP,
+    FN and FP summed per alpha; AssA, AssRe, AssPr and LocA the means weighted by each sequence's TP; the
+    detection scores and HOTA recomputed from those."""
+    if not results:
+        raise TorchtrackError("HOTA: no sequences to combine")
+    per = [r["per_alpha"] for r in results]
+    tp, fn, fp = (sum(p[key] for p in per) for key in ("TP", "FN", "FP"))
+    weighted = {key: sum(p[key] * p["TP"] for p in per) for key in ("AssA", "AssRe", "AssPr", "LocA")}
+    ass_a, ass_re, ass_pr = (weighted[key] / np.maximum(1.0, tp) for key in ("AssA", "AssRe", "AssPr"))
+    return _scores(tp, fn, fp, ass_a, ass_re, ass_pr, np.maximum(1e-10, weighted["LocA"]) / np.maximum(1e-10, tp))
