@@ -45,7 +45,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from torchtrack.association.assignment import by_component
+from torchtrack.association.pairs import by_component
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData
 

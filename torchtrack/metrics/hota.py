@@ -38,7 +38,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from torchtrack.association.assignment import by_component
+from torchtrack.association.pairs import by_component
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData
 from torchtrack.metrics.clear_mot import scored_sets
@@ -73,7 +73,7 @@ def centre_similarity(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndar
 
 def _pairs(gt: MOTData, pred: MOTData, threshold: float, iou: bool) -> tuple[np.ndarray, ...]:
     """``(i, j, S)``: every line ``i`` of ``gt`` and ``j`` of ``pred`` of the same frame with similarity
-    ``S > 0``, sorted by ``(i, j)``, found in one k-d tree search over all frames (the frame number is a third
+    ``S > 0``, found in one k-d tree search over all frames (the frame number is a third
     coordinate, scaled so that points of different frames are farther apart than any pair that can score)."""
     ca, cb = gt.centers(), pred.centers()
     if iou:  # overlapping boxes have centres closer than the sum of their half diagonals
@@ -82,12 +82,10 @@ def _pairs(gt: MOTData, pred: MOTData, threshold: float, iou: bool) -> tuple[np.
         radius = threshold
     radius = radius * (1 + 1e-9) + 1e-9
     span = 2 * radius + 1.0
-    tree_a = cKDTree(np.column_stack([ca, gt.frame * span]))
-    tree_b = cKDTree(np.column_stack([cb, pred.frame * span]))
+    tree_a = cKDTree(np.column_stack([ca, gt.frame * span]), balanced_tree=False)
+    tree_b = cKDTree(np.column_stack([cb, pred.frame * span]), balanced_tree=False)
     found = tree_a.sparse_distance_matrix(tree_b, radius, output_type="ndarray")
     i, j = found["i"].astype(np.int64), found["j"].astype(np.int64)
-    order = np.argsort(i * max(pred.size, 1) + j)
-    i, j = i[order], j[order]
     sim = box_iou(gt.boxes()[i], pred.boxes()[j]) if iou else centre_similarity(ca[i], cb[j], threshold)
     keep = sim > 0
     return i[keep], j[keep], sim[keep]
@@ -98,9 +96,16 @@ def _max_score(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return linear_sum_assignment(-np.nan_to_num(score, nan=0.0))
 
 
+def _present(values: np.ndarray, size: int) -> np.ndarray:
+    """The distinct ``values`` (ints in [0, size)), ascending."""
+    seen = np.zeros(size, bool)
+    seen[values] = True
+    return np.flatnonzero(seen)
+
+
 def _local_index(nodes: np.ndarray, label: np.ndarray) -> np.ndarray:
-    """The rank of each of the distinct ``nodes`` among the nodes of its component ``label[nodes]``."""
-    order = np.lexsort((nodes, label[nodes]))
+    """The rank of each of the ascending ``nodes`` among the nodes of its component ``label[nodes]``."""
+    order = np.argsort(label[nodes], kind="stable")
     group = label[nodes][order]
     start = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
     rank = np.empty(nodes.size, np.int64)
@@ -108,9 +113,15 @@ def _local_index(nodes: np.ndarray, label: np.ndarray) -> np.ndarray:
     return rank
 
 
+def _segments(sorted_keys: np.ndarray) -> list[slice]:
+    """The runs of equal values of ``sorted_keys``."""
+    bounds = np.r_[0, np.flatnonzero(sorted_keys[1:] != sorted_keys[:-1]) + 1, sorted_keys.size]
+    return [slice(lo, hi) for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist())]
+
+
 def _assign(n: int, m: int, i: np.ndarray, j: np.ndarray, score: np.ndarray) -> np.ndarray:
-    """Positions into the pairs ``(i, j)`` (sorted by ``(i, j)``) of the assignment of ``n`` rows to ``m``
-    columns maximising the total ``score > 0`` (every other pair scores 0).
+    """Positions into the pairs ``(i, j)`` of the assignment of ``n`` rows to ``m`` columns maximising the
+    total ``score > 0`` (every other pair scores 0).
 
     The pairs' connected components are independent. A component with ``s`` rows or columns on its smaller
     side and ``L`` on the other is solved exactly by enumerating the ``L! / (L - s)!`` ways to give each of
@@ -122,34 +133,37 @@ def _assign(n: int, m: int, i: np.ndarray, j: np.ndarray, score: np.ndarray) -> 
         return np.zeros(0, np.int64)
     graph = coo_matrix((np.ones(i.size), (i, n + j)), shape=(n + m, n + m))
     count, label = connected_components(graph, directed=False)
-    comp = label[i]
-    rows, cols = np.unique(i), n + np.unique(j)
-    row_of, col_of = np.zeros(n, np.int64), np.zeros(m, np.int64)
-    row_of[rows], col_of[cols - n] = _local_index(rows, label), _local_index(cols, label)
+    rows, cols = _present(i, n), n + _present(j, m)
+    local = np.zeros(n + m, np.int64)
+    local[rows], local[cols] = _local_index(rows, label), _local_index(cols, label)
     n_rows, n_cols = np.bincount(label[rows], minlength=count), np.bincount(label[cols], minlength=count)
-    flip = n_rows > n_cols  # enumerate from the smaller side
-    small, large = np.where(flip, n_cols, n_rows), np.where(flip, n_rows, n_cols)
-    a = np.where(flip[comp], col_of[j], row_of[i])  # each pair's index on its component's smaller side
-    b = np.where(flip[comp], row_of[i], col_of[j])
-    won, hungarian = [], np.zeros(i.size, bool)
-    for s, size in set(zip(small[comp].tolist(), large[comp].tolist())):
-        mine = np.flatnonzero((small[comp] == s) & (large[comp] == size))
+    flip = (n_rows > n_cols)[label[i]]  # enumerate from the smaller side
+    a, b = np.where(flip, local[n + j], local[i]), np.where(flip, local[i], local[n + j])
+    small, large = np.minimum(n_rows, n_cols), np.maximum(n_rows, n_cols)
+    comp = label[i]
+    order = np.lexsort((comp, large[comp], small[comp]))  # by shape, then component
+    won, hungarian = [], []
+    for seg in _segments(small[comp][order] * (large.max() + 1) + large[comp][order]):
+        mine = order[seg]
+        s, size = int(small[comp[mine[0]]]), int(large[comp[mine[0]]])
         if math.perm(size, s) > _ENUMERATED:
-            hungarian[mine] = True
+            hungarian.append(mine)
             continue
-        ids, slot = np.unique(comp[mine], return_inverse=True)
-        block = np.zeros((ids.size, s, size))
-        where = np.full((ids.size, s, size), -1)
+        slot = np.cumsum(np.r_[0, comp[mine][1:] != comp[mine][:-1]])
+        block = np.zeros((slot[-1] + 1, s, size))
+        where = np.full(block.shape, -1)
         block[slot, a[mine], b[mine]] = score[mine]
         where[slot, a[mine], b[mine]] = mine
         maps = np.array(list(itertools.permutations(range(size), s)))  # (P, s)
         best = maps[block[:, np.arange(s), maps].sum(-1).argmax(1)]  # (components, s)
-        picked = where[np.arange(ids.size)[:, None], np.arange(s), best]
+        picked = where[np.arange(block.shape[0])[:, None], np.arange(s), best]
         won.append(picked[picked >= 0])
-    rest = np.flatnonzero(hungarian)
+    rest = np.concatenate(hungarian) if hungarian else np.zeros(0, np.int64)
     r, k, _ = by_component(n, m, i[rest], j[rest], score[rest], _max_score)
-    pos = np.minimum(np.searchsorted(i * m + j, r * m + k), i.size - 1)
-    return np.concatenate([*won, pos[(i[pos] == r) & (j[pos] == k)]])
+    key = i[rest] * m + j[rest]
+    at = np.argsort(key)
+    pos = at[np.minimum(np.searchsorted(key[at], r * m + k), max(rest.size - 1, 0))] if rest.size else rest
+    return np.concatenate([*won, rest[pos[key[pos] == r * m + k]]])
 
 
 def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None = None,
