@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from torchtrack.bench.hota import trackeval_data, trackeval_hota
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData, concat_mot, empty_mot, from_points, read_mot
 from torchtrack.metrics import drop_ignored
@@ -17,33 +18,12 @@ hota_module = importlib.import_module("torchtrack.metrics.hota")
 
 
 def trackeval_reference(gt: MOTData, pred: MOTData, threshold=10.0, iou=None) -> dict:
-    """TrackEval's per-sequence data dict built from the two files (ids relabelled 0.., objects in id order
-    per frame, every frame from the first to the last, empty ones included) and its HOTA metric run on it.
-    Skips the test when TrackEval (test-only reference) is not installed."""
+    """TrackEval's HOTA metric class on its per-sequence data built from the two tables (ids relabelled, every
+    frame from the first to the last, empty ones included). Skips the test without TrackEval (test-only)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # it warns about its optional dataset dependencies
-        trackeval = pytest.importorskip("trackeval")
-    Dataset = trackeval.datasets._base_dataset._BaseDataset
-    gt, pred = gt.sorted(), pred.sorted()
-    _, g = np.unique(gt.id, return_inverse=True)
-    _, h = np.unique(pred.id, return_inverse=True)
-    both = np.concatenate([gt.frame, pred.frame])
-    frames = np.arange(both.min(), both.max() + 2) if both.size else np.arange(3)
-    data = {"gt_ids": [], "tracker_ids": [], "similarity_scores": [], "num_timesteps": frames.size,
-            "num_gt_dets": gt.size, "num_tracker_dets": pred.size,
-            "num_gt_ids": int(g.max(initial=-1)) + 1, "num_tracker_ids": int(h.max(initial=-1)) + 1}
-    for f in frames:
-        a, b = gt.frame == f, pred.frame == f
-        if iou is not None:
-            s = Dataset._calculate_box_ious(gt.boxes()[a], pred.boxes()[b], box_format="xywh")
-        else:
-            s = Dataset._calculate_euclidean_similarity(gt.centers()[a], pred.centers()[b], zero_distance=threshold)
-        data["gt_ids"].append(g[a])
-        data["tracker_ids"].append(h[b])
-        data["similarity_scores"].append(s)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return trackeval.metrics.HOTA().eval_sequence(data)
+        pytest.importorskip("trackeval")
+    return trackeval_hota(trackeval_data(gt, pred, threshold=threshold, iou=iou))
 
 
 def assert_same(ours: dict, ref: dict) -> None:
