@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from torchtrack.bench.hota import trackeval_data, trackeval_hota
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData, concat_mot, empty_mot, from_points, read_mot
 from torchtrack.metrics import drop_ignored
@@ -17,33 +18,12 @@ hota_module = importlib.import_module("torchtrack.metrics.hota")
 
 
 def trackeval_reference(gt: MOTData, pred: MOTData, threshold=10.0, iou=None) -> dict:
-    """TrackEval's per-sequence data dict built from the two files (ids relabelled 0.., objects in id order
-    per frame, every frame from the first to the last, empty ones included) and its HOTA metric run on it.
-    Skips the test when TrackEval (test-only reference) is not installed."""
+    """TrackEval's HOTA metric class on its per-sequence data built from the two tables (ids relabelled, every
+    frame from the first to the last, empty ones included). Skips the test without TrackEval (test-only)."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # it warns about its optional dataset dependencies
-        trackeval = pytest.importorskip("trackeval")
-    Dataset = trackeval.datasets._base_dataset._BaseDataset
-    gt, pred = gt.sorted(), pred.sorted()
-    _, g = np.unique(gt.id, return_inverse=True)
-    _, h = np.unique(pred.id, return_inverse=True)
-    both = np.concatenate([gt.frame, pred.frame])
-    frames = np.arange(both.min(), both.max() + 2) if both.size else np.arange(3)
-    data = {"gt_ids": [], "tracker_ids": [], "similarity_scores": [], "num_timesteps": frames.size,
-            "num_gt_dets": gt.size, "num_tracker_dets": pred.size,
-            "num_gt_ids": int(g.max(initial=-1)) + 1, "num_tracker_ids": int(h.max(initial=-1)) + 1}
-    for f in frames:
-        a, b = gt.frame == f, pred.frame == f
-        if iou is not None:
-            s = Dataset._calculate_box_ious(gt.boxes()[a], pred.boxes()[b], box_format="xywh")
-        else:
-            s = Dataset._calculate_euclidean_similarity(gt.centers()[a], pred.centers()[b], zero_distance=threshold)
-        data["gt_ids"].append(g[a])
-        data["tracker_ids"].append(h[b])
-        data["similarity_scores"].append(s)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        return trackeval.metrics.HOTA().eval_sequence(data)
+        pytest.importorskip("trackeval")
+    return trackeval_hota(trackeval_data(gt, pred, threshold=threshold, iou=iou))
 
 
 def assert_same(ours: dict, ref: dict) -> None:
@@ -107,17 +87,6 @@ def test_shipped_motchallenge_files_iou(name):
     ours = hota(gt, pred, iou=0.5)
     assert 0 < ours["HOTA"] < 1
     assert_same(ours, trackeval_reference(gt, pred, iou=0.5))
-
-
-@pytest.mark.parametrize("seed", range(3))
-@pytest.mark.parametrize("iou", [None, 0.5])
-def test_sparse_path_gives_the_same_scores(seed, iou, monkeypatch):
-    gt, pred = random_tracks(seed, noise=1.5)
-    dense = hota(gt, pred, iou=iou)
-    monkeypatch.setattr(hota_module, "DENSE_LIMIT", 0)
-    sparse = hota(gt, pred, iou=iou)
-    for key in (*KEYS, "TP", "FN", "FP"):
-        np.testing.assert_allclose(sparse["per_alpha"][key], dense["per_alpha"][key], rtol=0, atol=1e-12)
 
 
 def test_tens_of_thousands_in_one_frame():
@@ -191,3 +160,22 @@ def test_bad_arguments():
         hota(gt, pred, iou=1.5)
     with pytest.raises(TorchtrackError, match="negative ids"):
         hota(concat_mot([gt, from_points([1], [-1], [0.0], [0.0])]), pred)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_per_component_assignment_is_the_dense_optimum(seed):
+    """Sparse pairs in clusters of every shape (1 x k, 2 x 2, ..., up to 9 x 9): the assignment built per
+    connected component (enumerated or Hungarian) reaches the total of one dense Hungarian solve."""
+    from scipy.optimize import linear_sum_assignment
+
+    rng = np.random.default_rng(seed)
+    n, m = 300, 280
+    cluster_of_row, cluster_of_col = rng.integers(0, 60, n), rng.integers(0, 60, m)
+    i, j = np.nonzero((cluster_of_row[:, None] == cluster_of_col[None, :]) & (rng.random((n, m)) < 0.7))
+    score = rng.random(i.size)
+    dense = np.zeros((n, m))
+    dense[i, j] = score
+    r, k = linear_sum_assignment(-dense)
+    won = hota_module._assign(n, m, i, j, score)
+    assert np.unique(i[won]).size == won.size and np.unique(j[won]).size == won.size  # one-to-one
+    assert score[won].sum() == pytest.approx(dense[r, k].sum(), rel=1e-12)

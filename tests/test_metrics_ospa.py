@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.metrics import gospa, ospa
+from torchtrack.metrics.ospa import gospa, ospa
 
 
 def t(rows):
@@ -127,7 +127,7 @@ def test_per_frame_on_mot_data_matches_direct_and_chunks(monkeypatch):
     import numpy as np
 
     from torchtrack.io.mot import from_points
-    from torchtrack.metrics import mot_ospa_gospa
+    from torchtrack.metrics.ospa import mot_ospa_gospa
 
     rng = np.random.default_rng(0)
     gt = from_points(rng.integers(1, 8, 40), np.arange(40), rng.uniform(0, 30, 40), rng.uniform(0, 30, 40))

@@ -3,15 +3,15 @@
 from __future__ import annotations
 
 import argparse
-import math
+from collections.abc import Sequence
 from pathlib import Path
 
 from torchtrack.cli._common import add_common_options, bounded, positive_float
+from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import read_mot
 from torchtrack.io.outputs import write_json
-from torchtrack.io.wpafb import moving_mask
-from torchtrack.metrics import clear_mot, drop_ignored, hota, mot_ospa_gospa
 from torchtrack.metrics.clear_mot import KEYS
+from torchtrack.metrics.evaluation import OSPA_KEYS, EvalOptions, benchmark_sequences, combine, evaluate
 from torchtrack.metrics.hota import KEYS as HOTA_KEYS
 from torchtrack.metrics.table import format_table
 
@@ -36,16 +36,27 @@ matched to one is dropped (neither a hit nor a false positive); --count-zero-con
 --moving keeps only ground-truth objects that moved more than 5 px over the last 15 frames (the
 paper's evaluation); predictions matched to the other objects are ignored, not counted as false.
 
-example:
+A whole benchmark in the MOTChallenge layout: --gt-folder DIR with DIR/SEQ/gt/gt.txt for every sequence,
+--pred-folder DIR with the tracker's DIR/SEQ.txt; one row per sequence and a COMBINED row, combined as
+TrackEval combines sequences (CLEAR-MOT and IDF1 from summed counts; HOTA from summed per-alpha counts with
+AssA/AssRe/AssPr/LocA weighted by each sequence's TP). The JSON then holds {"sequences": {SEQ: scores},
+"combined": scores}.
+
+examples:
   torchtrack eval --gt gt.txt --pred out/tracks.txt --threshold 10 --json out/eval.json
+  torchtrack eval --gt-folder data/MOT17/train --pred-folder out/mot17 --iou 0.5 --json out/mot17.json
 """
 
 PERCENT = ("MOTA", "IDF1", "precision", "recall")
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--gt", type=Path, required=True, help="ground truth, MOTChallenge text")
-    parser.add_argument("--pred", type=Path, required=True, help="tracker output, MOTChallenge text")
+    parser.add_argument("--gt", type=Path, help="ground truth, MOTChallenge text")
+    parser.add_argument("--pred", type=Path, help="tracker output, MOTChallenge text")
+    parser.add_argument("--gt-folder", type=Path, metavar="DIR",
+                        help="a whole benchmark instead: DIR/SEQ/gt/gt.txt for every sequence SEQ")
+    parser.add_argument("--pred-folder", type=Path, metavar="DIR",
+                        help="with --gt-folder: the tracker output DIR/SEQ.txt of every sequence")
     gate = parser.add_mutually_exclusive_group()
     gate.add_argument("--threshold", type=positive_float, default=10.0, metavar="PX",
                       help="centre-distance gate in pixels (default 10)")
@@ -61,45 +72,50 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_common_options(parser)
 
 
-def format_scores(scores: dict) -> str:
-    """The scores as one table row, ratios in percent."""
-    header, row = [], []
-    for key in KEYS:
-        value = scores[key]
-        if key in PERCENT:
-            header.append(f"{key}%")
-            row.append(100 * value if not math.isnan(value) else value)
-        else:
-            header.append(key)
-            row.append(value)
-    return format_table(header, [row], floatfmt=".2f")
+def _percent(key: str, value: float) -> float:
+    return 100 * value if key in PERCENT or key in HOTA_KEYS else value
 
 
-def format_hota(scores: dict) -> str:
-    """The HOTA scores as one table row, in percent."""
-    return format_table([f"{key}%" for key in HOTA_KEYS], [[100 * scores[key] for key in HOTA_KEYS]],
-                        floatfmt=".2f")
+def format_rows(rows: dict[str, dict], keys: Sequence[str], floatfmt: str = ".2f") -> str:
+    """One table row per entry of ``rows`` (name → scores; the name column only when there are several),
+    the columns ``keys``, ratios in percent."""
+    header = [f"{key}%" if key in PERCENT or key in HOTA_KEYS else key for key in keys]
+    table = [[_percent(key, scores[key]) for key in keys] for scores in rows.values()]
+    if len(rows) > 1:
+        header, table = ["sequence", *header], [[name, *row] for name, row in zip(rows, table)]
+    return format_table(header, table, floatfmt=floatfmt)
+
+
+def _options(args: argparse.Namespace) -> EvalOptions:
+    single = (args.gt is not None, args.pred is not None)
+    folders = (args.gt_folder is not None, args.pred_folder is not None)
+    if not (all(single) and not any(folders) or all(folders) and not any(single)):
+        raise TorchtrackError("give --gt and --pred, or --gt-folder and --pred-folder")
+    return EvalOptions(args.threshold, args.iou, args.moving, args.count_zero_conf, args.ospa)
 
 
 def run(args: argparse.Namespace) -> int:
-    gt, pred = read_mot(args.gt), read_mot(args.pred)
-    if args.moving:
-        gt, pred = drop_ignored(gt, pred, ~moving_mask(gt), threshold=args.threshold, iou=args.iou)
-    scores = clear_mot(gt, pred, threshold=args.threshold, iou=args.iou, count_zero_conf=args.count_zero_conf)
-    gate = f"IoU >= {args.iou}" if args.iou is not None else f"centre distance <= {args.threshold} px"
-    print(f"{args.pred} vs {args.gt} ({gate}{', moving objects only' if args.moving else ''})")
-    print(format_scores(scores))
-    hota_scores = hota(gt, pred, threshold=args.threshold, iou=args.iou, count_zero_conf=args.count_zero_conf)
-    print(format_hota(hota_scores))
-    scores.update({key: hota_scores[key] for key in HOTA_KEYS})
-    if args.ospa is not None:
-        _, o, g = mot_ospa_gospa(gt, pred, c=args.ospa, p_ospa=1.0, p_gospa=2.0)
-        om, gm = o.mean(), g.mean()
-        sets = {"OSPA": om["total"], "OSPA_localisation": om["localisation"], "OSPA_cardinality": om["cardinality"],
-                "GOSPA": gm["total"], "GOSPA_localisation": gm["localisation"], "GOSPA_missed": gm["missed"],
-                "GOSPA_false": gm["false"]}
-        print(f"mean per frame, cut-off {args.ospa:g} px (GOSPA parts in px^2)")
-        print(format_table(list(sets), [list(sets.values())], floatfmt=".3f"))
-        scores.update(sets)
-    write_json(args.json, {**scores, "gate": gate, "moving_only": bool(args.moving)})
+    options = _options(args)
+    if args.gt is not None:
+        pairs = [("", args.gt, args.pred)]
+        print(f"{args.pred} vs {args.gt} ({options.gate}{', moving objects only' if args.moving else ''})")
+    else:
+        pairs = benchmark_sequences(args.gt_folder, args.pred_folder)
+        print(f"{args.pred_folder} vs {args.gt_folder}: {len(pairs)} sequences "
+              f"({options.gate}{', moving objects only' if args.moving else ''})")
+    evaluations = {name: evaluate(read_mot(gt), read_mot(pred), options) for name, gt, pred in pairs}
+    if len(pairs) > 1:
+        evaluations["COMBINED"] = combine(list(evaluations.values()))
+    rows = {name: e.scores() for name, e in evaluations.items()}
+    print(format_rows(rows, KEYS))
+    print(format_rows(rows, HOTA_KEYS))
+    if options.ospa is not None:
+        print(f"mean per frame, cut-off {options.ospa:g} px (GOSPA parts in px^2)")
+        print(format_rows(rows, OSPA_KEYS, floatfmt=".3f"))
+    about = {"gate": options.gate, "moving_only": bool(args.moving)}
+    if args.gt is not None:
+        write_json(args.json, {**rows[""], **about})
+    else:
+        combined = rows.pop("COMBINED") if len(pairs) > 1 else next(iter(rows.values()))
+        write_json(args.json, {"sequences": rows, "combined": combined, **about})
     return 0

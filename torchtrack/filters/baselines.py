@@ -18,7 +18,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from torchtrack.association.assignment import by_component, gated_pairs, hungarian
+from torchtrack.association.assignment import hungarian
+from torchtrack.association.pairs import by_component, gated_pairs
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd_input import InputAwareGMPHD
 from torchtrack.filters.gmphd_tracker import GMPHDTracker

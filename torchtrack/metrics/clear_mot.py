@@ -39,11 +39,13 @@ result is the same optimum (ties may break differently from motmetrics).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 from scipy.spatial import cKDTree
 
-from torchtrack.association.assignment import by_component
+from torchtrack.association.pairs import by_component
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData
 
@@ -225,7 +227,7 @@ def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | 
 
     Returns:
         dict with :data:`KEYS` (``MOTA, MOTP, IDF1, MT, PT, ML, FP, FN, IDS, FRAG, TP, GT, precision,
-        recall, frames``) plus ``IDP, IDR, GT_objects, predictions``. Fractions are in [0, 1] (MOTA may
+        recall, frames``) plus ``IDP, IDR, GT_objects, predictions, IDTP``. Fractions are in [0, 1] (MOTA may
         be negative), counts are ints. The matching rule and definitions are in the module docstring.
     """
     gt, pred = scored_sets(gt, pred, threshold, iou, ignore, count_zero_conf, "CLEAR-MOT")
@@ -316,24 +318,29 @@ def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | 
     # IDF1: best global one-to-one matching of trajectory ids to hypothesis ids
     idtp = _idtp(np.concatenate(pair_keys) if pair_keys else np.zeros(0, np.int64), n_hyp)
 
-    return {
-        "MOTA": 1.0 - _div(fn + fp + ids, n_gt_boxes),
-        "MOTP": _div(match_d[tracked].sum(), tp),
-        "IDF1": _div(2 * idtp, n_gt_boxes + n_pred_boxes),
-        "MT": mt,
-        "PT": int(n_obj - mt - ml),
-        "ML": ml,
-        "FP": int(fp),
-        "FN": int(fn),
-        "IDS": ids,
-        "FRAG": frag,
-        "TP": tp,
-        "GT": int(n_obj),
-        "precision": _div(tp, tp + fp),
-        "recall": _div(tp, n_gt_boxes),
-        "frames": int(frames.size),
-        "IDP": _div(idtp, n_pred_boxes),
-        "IDR": _div(idtp, n_gt_boxes),
-        "GT_objects": int(n_gt_boxes),
-        "predictions": int(n_pred_boxes),
-    }
+    counts = {"MT": mt, "PT": int(n_obj - mt - ml), "ML": ml, "FP": int(fp), "FN": int(fn), "IDS": ids,
+              "FRAG": frag, "TP": tp, "GT": int(n_obj), "frames": int(frames.size), "GT_objects": int(n_gt_boxes),
+              "predictions": int(n_pred_boxes), "IDTP": int(idtp)}
+    return _with_ratios(counts, float(match_d[tracked].sum()))
+
+
+COUNTS = ("MT", "PT", "ML", "FP", "FN", "IDS", "FRAG", "TP", "GT", "frames", "GT_objects", "predictions", "IDTP")
+"""The integer counts of :func:`clear_mot`; every other score is a ratio of them (and the distance sum)."""
+
+
+def _with_ratios(counts: dict, distance_sum: float) -> dict:
+    """``counts`` (:data:`COUNTS`) with the scores that are ratios of them; ``distance_sum`` over the matches."""
+    tp, n_gt, n_pred, idtp = counts["TP"], counts["GT_objects"], counts["predictions"], counts["IDTP"]
+    return {"MOTA": 1.0 - _div(counts["FN"] + counts["FP"] + counts["IDS"], n_gt), "MOTP": _div(distance_sum, tp),
+            "IDF1": _div(2 * idtp, n_gt + n_pred), **counts, "precision": _div(tp, tp + counts["FP"]),
+            "recall": _div(tp, n_gt), "IDP": _div(idtp, n_pred), "IDR": _div(idtp, n_gt)}
+
+
+def combine(results: Sequence[dict]) -> dict:
+    """The scores of several sequences together, as TrackEval combines them: the :data:`COUNTS` summed (ids of
+    different sequences are different trajectories), the ratios recomputed from the sums, MOTP the mean over
+    all matches (each sequence's MOTP weighted by its TP)."""
+    if not results:
+        raise TorchtrackError("CLEAR-MOT: no sequences to combine")
+    counts = {key: sum(int(r[key]) for r in results) for key in COUNTS}
+    return _with_ratios(counts, sum(r["MOTP"] * r["TP"] for r in results if r["TP"] > 0))

@@ -18,19 +18,30 @@ Computed as TrackEval's ``HOTA`` metric class does, so the numbers agree with it
 The reported scores are the means of these over the 19 alphas. Similarities: **centre mode** (default)
 ``S = max(0, 1 - d / threshold)`` with ``d`` the distance between box centres in pixels (TrackEval's
 euclidean similarity with ``zero_distance = threshold``); **IoU mode** the IoU of the boxes (TrackEval's
-``_calculate_box_ious``, boxes of zero area overlap nothing). A frame with more than :data:`DENSE_LIMIT`
-(object, hypothesis) pairs is matched through a k-d tree search for the pairs with ``S > 0`` and one
-assignment per connected component: the same optimum in bounded memory (ties may break differently).
+``_calculate_box_ious``, boxes of zero area overlap nothing).
+
+No frame is a dense matrix and no step loops over frames: one k-d tree search finds the pairs with
+``S > 0`` of all frames, step 1 is sums over them, and step 2 solves each connected component of the pairs
+(small ones all at once by enumeration): the optimum TrackEval's dense solve finds, in memory proportional to
+the pairs (ties may break differently). :func:`combine` scores several sequences together as TrackEval does.
 """
 
 from __future__ import annotations
 
+import itertools
+import math
+from collections.abc import Sequence
+
 import numpy as np
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
-from torchtrack.association.assignment import by_component, gated_pairs
+from torchtrack.association.pairs import by_component
+from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData
-from torchtrack.metrics.clear_mot import DENSE_LIMIT, scored_sets
+from torchtrack.metrics.clear_mot import scored_sets
 
 ALPHAS = np.arange(0.05, 0.99, 0.05)
 """The 19 localisation thresholds alpha = 0.05, 0.10, ..., 0.95 (TrackEval's ``array_labels``)."""
@@ -38,6 +49,9 @@ ALPHAS = np.arange(0.05, 0.99, 0.05)
 KEYS = ("HOTA", "DetA", "AssA", "LocA", "DetRe", "DetPr", "AssRe", "AssPr")
 
 _EPS = np.finfo(float).eps
+
+_ENUMERATED = 1000
+"""Most assignments enumerated for one shape of connected component; larger ones are solved by the Hungarian."""
 
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -57,24 +71,22 @@ def centre_similarity(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndar
     return np.maximum(0.0, 1.0 - np.linalg.norm(a - b, axis=-1) / threshold)
 
 
-def _frame_pairs(a: np.ndarray, b: np.ndarray, threshold: float, iou: bool) -> tuple[np.ndarray, ...]:
-    """``(i, j, S_ij)`` of the pairs of features ``a`` (n, k), ``b`` (m, k) with similarity S > 0, in row-major
-    order; a frame with more than :data:`DENSE_LIMIT` pairs is searched with k-d trees on the centres."""
-    n, m = a.shape[0], b.shape[0]
-    if n * m <= DENSE_LIMIT:
-        s = box_iou(a[:, None], b[None, :]) if iou else centre_similarity(a[:, None], b[None, :], threshold)
-        i, j = np.nonzero(s > 0)
-        return i, j, s[i, j]
-    if iou:
-        # overlapping boxes have centres closer than the sum of their half diagonals
-        radius = 0.5 * (np.hypot(a[:, 2], a[:, 3]).max() + np.hypot(b[:, 2], b[:, 3]).max())
-        i, j, _ = gated_pairs(a[:, :2] + 0.5 * a[:, 2:], b[:, :2] + 0.5 * b[:, 2:], radius * (1 + 1e-9) + 1e-9)
-        sim = box_iou(a[i], b[j])
+def _pairs(gt: MOTData, pred: MOTData, threshold: float, iou: bool) -> tuple[np.ndarray, ...]:
+    """``(i, j, S)``: every line ``i`` of ``gt`` and ``j`` of ``pred`` of the same frame with similarity
+    ``S > 0``, found in one k-d tree search over all frames (the frame number is a third
+    coordinate, scaled so that points of different frames are farther apart than any pair that can score)."""
+    ca, cb = gt.centers(), pred.centers()
+    if iou:  # overlapping boxes have centres closer than the sum of their half diagonals
+        radius = 0.5 * (np.hypot(gt.w, gt.h).max(initial=0) + np.hypot(pred.w, pred.h).max(initial=0))
     else:
-        i, j, _ = gated_pairs(a, b, threshold)
-        sim = centre_similarity(a[i], b[j], threshold)
-    order = np.argsort(i * m + j)
-    i, j, sim = i[order], j[order], sim[order]
+        radius = threshold
+    radius = radius * (1 + 1e-9) + 1e-9
+    span = 2 * radius + 1.0
+    tree_a = cKDTree(np.column_stack([ca, gt.frame * span]), balanced_tree=False)
+    tree_b = cKDTree(np.column_stack([cb, pred.frame * span]), balanced_tree=False)
+    found = tree_a.sparse_distance_matrix(tree_b, radius, output_type="ndarray")
+    i, j = found["i"].astype(np.int64), found["j"].astype(np.int64)
+    sim = box_iou(gt.boxes()[i], pred.boxes()[j]) if iou else centre_similarity(ca[i], cb[j], threshold)
     keep = sim > 0
     return i[keep], j[keep], sim[keep]
 
@@ -84,21 +96,74 @@ def _max_score(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return linear_sum_assignment(-np.nan_to_num(score, nan=0.0))
 
 
-def _assign(n: int, m: int, i: np.ndarray, j: np.ndarray, score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Rows and columns assigned by the Hungarian algorithm maximising the total ``score`` of the pairs
-    ``(i, j)`` (all other pairs score 0); only assigned pairs among ``(i, j)`` are returned, as positions
-    into them. Dense frames give TrackEval's exact assignment; larger ones are solved per connected
-    component of the pairs (the same optimum; ties may break differently)."""
+def _present(values: np.ndarray, size: int) -> np.ndarray:
+    """The distinct ``values`` (ints in [0, size)), ascending."""
+    seen = np.zeros(size, bool)
+    seen[values] = True
+    return np.flatnonzero(seen)
+
+
+def _local_index(nodes: np.ndarray, label: np.ndarray) -> np.ndarray:
+    """The rank of each of the ascending ``nodes`` among the nodes of its component ``label[nodes]``."""
+    order = np.argsort(label[nodes], kind="stable")
+    group = label[nodes][order]
+    start = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    rank = np.empty(nodes.size, np.int64)
+    rank[order] = np.arange(nodes.size) - np.repeat(start, np.diff(np.r_[start, nodes.size]))
+    return rank
+
+
+def _segments(sorted_keys: np.ndarray) -> list[slice]:
+    """The runs of equal values of ``sorted_keys``."""
+    bounds = np.r_[0, np.flatnonzero(sorted_keys[1:] != sorted_keys[:-1]) + 1, sorted_keys.size]
+    return [slice(lo, hi) for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist())]
+
+
+def _assign(n: int, m: int, i: np.ndarray, j: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Positions into the pairs ``(i, j)`` of the assignment of ``n`` rows to ``m`` columns maximising the
+    total ``score > 0`` (every other pair scores 0).
+
+    The pairs' connected components are independent. A component with ``s`` rows or columns on its smaller
+    side and ``L`` on the other is solved exactly by enumerating the ``L! / (L - s)!`` ways to give each of
+    the ``s`` a distinct partner (all components of one shape at once) when there are at most
+    :data:`_ENUMERATED` of them — one row or column: its best pair; 2 x 2: the better diagonal — and by the
+    Hungarian algorithm otherwise. The optimum of a dense solve; ties may break differently.
+    """
     if i.size == 0:
         return np.zeros(0, np.int64)
-    if n * m <= DENSE_LIMIT:
-        dense = np.zeros((n, m))
-        dense[i, j] = score
-        r, k = _max_score(dense)
-    else:
-        r, k, _ = by_component(n, m, i, j, score, _max_score)
-    pos = np.minimum(np.searchsorted(i * m + j, r * m + k), i.size - 1)
-    return pos[(i[pos] == r) & (j[pos] == k)]
+    graph = coo_matrix((np.ones(i.size), (i, n + j)), shape=(n + m, n + m))
+    count, label = connected_components(graph, directed=False)
+    rows, cols = _present(i, n), n + _present(j, m)
+    local = np.zeros(n + m, np.int64)
+    local[rows], local[cols] = _local_index(rows, label), _local_index(cols, label)
+    n_rows, n_cols = np.bincount(label[rows], minlength=count), np.bincount(label[cols], minlength=count)
+    flip = (n_rows > n_cols)[label[i]]  # enumerate from the smaller side
+    a, b = np.where(flip, local[n + j], local[i]), np.where(flip, local[i], local[n + j])
+    small, large = np.minimum(n_rows, n_cols), np.maximum(n_rows, n_cols)
+    comp = label[i]
+    order = np.lexsort((comp, large[comp], small[comp]))  # by shape, then component
+    won, hungarian = [], []
+    for seg in _segments(small[comp][order] * (large.max() + 1) + large[comp][order]):
+        mine = order[seg]
+        s, size = int(small[comp[mine[0]]]), int(large[comp[mine[0]]])
+        if math.perm(size, s) > _ENUMERATED:
+            hungarian.append(mine)
+            continue
+        slot = np.cumsum(np.r_[0, comp[mine][1:] != comp[mine][:-1]])
+        block = np.zeros((slot[-1] + 1, s, size))
+        where = np.full(block.shape, -1)
+        block[slot, a[mine], b[mine]] = score[mine]
+        where[slot, a[mine], b[mine]] = mine
+        maps = np.array(list(itertools.permutations(range(size), s)))  # (P, s)
+        best = maps[block[:, np.arange(s), maps].sum(-1).argmax(1)]  # (components, s)
+        picked = where[np.arange(block.shape[0])[:, None], np.arange(s), best]
+        won.append(picked[picked >= 0])
+    rest = np.concatenate(hungarian) if hungarian else np.zeros(0, np.int64)
+    r, k, _ = by_component(n, m, i[rest], j[rest], score[rest], _max_score)
+    key = i[rest] * m + j[rest]
+    at = np.argsort(key)
+    pos = at[np.minimum(np.searchsorted(key[at], r * m + k), max(rest.size - 1, 0))] if rest.size else rest
+    return np.concatenate([*won, rest[pos[key[pos] == r * m + k]]])
 
 
 def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None = None,
@@ -125,37 +190,23 @@ def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None 
     _, g = np.unique(gt.id, return_inverse=True)
     hyp_ids, h = np.unique(pred.id, return_inverse=True)
     n_hyp = max(hyp_ids.size, 1)
-    gf, pf = (gt.boxes(), pred.boxes()) if iou is not None else (gt.centers(), pred.centers())
-    frames = np.intersect1d(gt.frame, pred.frame)
-    g_lo, g_hi = np.searchsorted(gt.frame, frames, "left"), np.searchsorted(gt.frame, frames, "right")
-    p_lo, p_hi = np.searchsorted(pred.frame, frames, "left"), np.searchsorted(pred.frame, frames, "right")
+    i, j, sim = _pairs(gt, pred, threshold, iou is not None)
 
-    # pass 1: similarity-weighted co-occurrence of id pairs (step 1), over the pairs with S > 0
-    pairs, keys, soft = [], [], []
-    for a, b, c, e in zip(g_lo, g_hi, p_lo, p_hi):
-        i, j, sim = _frame_pairs(gf[a:b], pf[c:e], threshold, iou is not None)
-        row_sum = np.bincount(i, weights=sim, minlength=b - a)
-        col_sum = np.bincount(j, weights=sim, minlength=e - c)
-        denom = col_sum[j] + row_sum[i] - sim
-        pairs.append((i, j, sim))
-        keys.append(g[a + i] * n_hyp + h[c + j])
-        soft.append(sim / np.where(denom > _EPS, denom, np.inf))
+    # step 1: similarity-weighted co-occurrence of id pairs, from the frames' row and column sums of S
+    row_sum = np.bincount(i, weights=sim, minlength=gt.size)
+    col_sum = np.bincount(j, weights=sim, minlength=pred.size)
+    denom = row_sum[i] + col_sum[j] - sim
+    soft = sim / np.where(denom > _EPS, denom, np.inf)
     gt_count = np.bincount(g).astype(np.float64)
     hyp_count = np.bincount(h).astype(np.float64)
-    pair_keys, pair_of = np.unique(np.concatenate(keys) if keys else np.zeros(0, np.int64), return_inverse=True)
-    co = np.bincount(pair_of, weights=np.concatenate(soft) if soft else None, minlength=pair_keys.size)
+    pair_keys, pair_of = np.unique(g[i] * n_hyp + h[j], return_inverse=True)
+    co = np.bincount(pair_of, weights=soft, minlength=pair_keys.size)
     alignment = co / (gt_count[pair_keys // n_hyp] + hyp_count[pair_keys % n_hyp] - co)
 
-    # pass 2: per-frame Hungarian on A * S (step 2); the TPs of every alpha at once
-    offsets = np.cumsum([0] + [k.size for k in keys])
-    match_keys, match_sims = [], []
-    for t, (i, j, sim) in enumerate(pairs):
-        won = _assign(g_hi[t] - g_lo[t], p_hi[t] - p_lo[t], i, j,
-                      alignment[pair_of[offsets[t]:offsets[t + 1]]] * sim)
-        match_sims.append(sim[won])
-        match_keys.append(keys[t][won])
-    m_sims = np.concatenate(match_sims) if match_sims else np.zeros(0)
-    m_keys = np.concatenate(match_keys) if match_keys else np.zeros(0, np.int64)
+    # step 2: the assignment maximising A * S in every frame (one per connected component of the pairs,
+    # which never spans two frames); the TPs of every alpha at once
+    won = _assign(gt.size, pred.size, i, j, alignment[pair_of] * sim)
+    m_sims, m_keys = sim[won], pair_keys[pair_of[won]]
     hit = m_sims[:, None] >= ALPHAS[None, :] - _EPS  # (matches, 19)
     tp = hit.sum(0).astype(np.float64)
     fn, fp = gt.size - tp, pred.size - tp
@@ -163,18 +214,36 @@ def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None 
 
     # step 3: association per alpha from the TP count c of each id pair
     uniq, pair = np.unique(m_keys, return_inverse=True)
-    c = np.zeros((uniq.size, ALPHAS.size))
-    np.add.at(c, pair, hit)
+    cell = (pair[:, None] * ALPHAS.size + np.arange(ALPHAS.size))[hit]
+    c = np.bincount(cell, minlength=uniq.size * ALPHAS.size).reshape(uniq.size, ALPHAS.size).astype(np.float64)
     n_o, n_h = gt_count[uniq // n_hyp][:, None], hyp_count[uniq % n_hyp][:, None]
     per_tp = np.maximum(1.0, tp)
     ass_a = (c * c / np.maximum(1.0, n_o + n_h - c)).sum(0) / per_tp
     ass_re = (c * c / np.maximum(1.0, n_o)).sum(0) / per_tp
     ass_pr = (c * c / np.maximum(1.0, n_h)).sum(0) / per_tp
+    return _scores(tp, fn, fp, ass_a, ass_re, ass_pr, np.maximum(1e-10, loc) / np.maximum(1e-10, tp))
+
+
+def _scores(tp: np.ndarray, fn: np.ndarray, fp: np.ndarray, ass_a: np.ndarray, ass_re: np.ndarray,
+            ass_pr: np.ndarray, loc_a: np.ndarray) -> dict:
+    """The result of :func:`hota` from the per-alpha (19,) counts and association and localisation scores."""
     det_a = tp / np.maximum(1.0, tp + fn + fp)
     per_alpha = {
-        "HOTA": np.sqrt(det_a * ass_a), "DetA": det_a, "AssA": ass_a,
-        "LocA": np.maximum(1e-10, loc) / np.maximum(1e-10, tp),
+        "HOTA": np.sqrt(det_a * ass_a), "DetA": det_a, "AssA": ass_a, "LocA": loc_a,
         "DetRe": tp / np.maximum(1.0, tp + fn), "DetPr": tp / np.maximum(1.0, tp + fp),
         "AssRe": ass_re, "AssPr": ass_pr, "TP": tp, "FN": fn, "FP": fp,
     }
     return {**{key: float(per_alpha[key].mean()) for key in KEYS}, "alpha": ALPHAS.copy(), "per_alpha": per_alpha}
+
+
+def combine(results: Sequence[dict]) -> dict:
+    """HOTA of several sequences together (results of :func:`hota`), as TrackEval's ``combine_sequences``: TP,
+    FN and FP summed per alpha; AssA, AssRe, AssPr and LocA the means weighted by each sequence's TP; the
+    detection scores and HOTA recomputed from those."""
+    if not results:
+        raise TorchtrackError("HOTA: no sequences to combine")
+    per = [r["per_alpha"] for r in results]
+    tp, fn, fp = (sum(p[key] for p in per) for key in ("TP", "FN", "FP"))
+    weighted = {key: sum(p[key] * p["TP"] for p in per) for key in ("AssA", "AssRe", "AssPr", "LocA")}
+    ass_a, ass_re, ass_pr = (weighted[key] / np.maximum(1.0, tp) for key in ("AssA", "AssRe", "AssPr"))
+    return _scores(tp, fn, fp, ass_a, ass_re, ass_pr, np.maximum(1e-10, weighted["LocA"]) / np.maximum(1e-10, tp))
