@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.io import mot
 from torchtrack.io.mot import POINT_BOX_SIZE, MOTWriter, read_mot, write_mot
 
 MOTMETRICS_DATA = None
@@ -141,3 +142,31 @@ def test_reads_motmetrics_sample_like_motmetrics():
         np.testing.assert_allclose(ours.x - 1, ref["X"])  # motmetrics shifts to 0-based; we keep the file's
         np.testing.assert_allclose(ours.y - 1, ref["Y"])
         np.testing.assert_allclose(ours.h, ref["Height"])
+
+
+@pytest.mark.parametrize("fields", [6, 7, 9, 10])
+def test_plain_files_parsed_in_c_equal_the_line_reader(tmp_path, fields):
+    rng = np.random.default_rng(fields)
+    rows = np.column_stack([rng.integers(0, 50, 200), np.arange(200) - 1, rng.uniform(-5, 500, (200, 2)),
+                            rng.uniform(0, 9, (200, 2)), rng.uniform(0, 1, 200), rng.normal(0, 2, (200, 3))])
+    path = tmp_path / "plain.txt"
+    path.write_text("\n".join(",".join(f"{v:.6g}" for v in row[:fields]) for row in rows))  # no final newline
+    fast, slow = mot._read_uniform(path), mot._read_lines(path)
+    assert fast is not None
+    for a, b in zip(fast, slow):
+        assert a.dtype == b.dtype and np.array_equal(a, b)
+
+
+@pytest.mark.parametrize(("text", "ids"), [
+    ("# a comment\n1,1,0,0,1,1\n", [1]), ("1,1,0,0,1,1\n\n2,1,0,0,1,1\n", [1, 1]), ("1 1 0 0 1 1\n", [1]),
+    ("1,9007199254740993,0,0,1,1\n", [9007199254740993]), ("", []), ("1,1,0,0,1,1\n2,1,0,0,1\n", None)])
+def test_other_files_are_read_line_by_line(tmp_path, text, ids):
+    """Comments, blank lines, spaces, ids beyond 2**53 (exact only line by line), empty files and bad lines."""
+    path = tmp_path / "other.txt"
+    path.write_text(text)
+    assert mot._read_uniform(path) is None
+    if ids is None:
+        with pytest.raises(TorchtrackError, match=r"other.txt:2: expected 6 to 10 fields"):
+            read_mot(path)
+    else:
+        assert read_mot(path).id.tolist() == ids

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from array import array
 from collections.abc import Iterable, Sequence
 from pathlib import Path
@@ -182,16 +183,42 @@ def _integer(field: str, what: str, path: Path, lineno: int) -> int:
     return value
 
 
-def read_mot(path: str | os.PathLike) -> MOTData:
-    """Read a MOTChallenge text file (see the module docstring for the format and the velocity rule).
+def _read_uniform(path: Path) -> tuple[np.ndarray, ...] | None:
+    """The columns of a file whose every line holds the same number (6 to 10) of comma-separated numbers, all
+    valid, parsed in C (:func:`numpy.loadtxt`; about four times faster than :func:`_read_lines`, with a peak
+    of about twice the result's memory), as
+    ``(frame, id, x, y, w, h, conf, c8, c9, line numbers)``; None for anything else (comments, blank lines,
+    whitespace separators, a bad value, ids beyond 2**53): :func:`_read_lines` then reads it, naming any
+    bad line."""
+    try:
+        with open(path, "rb") as handle:
+            n_lines, last = 0, b""
+            for chunk in iter(lambda: handle.read(1 << 20), b""):
+                n_lines, last = n_lines + chunk.count(b"\n"), chunk[-1:]
+        n_lines += last not in (b"", b"\n")
+        if n_lines == 0:
+            return None
+        with warnings.catch_warnings():
+            warnings.simplefilter("error")  # numpy warns (rather than fails) on some malformed input
+            table = np.loadtxt(path, delimiter=",", comments=None, ndmin=2, encoding="utf-8")
+    except (OSError, ValueError, UnicodeError, Warning):
+        return None
+    if table.shape[0] != n_lines or not 6 <= table.shape[1] <= 10 or not np.isfinite(table).all():
+        return None
+    columns = np.ascontiguousarray(table.T)  # one row per column: the result's arrays are views of it
+    del table
+    frame, ident = columns[0], columns[1]
+    exact = (np.abs(columns[:2]) < 2**53).all() and (columns[:2] == np.round(columns[:2])).all()
+    if not exact or (frame < 0).any() or (ident < -1).any() or (columns[4:6] < 0).any():
+        return None
+    defaults = (1.0, -1.0, -1.0)  # conf, c8, c9 where the lines stop short
+    rest = [columns[k] if k < columns.shape[0] else np.full(n_lines, defaults[k - 6]) for k in range(6, 9)]
+    return frame.astype(np.int64), ident.astype(np.int64), *columns[2:6], *rest, np.arange(1, n_lines + 1)
 
-    Raises TorchtrackError naming the file and line for a malformed line (bytes that are not UTF-8, too
-    few or too many fields, non-numbers, NaN/inf, negative, non-integer or beyond-int64 frame, non-integer
-    id or a negative id other than -1, negative box size) and for a repeated (frame, id) pair. An empty
-    file gives an empty MOTData. The file is read line by line into typed columns (8 bytes a value), so
-    memory stays near the size of the result.
-    """
-    path = Path(path)
+
+def _read_lines(path: Path) -> tuple[np.ndarray, ...]:
+    """The columns of any MOTChallenge file, read line by line into typed columns (8 bytes a value, so memory
+    stays near the size of the result), as ``(frame, id, x, y, w, h, conf, c8, c9, line numbers)``."""
     frames, ids = array("q"), array("q")
     values = [array("d") for _ in range(7)]        # x, y, w, h, conf, c8, c9
     linenos = array("q")
@@ -229,10 +256,23 @@ def read_mot(path: str | os.PathLike) -> MOTData:
                     column.append(v)
     except OSError as exc:
         raise TorchtrackError(f"cannot read {path}: {exc.strerror or exc}") from exc
-    if not frames:
+    return (np.frombuffer(frames, dtype=np.int64), np.frombuffer(ids, dtype=np.int64),
+            *(np.frombuffer(c, dtype=np.float64) for c in values), np.frombuffer(linenos, dtype=np.int64))
+
+
+def read_mot(path: str | os.PathLike) -> MOTData:
+    """Read a MOTChallenge text file (see the module docstring for the format and the velocity rule).
+
+    Raises TorchtrackError naming the file and line for a malformed line (bytes that are not UTF-8, too
+    few or too many fields, non-numbers, NaN/inf, negative, non-integer or beyond-int64 frame, non-integer
+    id or a negative id other than -1, negative box size) and for a repeated (frame, id) pair. An empty
+    file gives an empty MOTData. Plain files (every line the same number of comma-separated valid numbers)
+    are parsed in C, any other line by line.
+    """
+    path = Path(path)
+    frame, ident, x, y, w, h, conf, c8, c9, linenos = _read_uniform(path) or _read_lines(path)
+    if not frame.size:
         return empty_mot()
-    frame, ident = np.frombuffer(frames, dtype=np.int64), np.frombuffer(ids, dtype=np.int64)
-    x, y, w, h, conf, c8, c9 = (np.frombuffer(c, dtype=np.float64) for c in values)
     labelled = np.flatnonzero(ident >= 0)
     if labelled.size:
         order = labelled[np.lexsort((ident[labelled], frame[labelled]))]
