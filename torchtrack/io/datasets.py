@@ -128,13 +128,10 @@ def search_path(dataset: Dataset, roots: Sequence[Path], environ: Mapping[str, s
     if environ.get(dataset.env):
         found.append(("env", Path(environ[dataset.env])))
     found += [("shared", r.parent / "shared" / "data" / dataset.folder) for r in roots]
-    unique, seen = [], set()
+    unique: dict[str, tuple[str, Path]] = {}
     for where, folder in found:
-        key = os.path.abspath(folder)
-        if key not in seen:
-            seen.add(key)
-            unique.append((where, folder))
-    return unique
+        unique.setdefault(os.path.abspath(folder), (where, folder))
+    return list(unique.values())
 
 
 def absent_message(dataset: Dataset) -> str:
