@@ -21,11 +21,11 @@ ignored. Images are ordered by natural sort (``frame_2.png`` before ``frame_10.p
 
 from __future__ import annotations
 
-import queue
 import re
-import threading
 import warnings
+from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -211,35 +211,12 @@ def prefetch(frames: Iterable[Frame], size: int = 2) -> Iterator[Frame]:
     """Iterate ``frames`` with up to ``size`` frames decoded ahead in a background thread (OpenCV
     releases the GIL while decoding, so reading overlaps the caller's work). Errors of the source are
     raised in the caller's thread, at the frame where they happened."""
-    q: queue.Queue = queue.Queue(maxsize=size)
-    stop = threading.Event()
-    done = object()
-
-    def work() -> None:
-        try:
-            for f in frames:
-                while not stop.is_set():
-                    try:
-                        q.put(f, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            q.put(done)
-        except BaseException as exc:  # handed to the consumer
-            q.put(exc)
-
-    thread = threading.Thread(target=work, name="frame-prefetch", daemon=True)
-    thread.start()
+    source, done = iter(frames), object()
+    pool = ThreadPoolExecutor(1, thread_name_prefix="frame-prefetch")
+    ahead = deque(pool.submit(next, source, done) for _ in range(size))
     try:
-        while True:
-            item = q.get()
-            if item is done:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
+        while (frame := ahead.popleft().result()) is not done:
+            ahead.append(pool.submit(next, source, done))
+            yield frame
     finally:
-        stop.set()
-        thread.join(timeout=5)
+        pool.shutdown(cancel_futures=True)
