@@ -57,9 +57,7 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _score_row(name: str, m: dict | None, fps: float) -> list:
-    if m is None:
-        return [name, *["-"] * len(SCORE_COLUMNS), fps]
-    return [name, *[m[k] for k in SCORE_COLUMNS], fps]
+    return [name, *(m[k] if m is not None else "-" for k in SCORE_COLUMNS), fps]
 
 
 def frame_inputs_given(args: argparse.Namespace) -> bool:

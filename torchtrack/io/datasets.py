@@ -117,8 +117,7 @@ def checkout_root() -> Path | None:
 def default_roots() -> list[Path]:
     """The folders ``data/`` and ``../shared/data`` are looked for under: the current folder, then the
     source checkout (where there is one)."""
-    checkout = checkout_root()
-    return [Path.cwd()] + ([checkout] if checkout is not None else [])
+    return [Path.cwd(), *filter(None, [checkout_root()])]
 
 
 def search_path(dataset: Dataset, roots: Sequence[Path], environ: Mapping[str, str]) -> list[tuple[str, Path]]:
@@ -134,12 +133,6 @@ def search_path(dataset: Dataset, roots: Sequence[Path], environ: Mapping[str, s
     return list(unique.values())
 
 
-def absent_message(dataset: Dataset) -> str:
-    """How to get ``dataset`` where it is absent, in one line."""
-    return (f"{dataset.folder} data not found; run `torchtrack data fetch {dataset.name}` "
-            f"(into ./data/{dataset.folder}) or set {dataset.env} to its folder")
-
-
 def locate(dataset: Dataset, roots: Sequence[Path] | None = None, environ: Mapping[str, str] | None = None) -> Path:
     """The folder holding ``dataset`` (search order in the module docstring; ``roots`` default
     :func:`default_roots`, ``environ`` the process's). Raises :class:`TorchtrackError` in one line where
@@ -151,7 +144,8 @@ def locate(dataset: Dataset, roots: Sequence[Path] | None = None, environ: Mappi
         if where == "env":
             raise TorchtrackError(f"{dataset.env}={environ[dataset.env]}: no {dataset.marker} there "
                                   f"(point it at the {dataset.folder} folder, or unset it)")
-    raise TorchtrackError(absent_message(dataset))
+    raise TorchtrackError(f"{dataset.folder} data not found; run `torchtrack data fetch {dataset.name}` "
+                          f"(into ./data/{dataset.folder}) or set {dataset.env} to its folder")
 
 
 def wpafb_folder() -> Path:
