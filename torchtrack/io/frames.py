@@ -108,7 +108,6 @@ class VideoSource(FrameSource):
         if p.is_dir():
             raise TorchtrackError(f"{self.path}: is a folder, not a video file (use --frames DIR)")
         cap = self._open()
-        self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
         self._count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
         cap.release()
         self.shape = next(self._images())[1].shape[:2]

@@ -38,13 +38,6 @@ def identity_color(identity: int) -> tuple[int, int, int]:
     return int(b * 255), int(g * 255), int(r * 255)
 
 
-def to_bgr(image: np.ndarray) -> np.ndarray:
-    """A contiguous uint8 BGR copy of a grey or BGR image."""
-    if image.ndim == 2:
-        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-    return np.ascontiguousarray(image).copy()
-
-
 def render_frame(image: np.ndarray, ids: np.ndarray, positions: np.ndarray,
                  trails: dict[int, deque] | None = None, truth: np.ndarray | None = None,
                  homography: np.ndarray | None = None, box: int | None = None, scale: int = 1,
@@ -56,7 +49,7 @@ def render_frame(image: np.ndarray, ids: np.ndarray, positions: np.ndarray,
     ``truth (M, 2)`` truth positions in the same coordinates, ``box`` the side of the drawn box in
     pixels (``None``: a filled dot), ``label`` a caption (e.g. the frame number) written top-left.
     """
-    canvas = to_bgr(image)
+    canvas = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else np.array(image, order="C")
     if scale != 1:
         canvas = cv2.resize(canvas, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     s = float(scale)
@@ -135,7 +128,6 @@ class AnnotatedVideoWriter:
         self._writer: cv2.VideoWriter | None = None
         self._size: tuple[int, int] | None = None
         self.frames = 0
-        self.last: np.ndarray | None = None
         self._encoder = ThreadPoolExecutor(1, thread_name_prefix="video-encoder") if background else None
         self._pending: deque[Future] = deque()
 
@@ -176,7 +168,6 @@ class AnnotatedVideoWriter:
             self._wait(4)
         else:
             self._writer.write(frame)
-        self.last = frame
         return frame
 
     def close(self) -> Path:
