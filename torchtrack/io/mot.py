@@ -191,9 +191,8 @@ def read_mot(path: str | os.PathLike) -> MOTData:
     memory stays near the size of the result.
     """
     path = Path(path)
-    frames, ids = array("q"), array("q")
+    frames, ids, linenos = array("q"), array("q"), array("q")
     values = [array("d") for _ in range(7)]        # x, y, w, h, conf, c8, c9
-    linenos = array("q")
     try:
         with open(path, "rb") as handle:
             for lineno, raw in enumerate(handle, start=1):
