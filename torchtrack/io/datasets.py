@@ -100,13 +100,6 @@ WPAFB = Dataset(
 DATASETS: dict[str, Dataset] = {WPAFB.name: WPAFB}
 
 
-def get_dataset(name: str) -> Dataset:
-    """The data set called ``name``; an error naming the known ones otherwise."""
-    if name not in DATASETS:
-        raise TorchtrackError(f"unknown data set {name!r} (known: {', '.join(sorted(DATASETS))})")
-    return DATASETS[name]
-
-
 def checkout_root() -> Path | None:
     """The source checkout this package runs from (the folder holding ``pyproject.toml`` beside the
     ``torchtrack`` package), or None for an installed package."""
