@@ -5,16 +5,16 @@ import sys
 
 import pytest
 
-from torchtrack.cli import _command_modules, build_parser
+from torchtrack.cli import build_parser, discover
 
 
 def _commands():
     names = []
-    for module in _command_modules("torchtrack.cli"):
-        names.append([module.NAME])
+    for name, _, _ in discover("torchtrack.cli"):
+        names.append([name])
     for package, group in (("torchtrack.cli.scenarios", "scenario"), ("torchtrack.cli.bench", "bench")):
-        for module in _command_modules(package):
-            names.append([group, module.NAME])
+        for name, _, _ in discover(package):
+            names.append([group, name])
     names.append(["data", "fetch"])
     return names
 

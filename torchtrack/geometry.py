@@ -44,13 +44,8 @@ def transfer_error(h_est: np.ndarray, h_true: np.ndarray, shape: tuple[int, int]
     """
     hgt, wid = shape
     ys, xs = np.mgrid[step // 2:hgt:step, step // 2:wid:step]
-    pts = np.stack([xs.ravel(), ys.ravel()], axis=1).astype(np.float64)
-
-    def project(h: np.ndarray) -> np.ndarray:
-        q = pts @ h[:2, :2].T + h[:2, 2]
-        return q / (pts @ h[2, :2] + h[2, 2])[:, None]
-
-    return np.linalg.norm(project(np.asarray(h_est, float)) - project(np.asarray(h_true, float)), axis=1)
+    pts = np.stack([xs.ravel(), ys.ravel()], axis=1)
+    return np.linalg.norm(apply_homography(pts, h_est) - apply_homography(pts, h_true), axis=1)
 
 
 def warp_previous(previous: np.ndarray, current_to_previous: np.ndarray, size: tuple[int, int],

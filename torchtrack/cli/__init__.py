@@ -49,11 +49,6 @@ def discover(package: str) -> list[tuple[str, str, str]]:
     return sorted(found)
 
 
-def _command_modules(package: str) -> list:
-    """Import and return every command module of ``package`` (used by tests and documentation)."""
-    return [importlib.import_module(mod) for _, _, mod in discover(package)]
-
-
 def add_subcommands(parser: argparse.ArgumentParser, package: str, dest: str, argv: list[str],
                     options: Callable[[argparse.ArgumentParser, ModuleType], None] | None = None) -> None:
     """Attach the command modules of ``package`` to ``parser``; import only the one ``argv`` selects. Its

@@ -57,9 +57,7 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _score_row(name: str, m: dict | None, fps: float) -> list:
-    if m is None:
-        return [name, *["-"] * len(SCORE_COLUMNS), fps]
-    return [name, *[m[k] for k in SCORE_COLUMNS], fps]
+    return [name, *(m[k] if m is not None else "-" for k in SCORE_COLUMNS), fps]
 
 
 def frame_inputs_given(args: argparse.Namespace) -> bool:
@@ -122,15 +120,13 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
     folder = OutputFolder(out, command, args.force, inputs=inputs)
     with folder as staging:
         source = open_frames(args.video or args.frames)
-        gt_path = args.gt
-        gt = read_mot(gt_path) if gt_path else None
-        ignore = None
         if args.truth_csv:
             gt, ignore = wpafb_truth(args.truth_csv, len(source))
-            gt_path = args.truth_csv
+        else:
+            gt, ignore = (read_mot(args.gt) if args.gt else None), None
         camera = read_camera(args.camera) if args.camera else None
-        result = track_video(source, staging, config, gt=gt, gt_path=str(gt_path), ignore=ignore, camera=camera,
-                             progress=not args.no_progress)
+        result = track_video(source, staging, config, gt=gt, gt_path=str(args.truth_csv or args.gt), ignore=ignore,
+                             camera=camera, progress=not args.no_progress)
     m = result.metrics
     print(format_table(header, [_score_row(Path(source.path).name, m.get("clear_mot"), m["fps"]["end_to_end"])],
                        floatfmt=".3f"))

@@ -7,7 +7,7 @@ import os
 from pathlib import Path
 
 from torchtrack.cli._common import add_common_options
-from torchtrack.io.datasets import DATASETS, WPAFB, get_dataset
+from torchtrack.io.datasets import DATASETS, WPAFB
 from torchtrack.io.outputs import write_json
 
 NAME = "data"
@@ -54,7 +54,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from torchtrack.io.fetch import fetch_dataset
 
-    dataset = get_dataset(args.dataset)
+    dataset = DATASETS[args.dataset]  # argparse choices: a known name
     out = args.out or Path("data") / dataset.folder
     url = args.url or os.environ.get(dataset.url_env) or None
     result = fetch_dataset(dataset, out, base_url=url, source=args.source, progress=not args.no_progress,

@@ -5,7 +5,6 @@ from __future__ import annotations
 from pathlib import Path
 
 from torchtrack.cli._common import add_common_options, add_force_option, config_file, positive_int
-from torchtrack.errors import TorchtrackError
 from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.pipeline.config import load_pipeline_config
 from torchtrack.pipeline.demo import format_demo, run_demo
@@ -41,8 +40,6 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
-    if args.frames is not None and args.frames < 1:
-        raise TorchtrackError(f"--frames must be at least 1, got {args.frames}")
     config = load_pipeline_config(args.config) if args.config else None
     with OutputFolder(args.out, f"torchtrack {NAME}", args.force, inputs=[args.config]) as staging:
         metrics = run_demo(staging, seed=args.seed, frames=args.frames, truth=args.truth, config=config,

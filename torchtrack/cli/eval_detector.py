@@ -29,6 +29,8 @@ wpafb gets it): all vehicles, and moving vehicles with detections on parked vehi
 Example: torchtrack eval-detector --sequences 4 --frames 20 --json out/eval.json
 """
 
+COLUMNS = ("precision", "recall", "f1", "velocity_error_px", "frames", "fps")  # of each row, and the JSON's top level
+
 
 def add_arguments(parser) -> None:
     parser.add_argument("--weights", type=Path, default=None, help="checkpoint (default: shipped weights)")
@@ -71,41 +73,31 @@ def wpafb_path(given: Path | None) -> tuple[Path | None, str | None]:
 def run(args) -> int:
     import dataclasses
 
-    import torch
-
     from torchtrack.detector.dataset import split_seed
     from torchtrack.detector.evaluate import evaluate_synthetic
     from torchtrack.detector.inference import load_detector
     from torchtrack.detector.wpafb import evaluate_wpafb
     from torchtrack.sim.video_config import from_dict, load_video_config
+    from torchtrack.threads import torch_threads
 
     path, absent = (None, None) if args.no_wpafb else wpafb_path(args.wpafb)
-    torch.set_num_threads(args.threads)
-    det = load_detector(args.weights)
-    if args.threshold is not None:
-        det.config = dataclasses.replace(det.config, decode=dataclasses.replace(det.config.decode,
-                                                                                 threshold=args.threshold))
-    video = load_video_config(args.config) if args.config else from_dict(dict(det.config.data.video))
-    video = video.replace(frames=args.frames)
-    seeds = [split_seed(args.seed, "test", i) for i in range(args.sequences)]
-    result = evaluate_synthetic(det, video, seeds, args.radius, prior=args.prior)
-    mov = result["moving"]
-    rows = [["synthetic (held out)", result["precision"], result["recall"], result["f1"],
-             result["velocity_error_px"], result["frames"], result["fps"]],
-            ["synthetic, moving vehicles", mov["precision"], mov["recall"], mov["f1"], mov["velocity_error_px"],
-             mov["frames"], mov["fps"]]]
-    payload = {k: result[k] for k in ("precision", "recall", "f1", "velocity_error_px", "frames", "fps",
-                                      "fps_cpu_time")}
-    payload["synthetic"] = {**result, "prior": args.prior}
-    if path is not None:
-        real = evaluate_wpafb(det, path, args.radius)
+    with torch_threads(args.threads):
+        det = load_detector(args.weights)
+        if args.threshold is not None:
+            det.config = dataclasses.replace(det.config, decode=dataclasses.replace(det.config.decode,
+                                                                                     threshold=args.threshold))
+        video = load_video_config(args.config) if args.config else from_dict(dict(det.config.data.video))
+        seeds = [split_seed(args.seed, "test", i) for i in range(args.sequences)]
+        result = evaluate_synthetic(det, video.replace(frames=args.frames), seeds, args.radius, prior=args.prior)
+        real = evaluate_wpafb(det, path, args.radius) if path is not None else None
+    scored = {"synthetic (held out)": result, "synthetic, moving vehicles": result["moving"]}
+    payload = {**{k: result[k] for k in (*COLUMNS, "fps_cpu_time")}, "synthetic": {**result, "prior": args.prior}}
+    if real is not None:
         payload["wpafb"] = real
-        for name in ("all", "moving"):
-            r = real[name]
-            rows.append([f"WPAFB real, {name} vehicles", r["precision"], r["recall"], r["f1"],
-                         r["velocity_error_px"], r["frames"], r["fps"]])
+        scored.update({f"WPAFB real, {name} vehicles": real[name] for name in ("all", "moving")})
     elif not args.no_wpafb:
         print(f"(real frames skipped: {absent})")
+    rows = [[name, *(r[k] for k in COLUMNS)] for name, r in scored.items()]
     print(format_table(["data", "precision", "recall", "F1", "vel err px/fr", "frames", "fps"], rows))
     write_json(args.json, payload)
     return 0

@@ -7,7 +7,6 @@ from pathlib import Path
 import torch
 
 from torchtrack.cli._common import add_common_options, add_force_option, bounded, config_file, positive_int
-from torchtrack.errors import TorchtrackError
 from torchtrack.io.outputs import OutputFolder, write_json
 
 NAME = "simulate-video"
@@ -39,10 +38,6 @@ def add_arguments(parser) -> None:
 def run(args) -> int:
     from torchtrack.sim.video import load_video_config, write_sequence
 
-    if args.frames is not None and args.frames < 1:
-        raise TorchtrackError(f"--frames must be at least 1, got {args.frames}")
-    if args.size is not None and min(args.size) < 1:
-        raise TorchtrackError(f"--size must be positive, got {args.size[0]} {args.size[1]}")
     cfg = load_video_config(args.config)
     if args.frames is not None:
         cfg = cfg.replace(frames=args.frames)

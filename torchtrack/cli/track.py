@@ -20,6 +20,7 @@ from torchtrack.filters.multitarget import Tracker, tracker_names
 from torchtrack.filters.tracker_config import read_tracker_sections
 from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.metrics.table import format_table1
+from torchtrack.threads import torch_threads
 
 NAME = "track"
 OUTPUT = f"torchtrack {NAME}"
@@ -110,13 +111,17 @@ def check_arguments(args: argparse.Namespace) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    check_arguments(args)
+    with torch_threads(args.threads):
+        torch.manual_seed(args.seed)
+        return _run(args)
+
+
+def _run(args: argparse.Namespace) -> int:
     from torchtrack.io.mot import read_mot
     from torchtrack.pipeline.config import load_pipeline_config
     from torchtrack.pipeline.detection_file import compare, detection_file_config, track_detections
 
-    check_arguments(args)
-    torch.set_num_threads(max(1, args.threads))
-    torch.manual_seed(args.seed)
     fitted = fitted_tracker(args) if args.params is not None else None
     tracker_options = read_tracker_sections(args.config)
     if frame_inputs_given(args):
@@ -136,17 +141,14 @@ def run(args: argparse.Namespace) -> int:
         det = read_mot(args.detections)
         gt = read_mot(args.gt) if args.gt is not None else None
         if args.compare:
-            results = compare(det, config, staging, gt, args.trackers or tracker_names())
-            write_json(staging / "comparison.json", results)
+            report = compare(det, config, staging, gt, args.trackers or tracker_names())
+            write_json(staging / "comparison.json", report)
         else:
-            m = track_detections(det, args.tracker, config, staging, gt, fitted)
-    if args.compare:
-        print(format_table1(results))
-        write_json(args.json, results)
-        return 0
-    if gt is not None:
-        print(format_table1({args.tracker: m}))
+            report = track_detections(det, args.tracker, config, staging, gt, fitted)
+    if args.compare or gt is not None:
+        print(format_table1(report if args.compare else {args.tracker: report}))
     else:
-        print(f"{args.tracker}: {m['frames_run']} frames, {m['FPS']:.1f} frames/s; tracks in {args.out / 'tracks.txt'}")
-    write_json(args.json, m)
+        print(f"{args.tracker}: {report['frames_run']} frames, {report['FPS']:.1f} frames/s; tracks in "
+              f"{args.out / 'tracks.txt'}")
+    write_json(args.json, report)
     return 0

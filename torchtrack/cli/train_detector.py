@@ -39,36 +39,27 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     import dataclasses
-
-    from torchtrack.detector.config import load_config
-    from torchtrack.detector.train import export_weights, train
-
-    if args.threads is not None:
-        import torch
-
-        torch.set_num_threads(args.threads)
-    cfg = load_config(args.config)
-    changes = {}
-    if args.out is not None:
-        changes["out"] = str(args.out)
-    if args.epochs is not None:
-        changes["epochs"] = args.epochs
-    if changes:
-        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **changes))
-    result = train(cfg, seed=args.seed, resume=args.resume, progress=not args.no_progress, workers=args.workers)
     import os
 
-    if int(os.environ.get("RANK", "0")) == 0:
-        if args.export is not None:
-            from torchtrack.detector.dataset import build_cache
+    from torchtrack.detector.checkpoint import load_checkpoint
+    from torchtrack.detector.config import load_config
+    from torchtrack.detector.dataset import build_cache
+    from torchtrack.detector.train import export_weights, train
+    from torchtrack.threads import torch_threads
 
+    cfg = load_config(args.config)
+    changes = {"out": None if args.out is None else str(args.out), "epochs": args.epochs}
+    cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **{k: v for k, v in changes.items() if v}))
+    with torch_threads(args.threads):
+        result = train(cfg, seed=args.seed, resume=args.resume, progress=not args.no_progress, workers=args.workers)
+        if int(os.environ.get("RANK", "0")) != 0:
+            return 0
+        if args.export is not None:
             path = export_weights(result["best"], args.export, {"seed": args.seed, "command": "torchtrack "
                                   f"train-detector --config {args.config} --seed {args.seed}"},
                                   calibrate=build_cache(cfg, "val", args.seed))
-            from torchtrack.detector.checkpoint import load_checkpoint
-
             thr = load_checkpoint(path)["config"].decode.threshold
             print(f"exported {result['best']} to {args.export} (decoding threshold {thr} calibrated on the "
                   "validation sequences)")
-        write_json(args.json, result)
+    write_json(args.json, result)
     return 0

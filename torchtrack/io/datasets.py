@@ -100,13 +100,6 @@ WPAFB = Dataset(
 DATASETS: dict[str, Dataset] = {WPAFB.name: WPAFB}
 
 
-def get_dataset(name: str) -> Dataset:
-    """The data set called ``name``; an error naming the known ones otherwise."""
-    if name not in DATASETS:
-        raise TorchtrackError(f"unknown data set {name!r} (known: {', '.join(sorted(DATASETS))})")
-    return DATASETS[name]
-
-
 def checkout_root() -> Path | None:
     """The source checkout this package runs from (the folder holding ``pyproject.toml`` beside the
     ``torchtrack`` package), or None for an installed package."""
@@ -117,8 +110,7 @@ def checkout_root() -> Path | None:
 def default_roots() -> list[Path]:
     """The folders ``data/`` and ``../shared/data`` are looked for under: the current folder, then the
     source checkout (where there is one)."""
-    checkout = checkout_root()
-    return [Path.cwd()] + ([checkout] if checkout is not None else [])
+    return [Path.cwd(), *filter(None, [checkout_root()])]
 
 
 def search_path(dataset: Dataset, roots: Sequence[Path], environ: Mapping[str, str]) -> list[tuple[str, Path]]:
@@ -128,19 +120,10 @@ def search_path(dataset: Dataset, roots: Sequence[Path], environ: Mapping[str, s
     if environ.get(dataset.env):
         found.append(("env", Path(environ[dataset.env])))
     found += [("shared", r.parent / "shared" / "data" / dataset.folder) for r in roots]
-    unique, seen = [], set()
+    unique: dict[str, tuple[str, Path]] = {}
     for where, folder in found:
-        key = os.path.abspath(folder)
-        if key not in seen:
-            seen.add(key)
-            unique.append((where, folder))
-    return unique
-
-
-def absent_message(dataset: Dataset) -> str:
-    """How to get ``dataset`` where it is absent, in one line."""
-    return (f"{dataset.folder} data not found; run `torchtrack data fetch {dataset.name}` "
-            f"(into ./data/{dataset.folder}) or set {dataset.env} to its folder")
+        unique.setdefault(os.path.abspath(folder), (where, folder))
+    return list(unique.values())
 
 
 def locate(dataset: Dataset, roots: Sequence[Path] | None = None, environ: Mapping[str, str] | None = None) -> Path:
@@ -154,7 +137,8 @@ def locate(dataset: Dataset, roots: Sequence[Path] | None = None, environ: Mappi
         if where == "env":
             raise TorchtrackError(f"{dataset.env}={environ[dataset.env]}: no {dataset.marker} there "
                                   f"(point it at the {dataset.folder} folder, or unset it)")
-    raise TorchtrackError(absent_message(dataset))
+    raise TorchtrackError(f"{dataset.folder} data not found; run `torchtrack data fetch {dataset.name}` "
+                          f"(into ./data/{dataset.folder}) or set {dataset.env} to its folder")
 
 
 def wpafb_folder() -> Path:

@@ -28,6 +28,7 @@ from typing import BinaryIO
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.datasets import DataFile, Dataset
+from torchtrack.io.outputs import write_text
 
 CHUNK = 1 << 16
 NOTES = ("SOURCE.md", "SHA256SUMS")
@@ -106,12 +107,6 @@ def _receive(stream: BinaryIO, name: str, dest: Path, f: DataFile, bar) -> None:
                               f"{f.sha256} ({f.size} bytes); corrupt or changed file, nothing was kept")
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text)
-    os.replace(tmp, path)
-
-
 def source_note(dataset: Dataset, origin: str, when: datetime) -> str:
     """The ``SOURCE.md`` written beside the data: where it is published, its licence, the fetch."""
     repo = f"https://github.com/{dataset.repository}"
@@ -177,5 +172,5 @@ def fetch_dataset(dataset: Dataset, out: str | os.PathLike, base_url: str | None
 
 
 def _write_notes(dataset: Dataset, out: Path, origin: str) -> None:
-    _write_atomic(out / "SOURCE.md", source_note(dataset, origin, datetime.now(timezone.utc)))
-    _write_atomic(out / "SHA256SUMS", sums_file(dataset.files))
+    write_text(out / "SOURCE.md", source_note(dataset, origin, datetime.now(timezone.utc)))
+    write_text(out / "SHA256SUMS", sums_file(dataset.files))

@@ -21,11 +21,11 @@ ignored. Images are ordered by natural sort (``frame_2.png`` before ``frame_10.p
 
 from __future__ import annotations
 
-import queue
 import re
-import threading
 import warnings
+from collections import deque
 from collections.abc import Iterable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import NamedTuple
 
@@ -63,34 +63,33 @@ def _convert(image: np.ndarray, color: bool) -> np.ndarray:
 
 
 class FrameSource:
-    """Base class: iterate to get :class:`Frame` objects; ``len()`` is the number of frames when known."""
+    """Base class: iterate to get :class:`Frame` objects; ``len()`` is the number of frames when known.
+
+    A subclass yields ``(name, image)`` as decoded from :meth:`_images`; iterating numbers the frames from 1,
+    raises when a frame's size differs from the first one's (naming both) and converts each image."""
 
     path: str
     shape: tuple[int, int]
+    color: bool = False
+
+    def _images(self) -> Iterator[tuple[str, np.ndarray]]:
+        raise NotImplementedError
 
     def __iter__(self) -> Iterator[Frame]:
-        raise NotImplementedError
+        first: tuple[tuple[int, int], str] | None = None
+        for index, (name, image) in enumerate(self._images(), start=1):
+            hw = (int(image.shape[0]), int(image.shape[1]))
+            if first is None:
+                first = (hw, name)
+            elif hw != first[0]:
+                raise TorchtrackError(
+                    f"{name}: frame size {hw[1]}x{hw[0]} differs from {first[0][1]}x{first[0][0]} "
+                    f"of the first frame ({first[1]}); all frames of a sequence must have the same size"
+                )
+            yield Frame(index, _convert(np.asarray(image), self.color), name)
 
     def __len__(self) -> int:
         raise NotImplementedError
-
-
-class _SizeCheck:
-    """Raises when a frame's size differs from the first one's, naming both files."""
-
-    def __init__(self) -> None:
-        self.shape: tuple[int, int] | None = None
-        self.first = ""
-
-    def __call__(self, image: np.ndarray, name: str) -> None:
-        hw = (int(image.shape[0]), int(image.shape[1]))
-        if self.shape is None:
-            self.shape, self.first = hw, name
-        elif hw != self.shape:
-            raise TorchtrackError(
-                f"{name}: frame size {hw[1]}x{hw[0]} differs from {self.shape[1]}x{self.shape[0]} "
-                f"of the first frame ({self.first}); all frames of a sequence must have the same size"
-            )
 
 
 class VideoSource(FrameSource):
@@ -108,28 +107,23 @@ class VideoSource(FrameSource):
             raise TorchtrackError(f"{self.path}: no such video file")
         if p.is_dir():
             raise TorchtrackError(f"{self.path}: is a folder, not a video file (use --frames DIR)")
-        cap = cv2.VideoCapture(self.path)
-        try:
-            if not cap.isOpened():
-                raise TorchtrackError(f"{self.path}: OpenCV cannot open this video (unknown or corrupt format)")
-            ok, first = cap.read()
-            if not ok or first is None:
-                raise TorchtrackError(f"{self.path}: no frame could be decoded from this video")
-            self.shape = (int(first.shape[0]), int(first.shape[1]))
-            self.fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
-            self._count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
-        finally:
-            cap.release()
+        cap = self._open()
+        self._count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0)
+        cap.release()
+        self.shape = next(self._images())[1].shape[:2]
 
     def __len__(self) -> int:
         """The container's frame count (``CAP_PROP_FRAME_COUNT``; may be an estimate for some codecs)."""
         return self._count
 
-    def __iter__(self) -> Iterator[Frame]:
+    def _open(self) -> cv2.VideoCapture:
         cap = cv2.VideoCapture(self.path)
         if not cap.isOpened():
-            raise TorchtrackError(f"{self.path}: OpenCV cannot open this video")
-        check = _SizeCheck()
+            raise TorchtrackError(f"{self.path}: OpenCV cannot open this video (unknown or corrupt format)")
+        return cap
+
+    def _images(self) -> Iterator[tuple[str, np.ndarray]]:
+        cap = self._open()
         index = 0
         try:
             while True:
@@ -137,9 +131,7 @@ class VideoSource(FrameSource):
                 if not ok or image is None:
                     break
                 index += 1
-                name = f"{self.path} (frame {index})"
-                check(image, name)
-                yield Frame(index, _convert(image, self.color), name)
+                yield f"{self.path} (frame {index})", image
         finally:
             cap.release()
         if index == 0:
@@ -179,12 +171,8 @@ class FolderSource(FrameSource):
     def __len__(self) -> int:
         return len(self.files)
 
-    def __iter__(self) -> Iterator[Frame]:
-        check = _SizeCheck()
-        for index, file in enumerate(self.files, start=1):
-            image = _read_image(file)
-            check(image, str(file))
-            yield Frame(index, _convert(image, self.color), str(file))
+    def _images(self) -> Iterator[tuple[str, np.ndarray]]:
+        return ((str(file), _read_image(file)) for file in self.files)
 
 
 def _read_image(file: Path) -> np.ndarray:
@@ -209,55 +197,25 @@ class ArraySource(FrameSource):
     def __len__(self) -> int:
         return len(self.images)
 
-    def __iter__(self) -> Iterator[Frame]:
-        check = _SizeCheck()
-        for index, image in enumerate(self.images, start=1):
-            name = f"{self.path}[{index}]"
-            check(image, name)
-            yield Frame(index, _convert(np.asarray(image), self.color), name)
+    def _images(self) -> Iterator[tuple[str, np.ndarray]]:
+        return ((f"{self.path}[{index}]", image) for index, image in enumerate(self.images, start=1))
 
 
 def open_frames(path: str | Path, color: bool = False) -> FrameSource:
     """A :class:`FolderSource` for a folder, else a :class:`VideoSource` (errors name ``path``)."""
-    p = Path(path)
-    if p.is_dir():
-        return FolderSource(p, color=color)
-    return VideoSource(p, color=color)
+    return FolderSource(path, color=color) if Path(path).is_dir() else VideoSource(path, color=color)
 
 
 def prefetch(frames: Iterable[Frame], size: int = 2) -> Iterator[Frame]:
     """Iterate ``frames`` with up to ``size`` frames decoded ahead in a background thread (OpenCV
     releases the GIL while decoding, so reading overlaps the caller's work). Errors of the source are
     raised in the caller's thread, at the frame where they happened."""
-    q: queue.Queue = queue.Queue(maxsize=size)
-    stop = threading.Event()
-    done = object()
-
-    def work() -> None:
-        try:
-            for f in frames:
-                while not stop.is_set():
-                    try:
-                        q.put(f, timeout=0.1)
-                        break
-                    except queue.Full:
-                        continue
-                if stop.is_set():
-                    return
-            q.put(done)
-        except BaseException as exc:  # handed to the consumer
-            q.put(exc)
-
-    thread = threading.Thread(target=work, name="frame-prefetch", daemon=True)
-    thread.start()
+    source, done = iter(frames), object()
+    pool = ThreadPoolExecutor(1, thread_name_prefix="frame-prefetch")
+    ahead = deque(pool.submit(next, source, done) for _ in range(size))
     try:
-        while True:
-            item = q.get()
-            if item is done:
-                return
-            if isinstance(item, BaseException):
-                raise item
-            yield item
+        while (frame := ahead.popleft().result()) is not done:
+            ahead.append(pool.submit(next, source, done))
+            yield frame
     finally:
-        stop.set()
-        thread.join(timeout=5)
+        pool.shutdown(cancel_futures=True)

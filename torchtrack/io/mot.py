@@ -105,10 +105,8 @@ class MOTData(NamedTuple):
 
 def empty_mot(with_velocity: bool = False) -> MOTData:
     """A MOTData with no objects."""
-    f = np.zeros(0, dtype=np.float64)
-    i = np.zeros(0, dtype=np.int64)
-    v = f.copy() if with_velocity else None
-    return MOTData(i, i.copy(), f, f.copy(), f.copy(), f.copy(), f.copy(), v, None if v is None else f.copy())
+    ints = (np.zeros(0, dtype=np.int64) for _ in range(2))
+    return MOTData(*ints, *(np.zeros(0, dtype=np.float64) for _ in range(7 if with_velocity else 5)))
 
 
 def concat_mot(items: Sequence[MOTData]) -> MOTData:
@@ -143,19 +141,20 @@ def from_points(
     return MOTData(frames, ids, cx - 0.5 * box, cy - 0.5 * box, size, size.copy(), conf, vx, vy)
 
 
+def _numpy(a, dtype: type | None = None) -> np.ndarray:
+    """An array-like or a tensor as a numpy array."""
+    return np.asarray(a.detach().cpu() if hasattr(a, "detach") else a, dtype=dtype)
+
+
 def _as_float_array(a, name: str) -> np.ndarray:
-    if hasattr(a, "detach"):
-        a = a.detach().cpu().numpy()
-    out = np.asarray(a, dtype=np.float64).reshape(-1)
+    out = _numpy(a, np.float64).reshape(-1)
     if not np.all(np.isfinite(out)):
         raise TorchtrackError(f"{name} contains NaN or infinite values")
     return out
 
 
 def _as_int_array(a, name: str) -> np.ndarray:
-    if hasattr(a, "detach"):
-        a = a.detach().cpu().numpy()
-    arr = np.asarray(a)
+    arr = _numpy(a)
     if arr.dtype.kind == "f":
         if not np.all(np.isfinite(arr)) or np.any(arr != np.round(arr)):
             raise TorchtrackError(f"{name} must be integers")
@@ -219,9 +218,8 @@ def _read_uniform(path: Path) -> tuple[np.ndarray, ...] | None:
 def _read_lines(path: Path) -> tuple[np.ndarray, ...]:
     """The columns of any MOTChallenge file, read line by line into typed columns (8 bytes a value, so memory
     stays near the size of the result), as ``(frame, id, x, y, w, h, conf, c8, c9, line numbers)``."""
-    frames, ids = array("q"), array("q")
+    frames, ids, linenos = array("q"), array("q"), array("q")
     values = [array("d") for _ in range(7)]        # x, y, w, h, conf, c8, c9
-    linenos = array("q")
     try:
         with open(path, "rb") as handle:
             for lineno, raw in enumerate(handle, start=1):

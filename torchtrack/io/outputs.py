@@ -173,8 +173,7 @@ class OutputFolder:
         self.force = force
         self.commit = commit
         self.flag = flag
-        real = Path(os.path.realpath(self.target))
-        self._real = real
+        self._real = real = Path(os.path.realpath(self.target))
         self.staging = real.with_name(real.name + STAGING_SUFFIX)
         self.replaced = real.with_name(real.name + REPLACED_SUFFIX)
 

@@ -17,9 +17,8 @@ truncated file under the final name.
 from __future__ import annotations
 
 import colorsys
-import queue
-import threading
 from collections import deque
+from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -39,13 +38,6 @@ def identity_color(identity: int) -> tuple[int, int, int]:
     return int(b * 255), int(g * 255), int(r * 255)
 
 
-def to_bgr(image: np.ndarray) -> np.ndarray:
-    """A contiguous uint8 BGR copy of a grey or BGR image."""
-    if image.ndim == 2:
-        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
-    return np.ascontiguousarray(image).copy()
-
-
 def render_frame(image: np.ndarray, ids: np.ndarray, positions: np.ndarray,
                  trails: dict[int, deque] | None = None, truth: np.ndarray | None = None,
                  homography: np.ndarray | None = None, box: int | None = None, scale: int = 1,
@@ -57,7 +49,7 @@ def render_frame(image: np.ndarray, ids: np.ndarray, positions: np.ndarray,
     ``truth (M, 2)`` truth positions in the same coordinates, ``box`` the side of the drawn box in
     pixels (``None``: a filled dot), ``label`` a caption (e.g. the frame number) written top-left.
     """
-    canvas = to_bgr(image)
+    canvas = cv2.cvtColor(image, cv2.COLOR_GRAY2BGR) if image.ndim == 2 else np.array(image, order="C")
     if scale != 1:
         canvas = cv2.resize(canvas, None, fx=scale, fy=scale, interpolation=cv2.INTER_NEAREST)
     s = float(scale)
@@ -136,32 +128,16 @@ class AnnotatedVideoWriter:
         self._writer: cv2.VideoWriter | None = None
         self._size: tuple[int, int] | None = None
         self.frames = 0
-        self.last: np.ndarray | None = None
-        self._background = background
-        self._queue: queue.Queue | None = None
-        self._thread: threading.Thread | None = None
-        self._error: BaseException | None = None
+        self._encoder = ThreadPoolExecutor(1, thread_name_prefix="video-encoder") if background else None
+        self._pending: deque[Future] = deque()
 
-    def _encode(self) -> None:
-        while True:
-            frame = self._queue.get()
-            if frame is None:
-                return
+    def _wait(self, keep: int) -> None:
+        """Wait until at most ``keep`` frames are being encoded; an encoding error is raised here."""
+        while len(self._pending) > keep:
             try:
-                self._writer.write(frame)
-            except BaseException as exc:  # re-raised in the caller's thread by _check
-                self._error = exc
-                return
-
-    def _check(self) -> None:
-        if self._error is not None:
-            raise TorchtrackError(f"{self.partial}: video encoding failed: {self._error}")
-
-    def _stop(self) -> None:
-        if self._thread is not None:
-            self._queue.put(None)
-            self._thread.join()
-            self._thread = None
+                self._pending.popleft().result()
+            except Exception as exc:
+                raise TorchtrackError(f"{self.partial}: video encoding failed: {exc}") from exc
 
     def write(self, image: np.ndarray, ids, positions, truth=None, homography=None,
               label: str | None = None) -> np.ndarray:
@@ -184,36 +160,30 @@ class AnnotatedVideoWriter:
             if not self._writer.isOpened():
                 raise TorchtrackError(f"{self.partial}: OpenCV cannot open an mp4v video writer")
             self._size = (w, h)
-            if self._background:
-                self._queue = queue.Queue(maxsize=4)
-                self._thread = threading.Thread(target=self._encode, name="video-encoder", daemon=True)
-                self._thread.start()
         elif (w, h) != self._size:
             raise TorchtrackError(f"{self.path}: frame {self.frames} is {w}x{h}, the video is "
                                   f"{self._size[0]}x{self._size[1]}")
-        self._check()
-        if self._thread is not None:
-            self._queue.put(frame)
+        if self._encoder is not None:
+            self._pending.append(self._encoder.submit(self._writer.write, frame))
+            self._wait(4)
         else:
             self._writer.write(frame)
-        self.last = frame
         return frame
 
     def close(self) -> Path:
         """Finish the file and give it its final name; returns the path."""
         if self._writer is None:
             raise TorchtrackError(f"{self.path}: no frame was written")
-        self._stop()
-        self._check()
-        self._writer.release()
-        self._writer = None
+        self._wait(0)
+        self.abort()
         self.partial.replace(self.path)
         return self.path
 
     def abort(self) -> None:
         """Release the writer without renaming: the ``.partial.mp4`` file stays, marked incomplete."""
+        if self._encoder is not None:
+            self._encoder.shutdown()
         if self._writer is not None:
-            self._stop()
             self._writer.release()
             self._writer = None
 
