@@ -24,11 +24,6 @@ from torchtrack.sim import maneuver as sim
 DEFAULT_CONFIG = preset_path("maneuver")
 
 
-def load_config(path: Path) -> dict:
-    cfg = load_sections(path, "maneuver")
-    return cfg
-
-
 def _rmse(err: torch.Tensor) -> float:
     """Root mean square of the Euclidean error ``(…, d)`` over everything else."""
     return float(err.pow(2).sum(-1).mean().sqrt())
@@ -133,7 +128,7 @@ class ManeuverReport(NamedTuple):
 def run_experiments(config: Path, runs: int, seed: int, params: Path | None = None) -> ManeuverReport:
     """All three experiments from the scenario YAML ``config``, ``runs`` Monte Carlo runs batched, one generator
     seeded with ``seed``; ``params``: a fitted-parameter file for the Kalman filter (:func:`fitted_kalman`)."""
-    cfg = load_config(config)
+    cfg = load_sections(config, "maneuver")
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         st = run_stationary(cfg["stationary"], runs, gen)
@@ -174,12 +169,8 @@ def report_json(r: ManeuverReport) -> dict:
     mv = r.maneuver
     return {
         "maneuver_onsets": r.config["maneuver"]["onsets"],
-        "detection_rate": mv["detection_rate"],
-        "median_detection_delay": mv["median_detection_delay"],
-        "false_alarms_per_100_scans": mv["false_alarms_per_100_scans"],
-        "rmse_position_kf": mv["rmse_position_kf"],
-        "rmse_position_detecting_kf": mv["rmse_position_detecting_kf"],
-        "rmse_reduction": mv["rmse_reduction"],
+        **{k: mv[k] for k in ("detection_rate", "median_detection_delay", "false_alarms_per_100_scans",
+                              "rmse_position_kf", "rmse_position_detecting_kf", "rmse_reduction")},
         "stationary": {k: r.stationary[k] for k in ("rmse_measured", "rmse_estimated", "final_error")},
         "constant_velocity": {k: r.constant_velocity[k] for k in ("rmse_measured", "rmse_estimated", "rmse_velocity")},
         "threshold": r.config["filter"]["threshold"],

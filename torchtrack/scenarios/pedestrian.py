@@ -36,8 +36,7 @@ PAPER_OSPA = {"joint": 0.87, "inflated": 0.99, "naive": 2.61}
 
 
 def load_config(path: Path) -> dict:
-    cfg = load_sections(path, "pedestrian")
-    return cfg
+    return load_sections(path, "pedestrian")
 
 
 class Truth(NamedTuple):
@@ -143,7 +142,7 @@ def run_variant(variant: str, filt: PMBFilter, rec: Recording, cfg: dict, progre
     init_var = torch.tensor(fcfg["vehicle_init_var"], dtype=torch.float64)
     sensor = SensorState(torch.cat([rec.gnss[0], torch.zeros(R, 2, dtype=torch.float64)], -1),
                          torch.diag(init_var).expand(R, 4, 4).clone())
-    out_pos, out_mask, out_label, out_sensor = [], [], [], []
+    steps = []
     for t in tqdm(range(T), desc=f"pedestrian {variant}", disable=not progress, leave=False):
         if variant in ("joint", "inflated_kf"):
             if t > 0:
@@ -162,11 +161,8 @@ def run_variant(variant: str, filt: PMBFilter, rec: Recording, cfg: dict, progre
             state, _ = v2f_update(filt, state, rec.z[t], rec.mask[t], rec.gnss[t], cov)
             used = rec.gnss[t]
         est = filt.estimate(state)
-        out_pos.append(est.mean[..., :2])
-        out_mask.append(est.mask)
-        out_label.append(est.label)
-        out_sensor.append(used)
-    return Run(torch.stack(out_pos), torch.stack(out_mask), torch.stack(out_label), torch.stack(out_sensor))
+        steps.append((est.mean[..., :2], est.mask, est.label, used))
+    return Run(*(torch.stack(t) for t in zip(*steps)))
 
 
 def ospa_per_step(truth: Truth, run: Run, c: float, p: float) -> torch.Tensor:

@@ -39,7 +39,7 @@ class Lane:
 
 @dataclass
 class ParkingSlot:
-    """Fixed slot of a car park: centre ``(x, y)``, heading angle and an occupied flag."""
+    """Fixed slots of a car park: centres ``(x, y)`` and heading angles."""
 
     xy: np.ndarray      # (m, 2)
     angle: np.ndarray   # (m,)
@@ -60,7 +60,6 @@ class Scene:
     lanes: list[Lane]
     slots: ParkingSlot
     buildings: list[Building]
-    road_mask: np.ndarray       # bool world canvas: paved area (roads and car parks)
 
 
 def _multiscale_noise(rng: np.random.Generator, shape: tuple[int, int], scales, exponent: float) -> np.ndarray:
@@ -130,7 +129,6 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     img = np.where(forest, 38.0 + 12.0 * crowns + 4.0 * ground, img).astype(np.float32)
 
     # roads
-    road_mask = np.zeros((h, w), np.uint8)
     lanes: list[Lane] = []
     owners: list[int] = []
     centres = []
@@ -143,7 +141,6 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
         tone = float(rng.uniform(72, 92) if highway else rng.uniform(62, 80))
         pts = np.round(c * 16).astype(np.int32)
         cv2.polylines(img, [pts], False, tone, int(2 * half), cv2.LINE_AA, shift=4)
-        cv2.polylines(road_mask, [pts], False, 1, int(2 * half), shift=4)
         if highway:
             cv2.polylines(img, [pts], False, tone - 22, int(median), cv2.LINE_AA, shift=4)
         for edge in (-half + 0.8, half - 0.8):
@@ -174,7 +171,6 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
         box = cv2.boxPoints(((cx, cy), (cw, ch), np.degrees(ang))).astype(np.float32)
         tone = float(rng.uniform(70, 95))
         cv2.fillConvexPoly(img, np.round(box * 16).astype(np.int32), tone, cv2.LINE_AA, shift=4)
-        cv2.fillConvexPoly(road_mask, np.round(box * 16).astype(np.int32), 1, shift=4)
         u = np.array([np.cos(ang), np.sin(ang)])
         v = np.array([-u[1], u[0]])
         length = cfg.vehicle_length_median
@@ -213,7 +209,7 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
 
     # normalise the ground statistics to the configured mean/std (vehicles and roofs come on top)
     img = (img - img.mean()) / (img.std() + 1e-6) * (cfg.background_std * 0.65) + cfg.background_mean * 0.97
-    return Scene(img.astype(np.float32), lanes, slots, buildings, road_mask.astype(bool))
+    return Scene(img.astype(np.float32), lanes, slots, buildings)
 
 
 def draw_buildings(canvas: np.ndarray, buildings: list[Building], parallax: np.ndarray) -> None:
