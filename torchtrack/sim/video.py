@@ -221,11 +221,6 @@ def _apply(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:3]
 
 
-def _numpy_rng(generator: torch.Generator) -> np.random.Generator:
-    seed = int(torch.randint(0, 2**62, (1,), generator=generator))
-    return np.random.default_rng(seed)
-
-
 def generate_sequence(config: VideoConfig | None, generator: torch.Generator) -> Iterator[VideoFrame]:
     """Yield ``config.frames`` :class:`VideoFrame` s (see the module docstring for the conventions).
 
@@ -233,7 +228,7 @@ def generate_sequence(config: VideoConfig | None, generator: torch.Generator) ->
     NumPy generator from that seed.
     """
     cfg = config or VideoConfig()
-    rng = _numpy_rng(generator)
+    rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,), generator=generator)))
     scene = build_scene(cfg, rng)
     world = _World(cfg, scene, rng)
     m = cfg.margin
@@ -295,8 +290,7 @@ def write_sequence(config: VideoConfig | None, generator: torch.Generator, out: 
     if video_format not in ("png", "mp4", "avi"):
         raise TorchtrackError(f"video format must be png, mp4 or avi, got {video_format!r}")
     out = Path(out)
-    (out / "frames").mkdir(parents=True, exist_ok=True) if video_format == "png" else out.mkdir(
-        parents=True, exist_ok=True)
+    (out / "frames" if video_format == "png" else out).mkdir(parents=True, exist_ok=True)
     writer = None
     if video_format != "png":
         fourcc = cv2.VideoWriter_fourcc(*("mp4v" if video_format == "mp4" else "MJPG"))
