@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import torch
+from tqdm import tqdm
 
 from torchtrack.association.assignment import assign
 from torchtrack.association.gating import (
@@ -224,11 +225,8 @@ def run_gates(config: Path, runs: int, seed: int, params: Path | None = None) ->
     scfg = cfg["scenario"]
     data = simulate_formation(scfg, runs, gen)
     num_classes = len(scfg.confusion)
-    from tqdm import tqdm
-
-    results = {}
-    for gate in tqdm(GATES, desc="gates", file=__import__("sys").stderr):
-        results[gate] = track_formation(data, cfg, gate, torch.Generator().manual_seed(seed + 1))
+    results = {gate: track_formation(data, cfg, gate, torch.Generator().manual_seed(seed + 1))
+               for gate in tqdm(GATES, desc="gates")}
     main_cc = f"class_conditioned_{cfg['association']['cc_region']}"
     names = {g: "class_conditioned" if g == main_cc else g for g in GATES}
     prob = {names[g]: association_probability(results[g], data.target_class, num_classes) for g in GATES}

@@ -183,10 +183,8 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     slots = ParkingSlot(np.array(slot_xy).reshape(-1, 2), np.array(slot_angle))
 
     # single trees (dark round crowns with a highlight), partly overhanging roads
-    n = cfg.trees
-    centres_t = rng.uniform(0, [w, h], size=(n, 2))
-    radii = rng.uniform(2.5, 6.0, n)
-    for (x, y), r in zip(centres_t, radii):
+    centres_t = rng.uniform(0, [w, h], size=(cfg.trees, 2))
+    for (x, y), r in zip(centres_t, rng.uniform(2.5, 6.0, cfg.trees)):
         cv2.circle(img, (int(x * 16), int(y * 16)), int(r * 16), float(rng.uniform(22, 42)), -1,
                    cv2.LINE_AA, shift=4)
         cv2.circle(img, (int((x - r / 3) * 16), int((y - r / 3) * 16)), int(r * 5), float(rng.uniform(45, 70)),
