@@ -24,6 +24,11 @@ from torchtrack.sim import maneuver as sim
 DEFAULT_CONFIG = preset_path("maneuver")
 
 
+def load_config(path: Path) -> dict:
+    """Read and check the scenario YAML (sections ``stationary``, ``constant_velocity``, ``maneuver``, ``filter``)."""
+    return load_sections(path, "maneuver")
+
+
 def _rmse(err: torch.Tensor) -> float:
     """Root mean square of the Euclidean error ``(…, d)`` over everything else."""
     return float(err.pow(2).sum(-1).mean().sqrt())
@@ -128,7 +133,7 @@ class ManeuverReport(NamedTuple):
 def run_experiments(config: Path, runs: int, seed: int, params: Path | None = None) -> ManeuverReport:
     """All three experiments from the scenario YAML ``config``, ``runs`` Monte Carlo runs batched, one generator
     seeded with ``seed``; ``params``: a fitted-parameter file for the Kalman filter (:func:`fitted_kalman`)."""
-    cfg = load_sections(config, "maneuver")
+    cfg = load_config(config)
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         st = run_stationary(cfg["stationary"], runs, gen)

@@ -30,6 +30,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import Frame, FrameSource
@@ -298,24 +299,18 @@ def write_sequence(config: VideoConfig | None, generator: torch.Generator, out: 
         writer = cv2.VideoWriter(str(partial_name(video)), fourcc, 2.0, (cfg.width, cfg.height), False)
     half = cfg.gt_box_size / 2
     gt_lines, vel_lines, homs = [], [], []
-    frames = generate_sequence(cfg, generator)
-    if progress:
-        from tqdm import tqdm
-
-        frames = tqdm(frames, total=cfg.frames, desc="simulate-video", unit="frame")
-    for f in frames:
+    for f in tqdm(generate_sequence(cfg, generator), total=cfg.frames, desc="simulate-video", unit="frame",
+                  disable=not progress):
         n = f.index + 1
         if writer is None:
             cv2.imwrite(str(out / "frames" / f"{n:06d}.png"), f.image)
         else:
             writer.write(f.image)
-        for i in range(len(f.ids)):
-            x, y = f.xy[i]
-            gt_lines.append(f"{n},{f.ids[i]},{x - half:.3f},{y - half:.3f},{cfg.gt_box_size:g},"
+        for vid, (x, y), (vx, vy), moving in zip(f.ids, f.xy, f.velocity, f.moving):
+            gt_lines.append(f"{n},{vid},{x - half:.3f},{y - half:.3f},{cfg.gt_box_size:g},"
                             f"{cfg.gt_box_size:g},1,-1,-1,-1")
-            vx, vy = f.velocity[i]
             vtxt = "," if np.isnan(vx) else f"{vx:.3f},{vy:.3f}"
-            vel_lines.append(f"{n},{f.ids[i]},{vtxt},{int(f.moving[i])}")
+            vel_lines.append(f"{n},{vid},{vtxt},{int(moving)}")
         homs.append(f.homography.tolist())
     if writer is not None:
         writer.release()
