@@ -108,9 +108,7 @@ def run_maneuver(cfg: dict, fcfg: dict, runs: int, gen: torch.Generator, params:
     outside = ~in_window
     outside[:2] = False  # the first two scans initialise the filter and are never tested
     false_alarms = float(res_det.detected[outside].double().sum()) / (outside.sum() * runs) * 100
-    err_plain = res_plain.mean[in_window, :, :2] - seq.truth[in_window, :, :2]
-    err_det = res_det.mean[in_window, :, :2] - seq.truth[in_window, :, :2]
-    rmse_kf, rmse_det = _rmse(err_plain), _rmse(err_det)
+    rmse_kf, rmse_det = (_rmse(r.mean[in_window, :, :2] - seq.truth[in_window, :, :2]) for r in (res_plain, res_det))
     return {"seq": seq, "plain": res_plain, "detecting": res_det, "window": in_window,
             "detection_rate": rates, "median_detection_delay": delays,
             "false_alarms_per_100_scans": false_alarms,

@@ -104,17 +104,15 @@ def simulate(scene: dict, truth: Truth, runs: int, gen: torch.Generator) -> Reco
 
 def build_filter(fcfg: dict, scene: dict, p_survival: float) -> PMBFilter:
     prior_cov = torch.diag(torch.tensor(fcfg["prior_std"], dtype=torch.float64) ** 2)
-    half = scene["clutter_half_width"]
-    filt = PMBFilter(
+    return PMBFilter(
         ConstantVelocity(2, q=fcfg["feature_q"], learnable=False),
         LinearPosition(2, sigma=scene["v2f_var"] ** 0.5, learnable=False),
         p_survival=p_survival, p_detection=fcfg["p_detection"],
-        clutter_intensity=scene["clutter_rate"] / (2 * half) ** 2,
+        clutter_intensity=scene["clutter_rate"] / (2 * scene["clutter_half_width"]) ** 2,
         birth_weight=fcfg["birth_weight"], birth_mean=torch.zeros(4, dtype=torch.float64), birth_cov=prior_cov,
         capacity=fcfg["capacity"], poisson_capacity=fcfg["poisson_capacity"], gate=fcfg["gate"],
         lbp_iterations=fcfg["lbp_iterations"], lbp_tol=fcfg["lbp_tol"], prune_existence=fcfg["prune_existence"],
-        estimate_threshold=fcfg["estimate_threshold"], learnable=False)
-    return filt.double()
+        estimate_threshold=fcfg["estimate_threshold"], learnable=False).double()
 
 
 class Run(NamedTuple):

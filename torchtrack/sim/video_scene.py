@@ -78,9 +78,7 @@ def _border_point(rng: np.random.Generator, side: int, w: int, h: int) -> np.nda
 
 def _road_centreline(rng: np.random.Generator, w: int, h: int, curved: bool) -> np.ndarray:
     side_a = int(rng.integers(4))
-    side_b = (side_a + int(rng.integers(1, 4))) % 4
-    if side_b == side_a:
-        side_b = (side_a + 2) % 4
+    side_b = (side_a + int(rng.integers(1, 4))) % 4     # another side
     a, b = _border_point(rng, side_a, w, h), _border_point(rng, side_b, w, h)
     mid = 0.5 * (a + b)
     normal = np.array([-(b - a)[1], (b - a)[0]]) / (np.linalg.norm(b - a) + 1e-9)
@@ -132,8 +130,7 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     lanes: list[Lane] = []
     owners: list[int] = []
     centres = []
-    kinds = [True] * cfg.highways + [False] * cfg.local_roads
-    for highway in kinds:
+    for highway in [True] * cfg.highways + [False] * cfg.local_roads:
         c = _road_centreline(rng, w, h, curved=highway)
         n_per_dir = int(rng.integers(2, 4)) if highway else 1
         median = 6.0 if highway else 0.0
