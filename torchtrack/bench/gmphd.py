@@ -48,8 +48,7 @@ def scenario(w: dict, steps: int, seed: int) -> list[tuple[np.ndarray, np.ndarra
     for _ in range(steps):
         vel = vel + rng.normal(0.0, math.sqrt(w["q"]) * 0.3, vel.shape)
         pos = pos + vel
-        out_lo, out_hi = pos < lo, pos > hi
-        vel = np.where(out_lo | out_hi, -vel, vel)
+        vel = np.where((pos < lo) | (pos > hi), -vel, vel)
         pos = np.clip(pos, lo, hi)
         det = rng.random(w["targets"]) < w["pd"]
         z = pos[det] + rng.normal(0.0, w["sigma"], (int(det.sum()), 2))
@@ -75,8 +74,7 @@ class ReferenceGMPHD:
     def __init__(self, cfg: dict):
         f, b = cfg["filter"], cfg["birth"]
         self.F = np.block([[np.eye(2), np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
-        q = f["q"]
-        self.Q = q * np.block([[np.eye(2) / 3, np.eye(2) / 2], [np.eye(2) / 2, np.eye(2)]])
+        self.Q = f["q"] * np.block([[np.eye(2) / 3, np.eye(2) / 2], [np.eye(2) / 2, np.eye(2)]])
         self.H = np.hstack([np.eye(2), np.zeros((2, 2))])
         self.R = f["sigma"] ** 2 * np.eye(2)
         self.ps, self.pd, self.kappa = f["p_survival"], f["p_detection"], f["clutter_density"]

@@ -72,18 +72,14 @@ def pedestrian_track(scene: dict, steps: int) -> torch.Tensor:
 
 
 def make_truth(scene: dict, steps: int) -> Truth:
-    dt = scene["dt"]
     vehicle = torch.tensor([*scene["vehicle"], 0.0, 0.0], dtype=torch.float64).expand(steps, 4)
     static = torch.tensor([*scene["static_feature"], 0.0, 0.0], dtype=torch.float64).expand(steps, 4)
     px = pedestrian_track(scene, steps)
     present = ~torch.isnan(px)
-    vx = torch.zeros_like(px)
-    vx[:-1] = (px[1:] - px[:-1]) / dt
-    vx = torch.nan_to_num(vx)
+    vx = torch.nan_to_num(torch.diff(px, append=px[-1:]) / scene["dt"])     # forward difference, 0 at the end
     ped = torch.stack([torch.nan_to_num(px), torch.full_like(px, scene["pedestrian"]["y"]), vx,
                        torch.zeros_like(px)], -1)
-    features = torch.stack([static, ped], 1)
-    return Truth(vehicle, features, torch.stack([torch.ones_like(present), present], 1))
+    return Truth(vehicle, torch.stack([static, ped], 1), torch.stack([torch.ones_like(present), present], 1))
 
 
 def simulate(scene: dict, truth: Truth, runs: int, gen: torch.Generator) -> Recording:
@@ -96,8 +92,7 @@ def simulate(scene: dict, truth: Truth, runs: int, gen: torch.Generator) -> Reco
     z_det = rel + scene["v2f_var"] ** 0.5 * torch.randn(T, runs, F, 2, generator=gen, dtype=f64)
     counts = torch.poisson(torch.full((T, runs), float(scene["clutter_rate"]), dtype=f64), generator=gen).long()
     C = int(counts.max()) if counts.numel() else 0
-    half = scene["clutter_half_width"]
-    z_clut = (2 * torch.rand(T, runs, C, 2, generator=gen, dtype=f64) - 1) * half
+    z_clut = (2 * torch.rand(T, runs, C, 2, generator=gen, dtype=f64) - 1) * scene["clutter_half_width"]
     clut_mask = torch.arange(C).expand(T, runs, C) < counts.unsqueeze(-1)
     return Recording(gnss, torch.cat([z_det, z_clut], 2), torch.cat([detected, clut_mask], 2))
 
