@@ -22,7 +22,7 @@ import time
 import numpy as np
 import torch
 
-from torchtrack.bench._timing import BenchResult, format_result
+from torchtrack.bench._timing import BenchResult, best_time, format_result
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.gaussian import chi2_quantile
 
@@ -48,8 +48,7 @@ def scenario(w: dict, steps: int, seed: int) -> list[tuple[np.ndarray, np.ndarra
     for _ in range(steps):
         vel = vel + rng.normal(0.0, math.sqrt(w["q"]) * 0.3, vel.shape)
         pos = pos + vel
-        out_lo, out_hi = pos < lo, pos > hi
-        vel = np.where(out_lo | out_hi, -vel, vel)
+        vel = np.where((pos < lo) | (pos > hi), -vel, vel)
         pos = np.clip(pos, lo, hi)
         det = rng.random(w["targets"]) < w["pd"]
         z = pos[det] + rng.normal(0.0, w["sigma"], (int(det.sum()), 2))
@@ -75,8 +74,7 @@ class ReferenceGMPHD:
     def __init__(self, cfg: dict):
         f, b = cfg["filter"], cfg["birth"]
         self.F = np.block([[np.eye(2), np.eye(2)], [np.zeros((2, 2)), np.eye(2)]])
-        q = f["q"]
-        self.Q = q * np.block([[np.eye(2) / 3, np.eye(2) / 2], [np.eye(2) / 2, np.eye(2)]])
+        self.Q = f["q"] * np.block([[np.eye(2) / 3, np.eye(2) / 2], [np.eye(2) / 2, np.eye(2)]])
         self.H = np.hstack([np.eye(2), np.zeros((2, 2))])
         self.R = f["sigma"] ** 2 * np.eye(2)
         self.ps, self.pd, self.kappa = f["p_survival"], f["p_detection"], f["clutter_density"]
@@ -91,10 +89,8 @@ class ReferenceGMPHD:
     def step(self, z: np.ndarray) -> list[tuple[int, np.ndarray]]:
         F, Q, H, R = self.F, self.Q, self.H, self.R
         pred = [[self.ps * w, F @ m, F @ P @ F.T + Q, lab] for w, m, P, lab in self.comps]
-        birth_z = []
-        for zj in z:
-            if all(not (w >= self.suppress and np.linalg.norm(H @ m - zj) <= self.TB) for w, m, _, _ in pred):
-                birth_z.append(zj)
+        birth_z = [zj for zj in z
+                   if all(not (w >= self.suppress and np.linalg.norm(H @ m - zj) <= self.TB) for w, m, _, _ in pred)]
         post = [[(1 - self.pd) * w, m, P, lab] for w, m, P, lab in pred]
         pre = []
         for w, m, P, lab in pred:
@@ -119,7 +115,7 @@ class ReferenceGMPHD:
         merged = []
         while post:
             j = max(range(len(post)), key=lambda i: post[i][0])
-            wj, mj, Pj, lj = post[j]
+            _, mj, _, lj = post[j]
             group, rest = [], []
             for c in post:
                 d = c[1] - mj
@@ -160,15 +156,6 @@ def _time_torch(name: str, cfg: dict, frames: list, with_velocity: bool, repeats
     return len(data) / best, len(data) / best_cpu, mean_count
 
 
-def _time_reference(cfg: dict, frames: list) -> tuple[float, float]:
-    ref = ReferenceGMPHD(cfg)
-    count = 0
-    t0 = time.perf_counter()
-    for z, _ in frames:
-        count += len(ref.step(z))
-    return len(frames) / (time.perf_counter() - t0), count / len(frames)
-
-
 def op_overhead_us(n: int = 20000) -> float:
     """Process-CPU microseconds of one tiny torch operation (``a + b`` on 4-element tensors), measured now:
     the per-operation cost that bounds a per-frame filter on this machine at this moment."""
@@ -191,7 +178,8 @@ def measure(wname: str, overhead_us: float, steps: int | None = None, reference_
     ours, ours_cpu, card = _time_torch("labelled-gmphd", cfg, frames, False, repeats)
     enhanced, enhanced_cpu, card_e = _time_torch("gmphd", cfg, frames, True, repeats)
     ref_steps = min(reference_steps, steps)
-    reference, card_ref_prefix = _time_reference(cfg, frames[:ref_steps])
+    ref = ReferenceGMPHD(cfg)
+    reference = ref_steps / best_time(lambda: [ref.step(z) for z, _ in frames[:ref_steps]], repeats=1, warmup=0)
     meas = float(np.mean([z.shape[0] for z, _ in frames]))
     workload = (f"{wname}: {w['targets']} targets, {steps} steps, ~{meas:.0f} measurements/step "
                 f"(clutter {w['clutter']:g}/scan), p_D {w['pd']}; labelled GM-PHD, float32, "

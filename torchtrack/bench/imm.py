@@ -13,10 +13,11 @@ what a run on an otherwise idle machine would see per core when the machine is s
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import torch
 
-from torchtrack.bench._timing import BenchResult, best_time, format_result
+from torchtrack.bench._timing import BenchResult, best_time, cpu_time, format_result
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
 from torchtrack.models import LinearPosition, ModeControlInput
@@ -97,13 +98,9 @@ def measure(tracks: int = 100_000, steps: int = 20, reference_tracks: int = 100,
         model = _model(torch_dtype)
         init = model.initial_state(x0, torch.diag(torch.tensor([100.0, 100.0, 25.0, 25.0], dtype=torch_dtype)))
         with torch.no_grad():
-            t0 = time.perf_counter()
-            model.run_packed(z[:2], init, 1.0, compile=compile)       # compilation / warm-up, not timed
-            warm = time.perf_counter() - t0
-            seconds = best_time(lambda: model.run_packed(z, init, 1.0, compile=compile), repeats=3, warmup=0)
-            c0 = time.process_time()
-            _, means, _ = model.run_packed(z, init, 1.0, compile=compile)
-            cpu = time.process_time() - c0
+            warm = best_time(partial(model.run_packed, z[:2], init, 1.0, compile=compile), 1, 0)   # compilation
+            seconds = best_time(partial(model.run_packed, z, init, 1.0, compile=compile), repeats=3, warmup=0)
+            (_, means, _), cpu = cpu_time(partial(model.run_packed, z, init, 1.0, compile=compile))
         n_ref = min(reference_tracks, tracks)
         ref, ref_cpu, ref_x = filterpy_rate(z[:, :n_ref], x0[:n_ref], _model(torch.float64))
         deviation = float((means[-1, :n_ref].double() - ref_x).abs().max())

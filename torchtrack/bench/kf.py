@@ -18,6 +18,7 @@ float32, ``--tracks`` tracks × ``--steps`` steps. Timed in the same run:
 from __future__ import annotations
 
 import time
+from functools import partial
 
 import numpy as np
 import torch
@@ -27,13 +28,6 @@ from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 DT, Q, SIGMA = 1.0, 0.05, 1.0
-
-
-def _cpu_seconds(fn) -> float:
-    """CPU time of one call (not wall time): about what it would take on an idle machine."""
-    c0 = time.process_time()
-    fn()
-    return time.process_time() - c0
 
 
 def _numpy_reference(z: np.ndarray, x0: np.ndarray, P0: np.ndarray, F, Qm, H, R) -> tuple[np.ndarray, np.ndarray]:
@@ -80,20 +74,16 @@ def measure(tracks: int = 100_000, steps: int = 100, general_steps: int = 10, lo
                          .expand(N, 4, 4))
 
     with torch.no_grad():
-        t0 = time.perf_counter()
-        kf.run(z, init, DT, compile=compile, engine="axes", history=False)
-        warmup_s = time.perf_counter() - t0
-        ours_s = best_time(lambda: kf.run(z, init, DT, compile=compile, engine="axes", history=False), repeats=3,
-                           warmup=0)
+        ours = partial(kf.run, z, init, DT, compile=compile, engine="axes", history=False)
+        warmup_s = best_time(ours, repeats=1, warmup=0)     # the first call, compilation included
+        ours_s = best_time(ours, repeats=3, warmup=0)
         Tg = min(general_steps, T)
-        t0 = time.perf_counter()
-        kf.run(z[:Tg], init, DT, compile=compile)
-        general_warmup_s = time.perf_counter() - t0
-        general_s = best_time(lambda: kf.run(z[:Tg], init, DT, compile=compile), repeats=5, warmup=0)
-        batch_first_s = best_time(lambda: kf.run(z[:Tg], init, DT, engine="batch"), repeats=1, warmup=0)
-        general_cpu_s = min(_cpu_seconds(lambda: kf.run(z[:Tg], init, DT, compile=compile)) for _ in range(3))
-        general_eager_s = (best_time(lambda: kf.run(z[:Tg], init, DT), repeats=1, warmup=0) if compile
-                           else general_s)
+        general = partial(kf.run, z[:Tg], init, DT, compile=compile)
+        general_warmup_s = best_time(general, repeats=1, warmup=0)
+        general_s = best_time(general, repeats=5, warmup=0)
+        batch_first_s = best_time(partial(kf.run, z[:Tg], init, DT, engine="batch"), repeats=1, warmup=0)
+        general_cpu_s = best_time(general, repeats=3, warmup=0, clock=time.process_time)
+        general_eager_s = best_time(partial(kf.run, z[:Tg], init, DT), repeats=1, warmup=0) if compile else general_s
 
     F = kf.motion.transition_matrix(DT).double().numpy()
     Qm = kf.motion.process_noise(DT).detach().double().numpy()

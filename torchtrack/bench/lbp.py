@@ -8,14 +8,13 @@ per-size times in milliseconds are reported beside it.
 
 from __future__ import annotations
 
-import time
-from collections.abc import Callable
+from functools import partial
 
 import numpy as np
 import torch
 
 from torchtrack.association.lbp import LOG_NEW_FLOOR, lbp_marginals
-from torchtrack.bench._timing import BenchResult, best_time, format_result
+from torchtrack.bench._timing import CLOCKS, BenchResult, best_time, format_result, load_average
 from torchtrack.metrics.table import format_table
 from torchtrack.threads import torch_threads
 
@@ -56,35 +55,12 @@ def numpy_lbp(log_w: np.ndarray, log_miss: np.ndarray, log_new: np.ndarray, iter
     return prod / total, (a0 / total)[:, 0]
 
 
-def best_cpu_time(fn: Callable[[], object], repeats: int = 3) -> float:
-    """Minimum process CPU seconds of ``fn()`` over ``repeats`` calls after one warm-up call.
-
-    On a shared machine the wall time counts the time the process waits for a core; the CPU time is
-    what the work costs, i.e. the wall time it would take on an idle core (one thread)."""
-    fn()
-    best = float("inf")
-    for _ in range(repeats):
-        t0 = time.process_time()
-        fn()
-        best = min(best, time.process_time() - t0)
-    return best
-
-
 def make_problem(n: int, density: float, gen: torch.Generator, dtype: torch.dtype):
     log_w = torch.randn(n, n, generator=gen, dtype=torch.float64) * 2.0 - 1.0
     log_w[torch.rand(n, n, generator=gen) > density] = float("-inf")
     log_miss = torch.randn(n, generator=gen, dtype=torch.float64) * 0.5
     log_new = torch.randn(n, generator=gen, dtype=torch.float64) * 0.5 - 1.0
     return log_w.to(dtype), log_miss.to(dtype), log_new.to(dtype)
-
-
-def _loadavg() -> float | None:
-    try:
-        import os
-
-        return os.getloadavg()[0]
-    except (OSError, AttributeError):
-        return None
 
 
 def measure(sizes: list[int], iterations: int = 15, density: float = 0.2, dtype: str = "float32", threads: int = 1,
@@ -96,26 +72,21 @@ def measure(sizes: list[int], iterations: int = 15, density: float = 0.2, dtype:
         torch_dtype = getattr(torch, dtype)
         gen = torch.Generator().manual_seed(seed)
         per_size = {}
-        ours_ms = ref_ms = float("nan")
         for n in sizes:
             lw, lm, ln = make_problem(n, density, gen, torch_dtype)
-            lw_np, lm_np, ln_np = lw.numpy(), lm.numpy(), ln.numpy()
+            run_ours = partial(lbp_marginals, lw, lm, ln, iterations=iterations, tol=None, check=False)
+            run_ref = partial(numpy_lbp, lw.numpy(), lm.numpy(), ln.numpy(), iterations)
             with torch.no_grad():
-                ours = best_time(lambda a=lw, b=lm, c=ln: lbp_marginals(a, b, c, iterations=iterations, tol=None,
-                                                                        check=False), repeats=repeats)
-                ours_cpu = best_cpu_time(lambda a=lw, b=lm, c=ln: lbp_marginals(a, b, c, iterations=iterations,
-                                                                                tol=None, check=False), repeats)
-            ref = best_time(lambda a=lw_np, b=lm_np, c=ln_np: numpy_lbp(a, b, c, iterations), repeats=repeats)
-            ref_cpu = best_cpu_time(lambda a=lw_np, b=lm_np, c=ln_np: numpy_lbp(a, b, c, iterations), repeats)
+                ours, ours_cpu = (best_time(run_ours, repeats, clock=clock) for clock in CLOCKS)
+            ref, ref_cpu = (best_time(run_ref, repeats, clock=clock) for clock in CLOCKS)
             a_ours = lbp_marginals(lw, lm, ln, iterations=iterations, tol=None).assoc.numpy()
-            a_ref, _ = numpy_lbp(lw_np, lm_np, ln_np, iterations)
-            ours_ms, ref_ms = ours * 1e3, ref * 1e3
-            per_size[n] = {"ours_ms": ours_ms, "numpy_ms": ref_ms, "ours_cpu_ms": ours_cpu * 1e3,
+            a_ref, _ = run_ref()
+            per_size[n] = {"ours_ms": ours * 1e3, "numpy_ms": ref * 1e3, "ours_cpu_ms": ours_cpu * 1e3,
                            "numpy_cpu_ms": ref_cpu * 1e3, "max_abs_diff": float(np.abs(a_ours - a_ref).max())}
         n = sizes[-1]
         return BenchResult(f"LBP marginals, {n}x{n}, {iterations} iterations, {dtype}, gate density {density}",
-                           1e3 / ours_ms, "numpy (same algorithm)", 1e3 / ref_ms, "problems",
-                           {"per_size": per_size, "threads": torch.get_num_threads(), "load_average": _loadavg()})
+                           1 / ours, "numpy (same algorithm)", 1 / ref, "problems",
+                           {"per_size": per_size, "threads": torch.get_num_threads(), "load_average": load_average()})
 
 
 def format_report(r: BenchResult) -> str:

@@ -16,13 +16,11 @@ The mean final probability of the true class is printed for both as a sanity che
 from __future__ import annotations
 
 import math
-import os
-import time
 
 import numpy as np
 import torch
 
-from torchtrack.bench._timing import BenchResult, best_time, format_result
+from torchtrack.bench._timing import BenchResult, best_time, cpu_time, format_result, load_average
 from torchtrack.filters.jtc import MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import jtc_trajectory, simulate_measurements
 from torchtrack.threads import torch_threads
@@ -87,13 +85,6 @@ def numpy_bank(bank: MultipleModelParticleFilter, z: np.ndarray, mean: np.ndarra
     return np.stack(out)
 
 
-def _cpu_time(fn):
-    """``(fn(), process CPU seconds)``: on a loaded machine, the cost without the wait for a core."""
-    c0 = time.process_time()
-    out = fn()
-    return out, time.process_time() - c0
-
-
 def measure(runs: int = 20, particles: int = 3000, scans: int = 80, dtype: str = "float32", threads: int = 1,
             compile: bool = False, repeats: int = 3, seed: int = 0) -> BenchResult:
     """Time the bank (best of ``repeats`` passes, on ``threads`` torch threads; ``compile``: its step
@@ -111,15 +102,15 @@ def measure(runs: int = 20, particles: int = 3000, scans: int = 80, dtype: str =
         cov = torch.diag(std**2)
         with torch.inference_mode():
             t_ours = best_time(lambda: bank.run(z, mean, cov, traj.dt, gen), repeats)
-            ours, c_ours = _cpu_time(lambda: bank.run(z, mean, cov, traj.dt, gen))
+            ours, c_ours = cpu_time(lambda: bank.run(z, mean, cov, traj.dt, gen))
         rng = np.random.default_rng(seed)
         z_np, mean_np, std_np = z.numpy(), mean.numpy(), std.numpy()
         t_ref = best_time(lambda: numpy_bank(bank, z_np, mean_np, std_np, traj.dt, rng), repeats, warmup=0)
-        ref, c_ref = _cpu_time(lambda: numpy_bank(bank, z_np, mean_np, std_np, traj.dt, rng))
+        ref, c_ref = cpu_time(lambda: numpy_bank(bank, z_np, mean_np, std_np, traj.dt, rng))
     steps = runs * bank.num_classes * particles * scans
     extra = {
         "runs": runs, "particles_per_class": particles, "scans": scans, "dtype": dtype,
-        "threads": threads, "compiled": compile, "load_average_1min": os.getloadavg()[0],
+        "threads": threads, "compiled": compile, "load_average_1min": load_average(),
         "ours_ms_per_scan": 1e3 * t_ours / scans,
         "reference_ms_per_scan": 1e3 * t_ref / scans,
         "ours_cpu_ms_per_scan": 1e3 * c_ours / scans, "reference_cpu_ms_per_scan": 1e3 * c_ref / scans,

@@ -15,8 +15,8 @@ import math
 import numpy as np
 import torch
 
-from torchtrack.bench._timing import BenchResult, best_time, format_result
-from torchtrack.bench.lbp import _loadavg, best_cpu_time, numpy_lbp
+from torchtrack.bench._timing import CLOCKS, BenchResult, best_time, format_result, load_average
+from torchtrack.bench.lbp import numpy_lbp
 from torchtrack.filters.pmb import PMBFilter, PMBState
 from torchtrack.models import ConstantVelocity, LinearPosition
 from torchtrack.threads import torch_threads
@@ -148,8 +148,7 @@ def measure(targets: int = 100, measurements: int = 150, scans: int = 20, dtype:
                     s, _ = filt.step(s, timed[t])
                 return s
 
-            t_ours = best_time(ours, repeats=repeats)
-            c_ours = best_cpu_time(ours, repeats=repeats)
+            t_ours, c_ours = (best_time(ours, repeats, clock=clock) for clock in CLOCKS)
             final = ours()
         live = int((start.existence > 0.5).sum())
         params = {"F": filt.motion.transition_matrix(1.0).double().numpy(),
@@ -167,8 +166,7 @@ def measure(targets: int = 100, measurements: int = 150, scans: int = 20, dtype:
                 s = numpy_step(s, timed_np[t], params)
             return s
 
-        t_ref = best_time(reference, repeats=repeats)
-        c_ref = best_cpu_time(reference, repeats=repeats)
+        t_ref, c_ref = (best_time(reference, repeats, clock=clock) for clock in CLOCKS)
         ref_final = reference()
         agree = abs(float(final.existence.sum()) - float(ref_final["r"].sum()))
         n = timed.shape[0]
@@ -178,7 +176,7 @@ def measure(targets: int = 100, measurements: int = 150, scans: int = 20, dtype:
             n / t_ours, "numpy (same algorithm)", n / t_ref, "scans",
             {"confirmed_tracks": live, "ms_per_scan": 1e3 * t_ours / n, "numpy_ms_per_scan": 1e3 * t_ref / n,
              "cpu_ms_per_scan": 1e3 * c_ours / n, "numpy_cpu_ms_per_scan": 1e3 * c_ref / n,
-             "load_average": _loadavg(), "expected_count_difference": agree, "threads": torch.get_num_threads()})
+             "load_average": load_average(), "expected_count_difference": agree, "threads": torch.get_num_threads()})
 
 
 def format_report(r: BenchResult, scans: int) -> str:

@@ -4,27 +4,23 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import torch
-
-from torchtrack.sim.formation import FormationData
+from torchtrack.scenarios._plots import plt, save
+from torchtrack.scenarios.formation import FormationReport
 
 _COLOURS = ["tab:blue", "tab:red", "tab:green", "tab:orange", "tab:purple", "tab:brown"]
 
 
-def plot_formation(data: FormationData, estimates: dict[str, torch.Tensor], out_dir: Path, run: int = 0) -> list[Path]:
-    """Write ``formation_truth.png`` and ``formation_<gate>.png`` for Monte Carlo run ``run``."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
+def plot(report: FormationReport, out_dir: Path) -> list[Path]:
+    """Write ``formation_truth.png`` and ``formation_<gate>.png`` of the run where the ellipsoidal gate loses most
+    associations (stated in the titles)."""
+    data = report.data
+    ell = report.results["ellipsoidal"]
+    run = int((ell["detected"] & ~ell["correct"]).sum((1, 2)).argmax())
+    estimates = {report.names[g]: r["estimate"] for g, r in report.results.items()}
     truth = data.truth[run].numpy()
     z, m, org = data.z[run].numpy(), data.z_mask[run].numpy(), data.z_origin[run].numpy()
     rep = data.z_class[run].numpy()
     classes = data.target_class.tolist()
-    paths = []
 
     def frame(ax, title):
         for n in range(truth.shape[1]):
@@ -40,10 +36,7 @@ def plot_formation(data: FormationData, estimates: dict[str, torch.Tensor], out_
         ax.scatter(z[sel][:, 0], z[sel][:, 1], s=5, c=colour, label=f"measurements reported class {c + 1}")
     ax.scatter(z[m & (org == -1)][:, 0], z[m & (org == -1)][:, 1], s=12, c="k", marker="x", label="clutter")
     ax.legend(loc="upper left", fontsize=8)
-    paths.append(out_dir / "formation_truth.png")
-    fig.tight_layout()
-    fig.savefig(paths[-1], dpi=120)
-    plt.close(fig)
+    paths = [save(fig, out_dir / "formation_truth.png", dpi=120)]
 
     for gate, est in estimates.items():
         e = est[run].numpy()
@@ -53,8 +46,5 @@ def plot_formation(data: FormationData, estimates: dict[str, torch.Tensor], out_
             ax.plot(e[:, n, 0], e[:, n, 1], "-", color=_COLOURS[n % len(_COLOURS)], lw=1.4,
                     label=f"track {n + 1} (class {classes[n] + 1})")
         ax.legend(loc="upper left", fontsize=8)
-        paths.append(out_dir / f"formation_{gate}.png")
-        fig.tight_layout()
-        fig.savefig(paths[-1], dpi=120)
-        plt.close(fig)
+        paths.append(save(fig, out_dir / f"formation_{gate}.png", dpi=120))
     return paths

@@ -4,27 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-
-from torchtrack.sim.jtc_trajectory import Trajectory  # noqa: E402
+from torchtrack.scenarios._plots import plt, save
+from torchtrack.scenarios.jtc import JTCReport
 
 
-def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
-
-
-def plot_all(out: Path, traj: Trajectory, results: dict, main_setting: bool, true_class: int) -> list[Path]:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    main = results[main_setting]
+def plot(report: JTCReport, out: Path) -> list[Path]:
+    """Write the three figures to the folder ``out``."""
+    traj, results = report.trajectory, report.results
+    main = results[report.speed_constraints]
     scans = range(1, traj.states.shape[0])
-    paths = []
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     xy = traj.states[:, :2] / 1e3
@@ -37,21 +25,21 @@ def plot_all(out: Path, traj: Trajectory, results: dict, main_setting: bool, tru
     axes[0].legend()
     axes[1].plot(scans, main["mode1_probability"], "b-")
     axes[1].set(xlabel="scan", ylabel="probability", ylim=(0, 1.05), title="(b) posterior probability of mode 1")
-    paths.append(_save(fig, out / "jtc_fig1_trajectory_mode.png"))
+    paths = [save(fig, out / "jtc_fig1_trajectory_mode.png")]
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2), sharey=True)
     for ax, setting, name in zip(axes, (False, True), ("(a) without", "(b) with")):
         p = results[setting]["class_probability_correct"]
-        ax.plot(scans, p, "r-", label=f"class {true_class} (true)")
-        ax.plot(scans, 1 - p, "b--", label=f"class {3 - true_class}")
+        ax.plot(scans, p, "r-", label=f"class {report.true_class} (true)")
+        ax.plot(scans, 1 - p, "b--", label=f"class {3 - report.true_class}")
         ax.set(xlabel="scan", ylabel="class probability", ylim=(0, 1.05), title=f"{name} speed constraints")
         ax.legend()
-    paths.append(_save(fig, out / "jtc_fig2_class_probabilities.png"))
+    paths.append(save(fig, out / "jtc_fig2_class_probabilities.png"))
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.2))
     axes[0].plot(scans, main["rmse_position"], "b-")
     axes[0].set(xlabel="scan", ylabel="RMSE [m]", title="(a) position RMSE")
     axes[1].plot(scans, main["rmse_speed"], "b-")
     axes[1].set(xlabel="scan", ylabel="RMSE [m/s]", title="(b) speed RMSE")
-    paths.append(_save(fig, out / "jtc_fig3_rmse.png"))
+    paths.append(save(fig, out / "jtc_fig3_rmse.png"))
     return paths

@@ -4,16 +4,13 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
-
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
+from torchtrack.scenarios._plots import plt, save
+from torchtrack.scenarios.maneuver import ManeuverReport
 
 
-def plot_all(out: Path, st: dict, cv: dict, mv: dict, cfg: dict) -> list[Path]:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = []
+def plot(report: ManeuverReport, out: Path) -> list[Path]:
+    """Write the three experiments' figures to the folder ``out``."""
+    st, cv, mv, cfg = report.stationary, report.constant_velocity, report.maneuver, report.config
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     z, est, truth = st["seq"].measurements[:, 0], st["estimate"][:, 0], st["seq"].truth[:, 0]
@@ -23,7 +20,7 @@ def plot_all(out: Path, st: dict, cv: dict, mv: dict, cfg: dict) -> list[Path]:
         ax.axhline(0, color="k", lw=0.8, label="true")
         ax.set(xlabel="scan", ylabel=f"{name} − true (arcsec)", title=f"stationary target: {name}")
         ax.legend()
-    paths.append(_save(fig, out / "stationary.png"))
+    paths = [save(fig, out / "stationary.png")]
 
     fig, axes = plt.subplots(1, 2, figsize=(11, 4))
     seq, res = cv["seq"], cv["result"]
@@ -33,7 +30,7 @@ def plot_all(out: Path, st: dict, cv: dict, mv: dict, cfg: dict) -> list[Path]:
         ax.plot(res.mean[:, 0, i], "r.", ms=3, label="estimated")
         ax.set(xlabel="scan", ylabel=f"{name} (m)", title=f"constant-velocity target: {name}")
         ax.legend()
-    paths.append(_save(fig, out / "constant_velocity.png"))
+    paths.append(save(fig, out / "constant_velocity.png"))
 
     fig, axes = plt.subplots(1, 2, figsize=(12, 4.5))
     seq = mv["seq"]
@@ -55,12 +52,6 @@ def plot_all(out: Path, st: dict, cv: dict, mv: dict, cfg: dict) -> list[Path]:
         ax.axvline(onset, color="k", ls=":", lw=1)
     ax.set(xlabel="scan", ylabel="normalised distance d²", title="residual test (paper Fig. 9)")
     ax.legend(fontsize=8)
-    paths.append(_save(fig, out / "maneuver.png"))
+    paths.append(save(fig, out / "maneuver.png"))
     return paths
 
-
-def _save(fig, path: Path) -> Path:
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path

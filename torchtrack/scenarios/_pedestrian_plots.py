@@ -4,16 +4,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
-import matplotlib
+import torch
 
-matplotlib.use("Agg")
-import matplotlib.pyplot as plt  # noqa: E402
-import torch  # noqa: E402
+from torchtrack.scenarios._plots import plt, save
+from torchtrack.scenarios.pedestrian import VARIANTS, PedestrianReport
 
 COLORS = {"joint": "tab:blue", "inflated": "tab:orange", "naive": "tab:red", "inflated_kf": "tab:green"}
 
 
-def plot_positions(path: Path, truth, run, variant: str) -> None:
+def plot_positions(path: Path, truth, run, variant: str) -> Path:
     """Fig. 3: true and estimated feature positions in x and y over time, run 0."""
     fig, axes = plt.subplots(2, 1, figsize=(9, 6.5), sharex=True)
     T = truth.present.shape[0]
@@ -31,12 +30,10 @@ def plot_positions(path: Path, truth, run, variant: str) -> None:
     axes[0].set_title("Feature positions: truth (f1 static, f2 pedestrian) and estimates, run 0")
     axes[0].legend(loc="upper left", markerscale=4)
     axes[1].set_xlabel("time step")
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    return save(fig, path, dpi=120)
 
 
-def plot_ospa(path: Path, per_step: dict, mean: dict) -> None:
+def plot_ospa(path: Path, per_step: dict, mean: dict) -> Path:
     """Fig. 4: OSPA (c = 20 m, p = 2) over time, averaged over runs."""
     fig, ax = plt.subplots(figsize=(9, 4))
     for v in sorted(per_step, key=lambda k: -mean[k]):          # the worst first, so the best is on top
@@ -46,14 +43,12 @@ def plot_ospa(path: Path, per_step: dict, mean: dict) -> None:
     ax.set_title("Feature OSPA over time (mean over runs)")
     ax.grid(alpha=0.3)
     ax.legend()
-    fig.tight_layout()
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
+    return save(fig, path, dpi=120)
 
 
-def plot_all(out: Path, truth, runs: dict, per_step: dict, mean: dict) -> None:
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    for v, r in runs.items():
-        plot_positions(out / f"pedestrian_positions_{v}.png", truth, r, v)
-    plot_ospa(out / "pedestrian_ospa.png", per_step, mean)
+def plot(report: PedestrianReport, out: Path) -> list[Path]:
+    """Fig. 3 of every variant and Fig. 4 of the paper's variants, in the folder ``out``."""
+    paths = [plot_positions(out / f"pedestrian_positions_{v}.png", report.truth, r, v)
+             for v, r in report.variants.items()]
+    return paths + [plot_ospa(out / "pedestrian_ospa.png", {v: report.ospa_per_step[v] for v in VARIANTS},
+                              report.mean_ospa)]

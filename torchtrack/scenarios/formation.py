@@ -25,6 +25,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 import torch
+from tqdm import tqdm
 
 from torchtrack.association.assignment import assign
 from torchtrack.association.gating import (
@@ -187,9 +188,7 @@ def track_formation(data: FormationData, cfg: dict, gate: str, gen: torch.Genera
         volume[:, k] = g.volume
         state, _ = bank.update(state, z_a, mask=hit, z_class=torch.where(hit, zc_a, torch.zeros_like(zc_a)))
         estimate[:, k] = bank.combine(state).mean
-    detected = torch.zeros(R, K, N, dtype=torch.bool)
-    for n in range(N):  # which targets were detected at each scan (scoring only)
-        detected[..., n] = (data.z_origin == n).any(-1)
+    detected = (data.z_origin.unsqueeze(-1) == targets).any(-2)   # (R, K, N): which targets each scan detected
     return {"correct": correct[:, 1:], "detected": detected[:, 1:], "volume": volume[:, 1:], "estimate": estimate}
 
 
@@ -226,15 +225,10 @@ def run_gates(config: Path, runs: int, seed: int, params: Path | None = None) ->
     scfg = cfg["scenario"]
     data = simulate_formation(scfg, runs, gen)
     num_classes = len(scfg.confusion)
-    from tqdm import tqdm
-
-    results = {}
-    for gate in tqdm(GATES, desc="gates", file=__import__("sys").stderr):
-        results[gate] = track_formation(data, cfg, gate, torch.Generator().manual_seed(seed + 1))
+    results = {gate: track_formation(data, cfg, gate, torch.Generator().manual_seed(seed + 1))
+               for gate in tqdm(GATES, desc="gates")}
     main_cc = f"class_conditioned_{cfg['association']['cc_region']}"
-    other_cc = "class_conditioned_density" if main_cc.endswith("ellipse") else "class_conditioned_ellipse"
-    names = {"rectangular": "rectangular", "ellipsoidal": "ellipsoidal", main_cc: "class_conditioned",
-             other_cc: other_cc}
+    names = {g: "class_conditioned" if g == main_cc else g for g in GATES}
     prob = {names[g]: association_probability(results[g], data.target_class, num_classes) for g in GATES}
     vol = {names[g]: float(results[g]["volume"].mean()) for g in GATES}
     return FormationReport(data, results, names, prob, vol, cfg, runs, seed, params)

@@ -30,11 +30,6 @@ from torchtrack.threads import torch_threads
 DEFAULT_CONFIG = preset_path("jtc")
 
 
-def load_config(path: Path) -> dict:
-    cfg = load_sections(path, "jtc")
-    return cfg
-
-
 def make_bank(cfg: dict, speed_constraints: bool, compile_step: bool = False) -> MultipleModelParticleFilter:
     f, s = cfg["filter"], cfg["sensor"]
     bank = paper_bank(f["particles"], speed_constraints, f["warmup"], s["position"], s["sigma_range"],
@@ -126,7 +121,7 @@ def run_jtc(config: Path, runs: int, seed: int, *, speed_constraints: bool = Tru
     (``speed_constraints``: the main result's setting), then the time per update of one run; ``particles``
     per class (None: the config's) on ``threads`` torch threads (restored afterwards)."""
     with torch_threads(threads):
-        cfg = load_config(config)
+        cfg = load_sections(config, "jtc")
         if particles is not None:
             cfg["filter"]["particles"] = particles
         dtype = getattr(torch, str(cfg["filter"]["dtype"]), None)
@@ -181,10 +176,8 @@ def report_json(r: JTCReport) -> dict:
     """The numbers of ``--json``."""
     main = r.results[r.speed_constraints]
     return {
-        "class_probability_correct": main["class_probability_correct"],
-        "rmse_position": main["rmse_position"],
-        "rmse_speed": main["rmse_speed"],
-        "mode_probability_correct": main["mode_probability_correct"],
+        **{k: main[k] for k in ("class_probability_correct", "rmse_position", "rmse_speed",
+                                "mode_probability_correct")},
         "time_per_update_ms": r.per_update_ms,
         "time_per_scan_all_runs_ms": r.per_scan_ms,
         "time_per_update_cpu_ms": r.per_update_cpu_ms,

@@ -25,8 +25,8 @@ DEFAULT_CONFIG = preset_path("maneuver")
 
 
 def load_config(path: Path) -> dict:
-    cfg = load_sections(path, "maneuver")
-    return cfg
+    """Read and check the scenario YAML (sections ``stationary``, ``constant_velocity``, ``maneuver``, ``filter``)."""
+    return load_sections(path, "maneuver")
 
 
 def _rmse(err: torch.Tensor) -> float:
@@ -108,9 +108,7 @@ def run_maneuver(cfg: dict, fcfg: dict, runs: int, gen: torch.Generator, params:
     outside = ~in_window
     outside[:2] = False  # the first two scans initialise the filter and are never tested
     false_alarms = float(res_det.detected[outside].double().sum()) / (outside.sum() * runs) * 100
-    err_plain = res_plain.mean[in_window, :, :2] - seq.truth[in_window, :, :2]
-    err_det = res_det.mean[in_window, :, :2] - seq.truth[in_window, :, :2]
-    rmse_kf, rmse_det = _rmse(err_plain), _rmse(err_det)
+    rmse_kf, rmse_det = (_rmse(r.mean[in_window, :, :2] - seq.truth[in_window, :, :2]) for r in (res_plain, res_det))
     return {"seq": seq, "plain": res_plain, "detecting": res_det, "window": in_window,
             "detection_rate": rates, "median_detection_delay": delays,
             "false_alarms_per_100_scans": false_alarms,
@@ -174,12 +172,8 @@ def report_json(r: ManeuverReport) -> dict:
     mv = r.maneuver
     return {
         "maneuver_onsets": r.config["maneuver"]["onsets"],
-        "detection_rate": mv["detection_rate"],
-        "median_detection_delay": mv["median_detection_delay"],
-        "false_alarms_per_100_scans": mv["false_alarms_per_100_scans"],
-        "rmse_position_kf": mv["rmse_position_kf"],
-        "rmse_position_detecting_kf": mv["rmse_position_detecting_kf"],
-        "rmse_reduction": mv["rmse_reduction"],
+        **{k: mv[k] for k in ("detection_rate", "median_detection_delay", "false_alarms_per_100_scans",
+                              "rmse_position_kf", "rmse_position_detecting_kf", "rmse_reduction")},
         "stationary": {k: r.stationary[k] for k in ("rmse_measured", "rmse_estimated", "final_error")},
         "constant_velocity": {k: r.constant_velocity[k] for k in ("rmse_measured", "rmse_estimated", "rmse_velocity")},
         "threshold": r.config["filter"]["threshold"],

@@ -36,8 +36,7 @@ PAPER_OSPA = {"joint": 0.87, "inflated": 0.99, "naive": 2.61}
 
 
 def load_config(path: Path) -> dict:
-    cfg = load_sections(path, "pedestrian")
-    return cfg
+    return load_sections(path, "pedestrian")
 
 
 class Truth(NamedTuple):
@@ -73,18 +72,14 @@ def pedestrian_track(scene: dict, steps: int) -> torch.Tensor:
 
 
 def make_truth(scene: dict, steps: int) -> Truth:
-    dt = scene["dt"]
     vehicle = torch.tensor([*scene["vehicle"], 0.0, 0.0], dtype=torch.float64).expand(steps, 4)
     static = torch.tensor([*scene["static_feature"], 0.0, 0.0], dtype=torch.float64).expand(steps, 4)
     px = pedestrian_track(scene, steps)
     present = ~torch.isnan(px)
-    vx = torch.zeros_like(px)
-    vx[:-1] = (px[1:] - px[:-1]) / dt
-    vx = torch.nan_to_num(vx)
+    vx = torch.nan_to_num(torch.diff(px, append=px[-1:]) / scene["dt"])     # forward difference, 0 at the end
     ped = torch.stack([torch.nan_to_num(px), torch.full_like(px, scene["pedestrian"]["y"]), vx,
                        torch.zeros_like(px)], -1)
-    features = torch.stack([static, ped], 1)
-    return Truth(vehicle, features, torch.stack([torch.ones_like(present), present], 1))
+    return Truth(vehicle, torch.stack([static, ped], 1), torch.stack([torch.ones_like(present), present], 1))
 
 
 def simulate(scene: dict, truth: Truth, runs: int, gen: torch.Generator) -> Recording:
@@ -97,25 +92,22 @@ def simulate(scene: dict, truth: Truth, runs: int, gen: torch.Generator) -> Reco
     z_det = rel + scene["v2f_var"] ** 0.5 * torch.randn(T, runs, F, 2, generator=gen, dtype=f64)
     counts = torch.poisson(torch.full((T, runs), float(scene["clutter_rate"]), dtype=f64), generator=gen).long()
     C = int(counts.max()) if counts.numel() else 0
-    half = scene["clutter_half_width"]
-    z_clut = (2 * torch.rand(T, runs, C, 2, generator=gen, dtype=f64) - 1) * half
+    z_clut = (2 * torch.rand(T, runs, C, 2, generator=gen, dtype=f64) - 1) * scene["clutter_half_width"]
     clut_mask = torch.arange(C).expand(T, runs, C) < counts.unsqueeze(-1)
     return Recording(gnss, torch.cat([z_det, z_clut], 2), torch.cat([detected, clut_mask], 2))
 
 
 def build_filter(fcfg: dict, scene: dict, p_survival: float) -> PMBFilter:
     prior_cov = torch.diag(torch.tensor(fcfg["prior_std"], dtype=torch.float64) ** 2)
-    half = scene["clutter_half_width"]
-    filt = PMBFilter(
+    return PMBFilter(
         ConstantVelocity(2, q=fcfg["feature_q"], learnable=False),
         LinearPosition(2, sigma=scene["v2f_var"] ** 0.5, learnable=False),
         p_survival=p_survival, p_detection=fcfg["p_detection"],
-        clutter_intensity=scene["clutter_rate"] / (2 * half) ** 2,
+        clutter_intensity=scene["clutter_rate"] / (2 * scene["clutter_half_width"]) ** 2,
         birth_weight=fcfg["birth_weight"], birth_mean=torch.zeros(4, dtype=torch.float64), birth_cov=prior_cov,
         capacity=fcfg["capacity"], poisson_capacity=fcfg["poisson_capacity"], gate=fcfg["gate"],
         lbp_iterations=fcfg["lbp_iterations"], lbp_tol=fcfg["lbp_tol"], prune_existence=fcfg["prune_existence"],
-        estimate_threshold=fcfg["estimate_threshold"], learnable=False)
-    return filt.double()
+        estimate_threshold=fcfg["estimate_threshold"], learnable=False).double()
 
 
 class Run(NamedTuple):
@@ -143,7 +135,7 @@ def run_variant(variant: str, filt: PMBFilter, rec: Recording, cfg: dict, progre
     init_var = torch.tensor(fcfg["vehicle_init_var"], dtype=torch.float64)
     sensor = SensorState(torch.cat([rec.gnss[0], torch.zeros(R, 2, dtype=torch.float64)], -1),
                          torch.diag(init_var).expand(R, 4, 4).clone())
-    out_pos, out_mask, out_label, out_sensor = [], [], [], []
+    steps = []
     for t in tqdm(range(T), desc=f"pedestrian {variant}", disable=not progress, leave=False):
         if variant in ("joint", "inflated_kf"):
             if t > 0:
@@ -162,11 +154,8 @@ def run_variant(variant: str, filt: PMBFilter, rec: Recording, cfg: dict, progre
             state, _ = v2f_update(filt, state, rec.z[t], rec.mask[t], rec.gnss[t], cov)
             used = rec.gnss[t]
         est = filt.estimate(state)
-        out_pos.append(est.mean[..., :2])
-        out_mask.append(est.mask)
-        out_label.append(est.label)
-        out_sensor.append(used)
-    return Run(torch.stack(out_pos), torch.stack(out_mask), torch.stack(out_label), torch.stack(out_sensor))
+        steps.append((est.mean[..., :2], est.mask, est.label, used))
+    return Run(*(torch.stack(t) for t in zip(*steps)))
 
 
 def ospa_per_step(truth: Truth, run: Run, c: float, p: float) -> torch.Tensor:

@@ -57,10 +57,6 @@ def truth_velocity(truth: MOTData) -> np.ndarray:
     return out
 
 
-def _frames_range(truth: MOTData) -> np.ndarray:
-    return np.arange(truth.frame.min(), truth.frame.max() + 1) if truth.size else np.zeros(0, np.int64)
-
-
 def simulate_detections(
     truth: MOTData,
     pd: float,
@@ -92,7 +88,7 @@ def simulate_detections(
     width, height = (float(v) for v in image_size)
     if not (width > 0 and height > 0):
         raise TorchtrackError(f"image_size must be positive, got {image_size}")
-    frames = _frames_range(truth)
+    frames = np.arange(truth.frame.min(), truth.frame.max() + 1) if truth.size else np.zeros(0, np.int64)
     if clutter * frames.size > MAX_CLUTTER:
         raise TorchtrackError(f"clutter {clutter:g} per frame over {frames.size} frames is more than "
                               f"{MAX_CLUTTER:.0e} false detections in all")

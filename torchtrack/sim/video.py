@@ -30,6 +30,7 @@ from typing import NamedTuple
 import cv2
 import numpy as np
 import torch
+from tqdm import tqdm
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import Frame, FrameSource
@@ -221,11 +222,6 @@ def _apply(H: np.ndarray, xy: np.ndarray) -> np.ndarray:
     return p[:, :2] / p[:, 2:3]
 
 
-def _numpy_rng(generator: torch.Generator) -> np.random.Generator:
-    seed = int(torch.randint(0, 2**62, (1,), generator=generator))
-    return np.random.default_rng(seed)
-
-
 def generate_sequence(config: VideoConfig | None, generator: torch.Generator) -> Iterator[VideoFrame]:
     """Yield ``config.frames`` :class:`VideoFrame` s (see the module docstring for the conventions).
 
@@ -233,7 +229,7 @@ def generate_sequence(config: VideoConfig | None, generator: torch.Generator) ->
     NumPy generator from that seed.
     """
     cfg = config or VideoConfig()
-    rng = _numpy_rng(generator)
+    rng = np.random.default_rng(int(torch.randint(0, 2**62, (1,), generator=generator)))
     scene = build_scene(cfg, rng)
     world = _World(cfg, scene, rng)
     m = cfg.margin
@@ -295,8 +291,7 @@ def write_sequence(config: VideoConfig | None, generator: torch.Generator, out: 
     if video_format not in ("png", "mp4", "avi"):
         raise TorchtrackError(f"video format must be png, mp4 or avi, got {video_format!r}")
     out = Path(out)
-    (out / "frames").mkdir(parents=True, exist_ok=True) if video_format == "png" else out.mkdir(
-        parents=True, exist_ok=True)
+    (out / "frames" if video_format == "png" else out).mkdir(parents=True, exist_ok=True)
     writer = None
     if video_format != "png":
         fourcc = cv2.VideoWriter_fourcc(*("mp4v" if video_format == "mp4" else "MJPG"))
@@ -304,24 +299,18 @@ def write_sequence(config: VideoConfig | None, generator: torch.Generator, out: 
         writer = cv2.VideoWriter(str(partial_name(video)), fourcc, 2.0, (cfg.width, cfg.height), False)
     half = cfg.gt_box_size / 2
     gt_lines, vel_lines, homs = [], [], []
-    frames = generate_sequence(cfg, generator)
-    if progress:
-        from tqdm import tqdm
-
-        frames = tqdm(frames, total=cfg.frames, desc="simulate-video", unit="frame")
-    for f in frames:
+    for f in tqdm(generate_sequence(cfg, generator), total=cfg.frames, desc="simulate-video", unit="frame",
+                  disable=not progress):
         n = f.index + 1
         if writer is None:
             cv2.imwrite(str(out / "frames" / f"{n:06d}.png"), f.image)
         else:
             writer.write(f.image)
-        for i in range(len(f.ids)):
-            x, y = f.xy[i]
-            gt_lines.append(f"{n},{f.ids[i]},{x - half:.3f},{y - half:.3f},{cfg.gt_box_size:g},"
+        for vid, (x, y), (vx, vy), moving in zip(f.ids, f.xy, f.velocity, f.moving):
+            gt_lines.append(f"{n},{vid},{x - half:.3f},{y - half:.3f},{cfg.gt_box_size:g},"
                             f"{cfg.gt_box_size:g},1,-1,-1,-1")
-            vx, vy = f.velocity[i]
             vtxt = "," if np.isnan(vx) else f"{vx:.3f},{vy:.3f}"
-            vel_lines.append(f"{n},{f.ids[i]},{vtxt},{int(f.moving[i])}")
+            vel_lines.append(f"{n},{vid},{vtxt},{int(moving)}")
         homs.append(f.homography.tolist())
     if writer is not None:
         writer.release()

@@ -39,7 +39,7 @@ class Lane:
 
 @dataclass
 class ParkingSlot:
-    """Fixed slot of a car park: centre ``(x, y)``, heading angle and an occupied flag."""
+    """Fixed slots of a car park: centres ``(x, y)`` and heading angles."""
 
     xy: np.ndarray      # (m, 2)
     angle: np.ndarray   # (m,)
@@ -60,7 +60,6 @@ class Scene:
     lanes: list[Lane]
     slots: ParkingSlot
     buildings: list[Building]
-    road_mask: np.ndarray       # bool world canvas: paved area (roads and car parks)
 
 
 def _multiscale_noise(rng: np.random.Generator, shape: tuple[int, int], scales, exponent: float) -> np.ndarray:
@@ -79,9 +78,7 @@ def _border_point(rng: np.random.Generator, side: int, w: int, h: int) -> np.nda
 
 def _road_centreline(rng: np.random.Generator, w: int, h: int, curved: bool) -> np.ndarray:
     side_a = int(rng.integers(4))
-    side_b = (side_a + int(rng.integers(1, 4))) % 4
-    if side_b == side_a:
-        side_b = (side_a + 2) % 4
+    side_b = (side_a + int(rng.integers(1, 4))) % 4     # another side
     a, b = _border_point(rng, side_a, w, h), _border_point(rng, side_b, w, h)
     mid = 0.5 * (a + b)
     normal = np.array([-(b - a)[1], (b - a)[0]]) / (np.linalg.norm(b - a) + 1e-9)
@@ -130,12 +127,10 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     img = np.where(forest, 38.0 + 12.0 * crowns + 4.0 * ground, img).astype(np.float32)
 
     # roads
-    road_mask = np.zeros((h, w), np.uint8)
     lanes: list[Lane] = []
     owners: list[int] = []
     centres = []
-    kinds = [True] * cfg.highways + [False] * cfg.local_roads
-    for highway in kinds:
+    for highway in [True] * cfg.highways + [False] * cfg.local_roads:
         c = _road_centreline(rng, w, h, curved=highway)
         n_per_dir = int(rng.integers(2, 4)) if highway else 1
         median = 6.0 if highway else 0.0
@@ -143,7 +138,6 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
         tone = float(rng.uniform(72, 92) if highway else rng.uniform(62, 80))
         pts = np.round(c * 16).astype(np.int32)
         cv2.polylines(img, [pts], False, tone, int(2 * half), cv2.LINE_AA, shift=4)
-        cv2.polylines(road_mask, [pts], False, 1, int(2 * half), shift=4)
         if highway:
             cv2.polylines(img, [pts], False, tone - 22, int(median), cv2.LINE_AA, shift=4)
         for edge in (-half + 0.8, half - 0.8):
@@ -174,7 +168,6 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
         box = cv2.boxPoints(((cx, cy), (cw, ch), np.degrees(ang))).astype(np.float32)
         tone = float(rng.uniform(70, 95))
         cv2.fillConvexPoly(img, np.round(box * 16).astype(np.int32), tone, cv2.LINE_AA, shift=4)
-        cv2.fillConvexPoly(road_mask, np.round(box * 16).astype(np.int32), 1, shift=4)
         u = np.array([np.cos(ang), np.sin(ang)])
         v = np.array([-u[1], u[0]])
         length = cfg.vehicle_length_median
@@ -187,10 +180,8 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     slots = ParkingSlot(np.array(slot_xy).reshape(-1, 2), np.array(slot_angle))
 
     # single trees (dark round crowns with a highlight), partly overhanging roads
-    n = cfg.trees
-    centres_t = rng.uniform(0, [w, h], size=(n, 2))
-    radii = rng.uniform(2.5, 6.0, n)
-    for (x, y), r in zip(centres_t, radii):
+    centres_t = rng.uniform(0, [w, h], size=(cfg.trees, 2))
+    for (x, y), r in zip(centres_t, rng.uniform(2.5, 6.0, cfg.trees)):
         cv2.circle(img, (int(x * 16), int(y * 16)), int(r * 16), float(rng.uniform(22, 42)), -1,
                    cv2.LINE_AA, shift=4)
         cv2.circle(img, (int((x - r / 3) * 16), int((y - r / 3) * 16)), int(r * 5), float(rng.uniform(45, 70)),
@@ -213,7 +204,7 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
 
     # normalise the ground statistics to the configured mean/std (vehicles and roofs come on top)
     img = (img - img.mean()) / (img.std() + 1e-6) * (cfg.background_std * 0.65) + cfg.background_mean * 0.97
-    return Scene(img.astype(np.float32), lanes, slots, buildings, road_mask.astype(bool))
+    return Scene(img.astype(np.float32), lanes, slots, buildings)
 
 
 def draw_buildings(canvas: np.ndarray, buildings: list[Building], parallax: np.ndarray) -> None:

@@ -2,8 +2,8 @@
 
 from torchtrack.bench import clearmot
 from torchtrack.bench._timing import format_result
-from torchtrack.errors import TorchtrackError
-from torchtrack.io.outputs import write_json
+from torchtrack.cli._common import positive_int
+from torchtrack.cli.bench import report
 
 NAME = "clearmot"
 HELP = "CLEAR-MOT evaluation throughput vs py-motmetrics"
@@ -11,15 +11,11 @@ DESCRIPTION = clearmot.__doc__
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--frames", type=int, default=512, help="frames (default 512)")
-    parser.add_argument("--objects", type=int, default=100, help="objects and predictions per frame (100)")
+    parser.add_argument("--frames", type=positive_int, default=512, help="frames (default 512)")
+    parser.add_argument("--objects", type=positive_int, default=100, help="objects and predictions per frame (100)")
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats, best kept (default 3)")
 
 
 def run(args) -> int:
-    if args.frames < 1 or args.objects < 1:
-        raise TorchtrackError("--frames and --objects must be positive")
     result = clearmot.measure(args.frames, args.objects, args.repeats, args.seed)
-    print(format_result(result))
-    write_json(args.json, result.payload())
-    return 0
+    return report(args, result, format_result(result))

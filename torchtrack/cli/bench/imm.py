@@ -3,8 +3,8 @@
 import argparse
 
 from torchtrack.bench import imm
-from torchtrack.errors import TorchtrackError
-from torchtrack.io.outputs import write_json
+from torchtrack.cli._common import positive_int
+from torchtrack.cli.bench import report
 
 NAME = "imm"
 HELP = "3-model IMM, 100 000 tracks, against FilterPy's IMMEstimator per track"
@@ -12,9 +12,9 @@ DESCRIPTION = imm.__doc__
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--tracks", type=int, default=100_000, help="tracks filtered at once (default 100000)")
-    parser.add_argument("--steps", type=int, default=20, help="time steps per timed pass (default 20)")
-    parser.add_argument("--reference-tracks", type=int, default=100,
+    parser.add_argument("--tracks", type=positive_int, default=100_000, help="tracks filtered at once (default 100000)")
+    parser.add_argument("--steps", type=positive_int, default=20, help="time steps per timed pass (default 20)")
+    parser.add_argument("--reference-tracks", type=positive_int, default=100,
                         help="tracks run through FilterPy (default 100)")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32")
     parser.add_argument("--threads", type=int, default=1,
@@ -24,10 +24,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    if args.tracks < 1 or args.steps < 1 or args.reference_tracks < 1:
-        raise TorchtrackError("--tracks, --steps and --reference-tracks must be >= 1")
     result = imm.measure(args.tracks, args.steps, args.reference_tracks, args.dtype, args.threads,
                          not args.no_compile, args.seed)
-    print(imm.format_report(result, min(args.reference_tracks, args.tracks)))
-    write_json(args.json, result.payload())
-    return 0
+    return report(args, result, imm.format_report(result, min(args.reference_tracks, args.tracks)))

@@ -1,7 +1,7 @@
 """``torchtrack bench kf``: the options and the output of :mod:`torchtrack.bench.kf`."""
 
 from torchtrack.bench import kf
-from torchtrack.io.outputs import write_json
+from torchtrack.cli.bench import report
 
 NAME = "kf"
 HELP = "batched Kalman filter throughput vs NumPy and a per-track loop"
@@ -16,10 +16,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--no-compile", action="store_true", help="time the eager fast and general paths")
 
 
-
 def run(args) -> int:
     result = kf.measure(args.tracks, args.steps, args.general_steps, args.loop_tracks, not args.no_compile,
                         args.seed)
-    print(kf.format_report(result))
-    write_json(args.json, result.payload())
-    return 0
+    return report(args, result, kf.format_report(result))

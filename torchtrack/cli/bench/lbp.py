@@ -3,8 +3,8 @@
 import argparse
 
 from torchtrack.bench import lbp
+from torchtrack.cli.bench import report
 from torchtrack.errors import TorchtrackError
-from torchtrack.io.outputs import write_json
 
 NAME = "lbp"
 HELP = "LBP association marginals on n x n problems against a NumPy implementation"
@@ -31,6 +31,4 @@ def run(args) -> int:
     if not sizes or min(sizes) < 1 or args.iterations < 1:
         raise TorchtrackError("--sizes must be positive integers and --iterations >= 1")
     result = lbp.measure(sizes, args.iterations, args.density, args.dtype, args.threads, args.repeats, args.seed)
-    print(lbp.format_report(result))
-    write_json(args.json, result.payload())
-    return 0
+    return report(args, result, lbp.format_report(result))

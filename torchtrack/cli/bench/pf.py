@@ -1,8 +1,8 @@
 """``torchtrack bench pf``: the options and the output of :mod:`torchtrack.bench.pf`."""
 
 from torchtrack.bench import pf
-from torchtrack.errors import TorchtrackError
-from torchtrack.io.outputs import write_json
+from torchtrack.cli._common import positive_int
+from torchtrack.cli.bench import report
 
 NAME = "pf"
 HELP = "JTC particle-filter bank throughput (particle-steps/s) vs a vectorised NumPy implementation"
@@ -10,21 +10,16 @@ DESCRIPTION = pf.__doc__
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--runs", type=int, default=20, help="Monte Carlo runs in one batch (default 20)")
-    parser.add_argument("--particles", type=int, default=3000, help="particles per class (default 3000)")
-    parser.add_argument("--scans", type=int, default=80, help="scans of the trajectory (default 80)")
+    parser.add_argument("--runs", type=positive_int, default=20, help="Monte Carlo runs in one batch (default 20)")
+    parser.add_argument("--particles", type=positive_int, default=3000, help="particles per class (default 3000)")
+    parser.add_argument("--scans", type=positive_int, default=80, help="scans of the trajectory (default 80)")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
     parser.add_argument("--compile", action="store_true", help="torch.compile the filter step (inductor)")
-    parser.add_argument("--repeats", type=int, default=3, help="best of this many timed runs each (default 3)")
+    parser.add_argument("--repeats", type=positive_int, default=3, help="best of this many timed runs each (default 3)")
 
 
 def run(args) -> int:
-    for name in ("runs", "particles", "scans", "threads", "repeats"):
-        if getattr(args, name) < 1:
-            raise TorchtrackError(f"--{name} must be >= 1; got {getattr(args, name)}")
     result = pf.measure(args.runs, args.particles, args.scans, args.dtype, args.threads, args.compile, args.repeats,
                         args.seed)
-    print(pf.format_report(result))
-    write_json(args.json, result.payload())
-    return 0
+    return report(args, result, pf.format_report(result))

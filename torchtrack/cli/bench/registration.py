@@ -1,7 +1,7 @@
 """``torchtrack bench registration``: the options and the output of :mod:`torchtrack.bench.registration`."""
 
 from torchtrack.bench import registration
-from torchtrack.io.outputs import write_json
+from torchtrack.cli.bench import report
 
 NAME = "registration"
 HELP = "registration frames/s and error vs the true camera motion (ours LK vs OpenCV ORB+RANSAC)"
@@ -16,6 +16,4 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     result = registration.measure(args.sequences, args.frames, args.size, args.seed)
-    print(registration.format_report(result))
-    write_json(args.json, result.payload())
-    return 0
+    return report(args, result, registration.format_report(result))

@@ -3,9 +3,8 @@
 
 import argparse
 
-from torchtrack.cli.scenarios import check_runs, plot_folder
-from torchtrack.errors import TorchtrackError
-from torchtrack.io.outputs import write_json
+from torchtrack.cli._common import positive_int
+from torchtrack.cli.scenarios import run_scenario
 from torchtrack.scenarios import jtc
 
 NAME = "jtc"
@@ -20,7 +19,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="report the bank without speed likelihoods as the main result")
     parser.add_argument("--particles", type=int, default=None,
                         help="particles per class (default: the config's, 3000 as in the paper)")
-    parser.add_argument("--threads", type=int, default=1,
+    parser.add_argument("--threads", type=positive_int, default=1,
                         help="torch intra-op threads (default 1: a 6000-particle step is too small to share, "
                              "and on a loaded machine spinning threads cost more than they give)")
     parser.add_argument("--timing-repeats", type=int, default=5,
@@ -32,20 +31,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    check_runs(args.runs)
-    if args.threads < 1:
-        raise TorchtrackError(f"--threads must be >= 1; got {args.threads}")
-    with plot_folder(args, NAME) as plots:
-        report = jtc.run_jtc(args.config, args.runs, args.seed, speed_constraints=not args.no_speed_constraints,
-                             particles=args.particles, threads=args.threads, timing_repeats=args.timing_repeats,
-                             compile_step=args.compile)
-        print(jtc.format_report(report))
-        write_json(args.json, jtc.report_json(report))
-        if plots is not None:
-            from torchtrack.scenarios._jtc_plots import plot_all
-
-            paths = plot_all(plots, report.trajectory, report.results, report.speed_constraints,
-                             report.true_class)
-    if args.plot is not None:
-        print("\nplots: " + ", ".join(str(args.plot / p.name) for p in paths))
+    run_scenario(args, NAME, jtc, lambda: jtc.run_jtc(
+        args.config, args.runs, args.seed, speed_constraints=not args.no_speed_constraints, particles=args.particles,
+        threads=args.threads, timing_repeats=args.timing_repeats, compile_step=args.compile))
     return 0

@@ -1,8 +1,7 @@
 """``torchtrack scenario maneuver``: the options, the printed tables, ``--json`` and ``--plot`` of
 :mod:`torchtrack.scenarios.maneuver`."""
 
-from torchtrack.cli.scenarios import check_runs, plot_folder
-from torchtrack.io.outputs import write_json
+from torchtrack.cli.scenarios import run_scenario
 from torchtrack.scenarios import maneuver
 
 NAME = "maneuver"
@@ -16,15 +15,5 @@ PARAMS = ("the Kalman filter's q and sigma of the constant-velocity and maneuver
 
 
 def run(args) -> int:
-    check_runs(args.runs)
-    with plot_folder(args, NAME) as plots:
-        report = maneuver.run_experiments(args.config, args.runs, args.seed, args.params)
-        print(maneuver.format_report(report))
-        write_json(args.json, maneuver.report_json(report))
-        if plots is not None:
-            from torchtrack.scenarios._maneuver_plots import plot_all
-
-            paths = plot_all(plots, report.stationary, report.constant_velocity, report.maneuver, report.config)
-    if args.plot is not None:
-        print("\nplots: " + ", ".join(str(args.plot / p.name) for p in paths))
+    run_scenario(args, NAME, maneuver, lambda: maneuver.run_experiments(args.config, args.runs, args.seed, args.params))
     return 0

@@ -3,8 +3,7 @@
 
 import argparse
 
-from torchtrack.cli.scenarios import check_runs, plot_folder
-from torchtrack.io.outputs import write_json
+from torchtrack.cli.scenarios import run_scenario
 from torchtrack.scenarios import pedestrian
 
 NAME = "pedestrian"
@@ -23,17 +22,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    check_runs(args.runs)
-    with plot_folder(args, NAME) as plots:
-        report = pedestrian.run_variants(args.config, args.runs, args.seed, steps=args.steps,
-                                         p_survival=args.p_survival, threads=args.threads)
-        print(pedestrian.format_report(report))
-        write_json(args.json, pedestrian.report_json(report))
-        if plots is not None:
-            from torchtrack.scenarios._pedestrian_plots import plot_all
-
-            plot_all(plots, report.truth, report.variants,
-                     {v: report.ospa_per_step[v] for v in pedestrian.VARIANTS}, report.mean_ospa)
-    if args.plot is not None:
-        print(f"figures written to {args.plot}")
+    run_scenario(args, NAME, pedestrian, lambda: pedestrian.run_variants(
+        args.config, args.runs, args.seed, steps=args.steps, p_survival=args.p_survival, threads=args.threads))
     return 0

@@ -1,0 +1,20 @@
+"""Matplotlib for the scenarios' figures: the non-interactive backend and one way of saving a figure."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
+
+__all__ = ["plt", "save"]
+
+
+def save(fig, path: Path, dpi: int = 110) -> Path:
+    """Lay ``fig`` out, write it to ``path`` at ``dpi`` and close it."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=dpi)
+    plt.close(fig)
+    return path
