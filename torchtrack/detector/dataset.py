@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 from torch.utils.data import Dataset
+from tqdm import tqdm
 
 from torchtrack.detector.config import DetectorConfig
 from torchtrack.detector.evaluate import ground_velocity
@@ -31,6 +32,7 @@ from torchtrack.detector.network import STRIDE
 from torchtrack.detector.targets import Targets, gaussian_heatmap, make_targets
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography, warp_previous
+from torchtrack.io.outputs import atomic_file
 
 CACHE_VERSION = 3   # bump when the generator or the cache's content changes
 
@@ -71,7 +73,7 @@ def split_seed(seed: int, split: str, index: int) -> int:
 def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = None,
                 progress: bool = False) -> SequenceCache:
     """Load the cached sequences of ``split`` or generate and save them (see module docstring)."""
-    from torchtrack.sim.video import VideoConfig, generate_sequence
+    from torchtrack.sim.video import generate_sequence
     from torchtrack.sim.video_config import from_dict
 
     count = count if count is not None else (cfg.data.train_sequences if split == "train" else cfg.data.val_sequences)
@@ -84,14 +86,8 @@ def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = 
             return SequenceCache(**torch.load(path, weights_only=True))
         except Exception as exc:  # a damaged cache is regenerated
             print(f"detector cache {path} unreadable ({exc}); regenerating")
-    assert isinstance(video, VideoConfig)
     frames, ids, xy, vel, homs, start = [], [], [], [], [], [0]
-    it = range(count)
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc=f"generating {split} sequences", unit="seq")
-    for i in it:
+    for i in tqdm(range(count), desc=f"generating {split} sequences", unit="seq", disable=not progress):
         seq, seq_h = [], []
         for f in generate_sequence(video, torch.Generator().manual_seed(split_seed(seed, split, i))):
             seq.append(torch.from_numpy(f.image))
@@ -104,10 +100,8 @@ def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = 
         homs.append(torch.stack(seq_h))
     cache = SequenceCache(torch.stack(frames), torch.tensor(start), torch.cat(ids), torch.cat(xy), torch.cat(vel),
                           torch.stack(homs))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save(cache._asdict(), tmp)
-    tmp.replace(path)
+    with atomic_file(path) as tmp:
+        torch.save(cache._asdict(), tmp)
     return cache
 
 

@@ -132,9 +132,7 @@ def ground_velocity(xy: np.ndarray, velocity: np.ndarray, current_to_previous: n
 def camera_velocity(xy: np.ndarray, h_prev: np.ndarray, h_cur: np.ndarray) -> np.ndarray:
     """Image motion ``x - H_{k-1} H_k^{-1} x`` of static ground points at ``xy`` (K, 2) between frames
     with the reference-to-frame homographies ``h_prev``, ``h_cur``."""
-    m = h_prev @ np.linalg.inv(h_cur)
-    p = np.c_[xy, np.ones(len(xy))] @ m.T
-    return xy - p[:, :2] / p[:, 2:3]
+    return xy - apply_homography(xy, h_prev @ np.linalg.inv(h_cur))
 
 
 def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: float = 2.0,

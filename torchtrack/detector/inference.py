@@ -79,9 +79,7 @@ class Detector(nn.Module):
         x, (h, w) = self.prepare(frame, prev_frame, prev_points)
         device = next(self.net.parameters()).device       # the network may sit on a GPU (training); the rest runs here
         hm, off, vel = (t.cpu() for t in self.net(x.to(device)))
-        hm = hm[..., : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
-        off = off[..., : hm.shape[-2], : hm.shape[-1]]
-        vel = vel[..., : hm.shape[-2], : hm.shape[-1]]
+        hm, off, vel = (t[..., : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE] for t in (hm, off, vel))
         d = self.config.decode
         det = decode(hm, off, vel, STRIDE, d.threshold if threshold is None else threshold, d.top_k)
         keep = det.mask[0]

@@ -20,6 +20,7 @@ import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler
+from tqdm import tqdm
 
 from torchtrack.detector.checkpoint import load_checkpoint, save_checkpoint
 from torchtrack.detector.config import DetectorConfig
@@ -108,11 +109,8 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
         loader = DataLoader(data, batch_size=t.batch // world, sampler=sampler, collate_fn=collate,
                             num_workers=workers, drop_last=True)
         model.train()
-        bar = None
-        if progress and rank == 0:
-            from tqdm import tqdm
-
-            bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{t.epochs}", unit="step")
+        bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{t.epochs}", unit="step",
+                   disable=not (progress and rank == 0))
         sums = {"loss": 0.0, "heatmap": 0.0, "offset": 0.0, "velocity": 0.0, "matching": 0.0}
         n, t0 = 0, time.perf_counter()
         for x, tg in loader:
@@ -128,12 +126,10 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
             sums["loss"] += loss.item()
             for k, v in parts.items():
                 sums[k] += v
-            if bar is not None:
-                rate = n * t.batch / (time.perf_counter() - t0)
-                bar.set_postfix(loss=f"{sums['loss'] / n:.3f}", samples_per_s=f"{rate:.1f}")
-                bar.update()
-        if bar is not None:
-            bar.close()
+            rate = n * t.batch / (time.perf_counter() - t0)
+            bar.set_postfix(loss=f"{sums['loss'] / n:.3f}", samples_per_s=f"{rate:.1f}")
+            bar.update()
+        bar.close()
         entry = {"epoch": epoch, **{k: v / max(1, n) for k, v in sums.items()},
                  "samples_per_s": n * t.batch / (time.perf_counter() - t0)}
         if rank == 0:

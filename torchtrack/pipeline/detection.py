@@ -23,11 +23,7 @@ def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray)
     over a ``MOTION_WINDOW``-px square at each of ``points (K, 2)`` (x, y): a classical change-detection cue
     (moving vehicles leave a difference of tens of grey levels, static structure only sensor noise and
     parallax). ``(K,)``."""
-    diff = cv2.blur(cv2.absdiff(image, previous), (MOTION_WINDOW, MOTION_WINDOW))
-    h, w = diff.shape
-    x = np.clip(np.rint(points[:, 0]).astype(np.int64), 0, w - 1)
-    y = np.clip(np.rint(points[:, 1]).astype(np.int64), 0, h - 1)
-    return diff[y, x].astype(np.float64)
+    return _at(cv2.blur(cv2.absdiff(image, previous), (MOTION_WINDOW, MOTION_WINDOW)), points)
 
 
 TONE_WINDOW = 3
@@ -38,11 +34,15 @@ def grey_level(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Mean grey level of ``image`` over a ``TONE_WINDOW``-px square at each of ``points (K, 2)`` (x, y): the
     tone of the vehicle detected there, the attribute the GM-PHD's ``tone_sigma`` compares between frames.
     ``(K,)``."""
-    mean = cv2.blur(image, (TONE_WINDOW, TONE_WINDOW))
-    h, w = mean.shape
+    return _at(cv2.blur(image, (TONE_WINDOW, TONE_WINDOW)), points)
+
+
+def _at(image: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``image`` at the pixels nearest ``points (K, 2)`` (x, y), clipped to the frame, as float64 ``(K,)``."""
+    h, w = image.shape
     x = np.clip(np.rint(points[:, 0]).astype(np.int64), 0, w - 1)
     y = np.clip(np.rint(points[:, 1]).astype(np.int64), 0, h - 1)
-    return mean[y, x].astype(np.float64)
+    return image[y, x].astype(np.float64)
 
 
 class Detection:

@@ -141,10 +141,7 @@ class FixedLagTracks:
             frame.add(ident, point, True)
 
     def _final(self, frame: _Pending, trim: bool = True) -> LaggedFrame:
-        keep = [True] * len(frame.ids)
-        if trim:
-            later = {i for f in self._pending for i, s in zip(f.ids, f.supported) if s}
-            keep = [s or i in later for i, s in zip(frame.ids, frame.supported)]
-        ids = np.array([i for i, k in zip(frame.ids, keep) if k], np.int64)
-        pos = np.array([p for p, k in zip(frame.positions, keep) if k], np.float64).reshape(-1, 2)
-        return LaggedFrame(frame.index, ids, pos)
+        later = {i for f in self._pending for i, s in zip(f.ids, f.supported) if s}
+        keep = np.array([not trim or s or i in later for i, s in zip(frame.ids, frame.supported)], bool)
+        positions = np.array(frame.positions, np.float64).reshape(-1, 2)
+        return LaggedFrame(frame.index, np.array(frame.ids, np.int64)[keep], positions[keep])
