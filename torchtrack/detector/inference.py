@@ -70,9 +70,6 @@ class Detector(nn.Module):
             x = F.pad(x, (0, pw, 0, ph))
         return x.contiguous(memory_format=torch.channels_last), (h, w)
 
-    def forward(self, x: torch.Tensor):
-        return self.net(x)
-
     @torch.inference_mode()
     def detect(self, frame, prev_frame=None, prev_points=None, threshold: float | None = None,
                prev_velocity=None) -> Detections:

@@ -141,7 +141,7 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
             v = entry["val"]
             log(f"epoch {epoch + 1}: loss {entry['loss']:.4f}  val precision {v['precision']:.3f} recall "
                 f"{v['recall']:.3f} F1 {v['f1']:.3f} velocity error {v['velocity_error_px']:.2f} px/frame")
-            payload = {"config": cfg.as_dict(), "model": model.state_dict(), "epoch": epoch,
+            payload = {"config": dataclasses.asdict(cfg), "model": model.state_dict(), "epoch": epoch,
                        "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "history": history,
                        "seed": seed}
             save_checkpoint(out / "last.pt", payload)
@@ -182,7 +182,7 @@ def export_weights(src: str | Path, dst: str | Path, extra: dict | None = None, 
         thr, rows = calibrate_threshold(det, calibrate, cfg.train.val_frames, cfg.decode.radius)
         cfg = dataclasses.replace(cfg, decode=dataclasses.replace(cfg.decode, threshold=thr))
         info["calibration"] = rows
-    payload = {"config": cfg.as_dict(), "model": {k: v.contiguous() for k, v in ck["model"].items()},
+    payload = {"config": dataclasses.asdict(cfg), "model": {k: v.contiguous() for k, v in ck["model"].items()},
                "epoch": ck.get("epoch"), "history": ck.get("history", []), **info, **(extra or {})}
     save_checkpoint(dst, payload)
     return Path(dst)

@@ -107,8 +107,8 @@ class Detection:
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion, scores >= self.strong_threshold,
                                grey_level(image, pos))
 
-    def set_prior(self, points: np.ndarray, velocities: np.ndarray | None = None) -> None:
-        """Use ``points (N, 2)`` (reference coordinates; with their ``velocities (N, 2)`` in px/frame, or None)
-        for the next frame's prior heatmap instead of this frame's detections (``prior: tracks``)."""
+    def set_prior(self, points: np.ndarray) -> None:
+        """Use ``points (N, 2)`` (reference coordinates, without velocities) for the next frame's prior heatmap
+        instead of this frame's detections (``prior: tracks``)."""
         self.prior_ref = np.asarray(points, np.float64).reshape(-1, 2)
-        self.prior_velocity = velocities
+        self.prior_velocity = None
