@@ -81,11 +81,9 @@ class Detection:
         with self.timer("registration"):
             h = self.registration(image).homography
             h_inv = np.linalg.inv(h)
-            if self.prev_image is None:
-                prev = image
-            else:
-                # Previous frame resampled into the current frame: x_{k-1} = H_{k-1}^{-1} H_k x_k.
-                prev = warp_previous(self.prev_image, np.linalg.inv(self.prev_h) @ h, image.shape, fill=image)
+            # Previous frame resampled into the current frame: x_{k-1} = H_{k-1}^{-1} H_k x_k.
+            prev = image if self.prev_image is None else warp_previous(
+                self.prev_image, np.linalg.inv(self.prev_h) @ h, image.shape, fill=image)
             prior = apply_homography(self.prior_ref, h_inv)
         with self.timer("detection"):
             extra = {} if self.decode_threshold is None else {"threshold": self.decode_threshold}
