@@ -129,10 +129,10 @@ def ground_velocity(xy: np.ndarray, velocity: np.ndarray, current_to_previous: n
     return xy - apply_homography(xy - velocity, np.linalg.inv(current_to_previous))
 
 
-def camera_velocity(xy: np.ndarray, h_prev: np.ndarray, h_cur: np.ndarray) -> np.ndarray:
-    """Image motion ``x - H_{k-1} H_k^{-1} x`` of static ground points at ``xy`` (K, 2) between frames
-    with the reference-to-frame homographies ``h_prev``, ``h_cur``."""
-    return xy - apply_homography(xy, h_prev @ np.linalg.inv(h_cur))
+def camera_velocity(xy: np.ndarray, current_to_previous: np.ndarray) -> np.ndarray:
+    """Image motion ``x - M x`` of static ground points at ``xy`` (K, 2), ``M = H_{k-1} H_k⁻¹`` the camera map
+    from the current frame to the previous one (:func:`registered_motions`)."""
+    return xy - apply_homography(xy, current_to_previous)
 
 
 def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: float = 2.0,
@@ -155,17 +155,13 @@ def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: flo
         motions = registered_motions([f.homography for f in seq])
         priors = None if prior == "stream" else [None] + [p.xy if prior == "truth" else np.zeros((0, 2))
                                                            for p in seq[:-1]]
-        prev_h = None
         for f, m, det in zip(seq, motions, stream(detector, (f.image for f in seq), scores,
                                                   motions if registered else None, priors)):
-            vel = None
-            if m is not None:
-                vel = ground_velocity(f.xy, f.velocity, m) if registered else f.velocity
+            vel = None if m is None else ground_velocity(f.xy, f.velocity, m) if registered else f.velocity
             scores.add(det, f.xy, vel)
-            if prev_h is not None:
-                cam = None if registered else camera_velocity(det.xy.numpy().astype(np.float64), prev_h, f.homography)
+            if m is not None:
+                cam = None if registered else camera_velocity(det.xy.numpy().astype(np.float64), m)
                 moving.add(moving_only(det, min_speed, cam), f.xy, vel, care=f.moving)
-            prev_h = f.homography
     moving.seconds, moving.cpu_seconds = scores.seconds, scores.cpu_seconds
     return {**scores.result(), "moving": moving.result()}
 
