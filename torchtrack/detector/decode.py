@@ -59,8 +59,7 @@ def decode(heatmap_logits: torch.Tensor, offset: torch.Tensor, velocity: torch.T
     top = torch.zeros(b, k, device=logits.device)
     idx[bi[ok], rank[ok]] = lin[ok]
     top[bi[ok], rank[ok]] = sc[ok]
-    mask = torch.zeros(b, k, dtype=torch.bool, device=logits.device)
-    mask[bi[ok], rank[ok]] = True
+    mask = top > 0                                                 # a peak scores above the threshold >= 0
     cx, cy = (idx % w).float(), torch.div(idx, w, rounding_mode="floor").float()
     off = offset.float().reshape(b, 2, -1).gather(2, idx[:, None].expand(b, 2, k))
     vel = velocity.float().reshape(b, 2, -1).gather(2, idx[:, None].expand(b, 2, k))
