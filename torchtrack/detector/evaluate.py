@@ -89,9 +89,8 @@ def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = 
     in the previous frame's pixels to use as its prior instead of the previous detections, e.g. the
     previous truth: what a perfect feedback would give) no velocities are passed on."""
     prev, prev_pts, prev_vel = None, None, None
-    override = iter(priors) if priors is not None else None
-    for img, m in zip(frames, motions if motions is not None else itertools.repeat(None)):
-        given = next(override) if override is not None else None
+    unset = itertools.repeat(None)
+    for img, m, given in zip(frames, unset if motions is None else motions, unset if priors is None else priors):
         if prev is not None and given is not None:
             prev_pts = torch.as_tensor(np.asarray(given, np.float64).reshape(-1, 2)).float()
         if prev is not None and m is not None:
@@ -104,7 +103,7 @@ def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = 
             scores_time.cpu_seconds += time.process_time() - c0
         yield det
         # a first frame's velocities were measured without a previous frame: not a motion to continue
-        prev, prev_pts, prev_vel = img, det.xy, det.velocity if prev is not None and override is None else None
+        prev, prev_pts, prev_vel = img, det.xy, det.velocity if prev is not None and priors is None else None
 
 
 def moving_only(det: Detections, min_speed: float, camera: np.ndarray | None = None) -> Detections:
