@@ -39,13 +39,10 @@ def plot_scores(rows: dict[str, dict], path: str | Path) -> Path:
     names = list(rows)
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
     x = np.arange(len(names))
-    bars = axes[0].bar(x, [100 * rows[n]["MOTA"] for n in names], color="tab:blue")
-    axes[0].bar_label(bars, fmt="%.1f", fontsize=8)
-    axes[0].set_ylabel("MOTA (%)")
-    bars = axes[1].bar(x, [rows[n]["IDS"] for n in names], color="tab:red")
-    axes[1].bar_label(bars, fontsize=8)
-    axes[1].set_ylabel("identity switches")
-    for ax in axes:
+    panels = (("MOTA", 100, "tab:blue", "%.1f", "MOTA (%)"), ("IDS", 1, "tab:red", "%g", "identity switches"))
+    for ax, (key, scale, colour, fmt, label) in zip(axes, panels):
+        ax.bar_label(ax.bar(x, [scale * rows[n][key] for n in names], color=colour), fmt=fmt, fontsize=8)
+        ax.set_ylabel(label)
         ax.set_xticks(x, names, rotation=20, fontsize=8)
         ax.grid(axis="y", alpha=0.3)
     return _save(fig, path)
