@@ -54,10 +54,6 @@ class SequenceCache(NamedTuple):
         a, b = int(self.start[f]), int(self.start[f + 1])
         return self.ids[a:b], self.xy[a:b], self.velocity[a:b]
 
-    def current_to_previous(self, s: int, t: int, tp: int) -> np.ndarray:
-        """The camera map from frame ``t`` to frame ``tp`` of sequence ``s``, ``H_tp H_t⁻¹`` (3, 3)."""
-        return (self.homography[s, tp] @ torch.linalg.inv(self.homography[s, t])).numpy()
-
 
 def normalise(frame: torch.Tensor) -> torch.Tensor:
     """``(I - mean) / (std + 1)`` of a whole frame (H, W) -> float32; the same at training and inference."""
@@ -157,7 +153,7 @@ class PairDataset(Dataset):
         _, xy, vel = cache.truth(s, t)
         _, pxy, _ = cache.truth(s, tp)
         if d.register and not same:
-            m = cache.current_to_previous(s, t, tp)
+            m = (cache.homography[s, tp] @ torch.linalg.inv(cache.homography[s, t])).numpy()  # current -> previous
             prev = torch.from_numpy(warp_previous(cache.frames[s, tp].numpy(), m, (c, c), (x0, y0), fill=crop.numpy()))
             pxy = torch.from_numpy(apply_homography(pxy.numpy(), np.linalg.inv(m))).float()
             vel = torch.from_numpy(ground_velocity(xy.numpy(), vel.numpy(), m)).float()

@@ -26,7 +26,7 @@ from torchtrack.detector.checkpoint import load_checkpoint, save_checkpoint
 from torchtrack.detector.config import DetectorConfig
 from torchtrack.detector.dataset import PairDataset, build_cache, collate
 from torchtrack.detector.evaluate import evaluate_cache
-from torchtrack.detector.inference import Detector
+from torchtrack.detector.inference import Detector, detector_from_checkpoint
 from torchtrack.detector.losses import detection_loss
 from torchtrack.detector.targets import Targets
 from torchtrack.errors import TorchtrackError
@@ -175,8 +175,6 @@ def export_weights(src: str | Path, dst: str | Path, extra: dict | None = None, 
     cfg = ck["config"]
     info = {}
     if calibrate is not None:
-        from torchtrack.detector.inference import detector_from_checkpoint
-
         det = detector_from_checkpoint(ck)
         thr, rows = calibrate_threshold(det, calibrate, cfg.train.val_frames, cfg.decode.radius)
         cfg = dataclasses.replace(cfg, decode=dataclasses.replace(cfg.decode, threshold=thr))

@@ -68,11 +68,6 @@ class TrackRecorder:
                 self._data = MOTData(**data, w=np.full(n, self.box), h=np.full(n, self.box))
         return self._data
 
-    def close(self) -> None:
-        """Finish the file under its final name."""
-        if self._writer is not None:
-            self._writer.close()
-
     def __enter__(self) -> TrackRecorder:
         return self
 
