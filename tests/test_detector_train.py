@@ -61,7 +61,7 @@ def test_truncated_and_foreign_checkpoints_are_clear_errors(tmp_path):
     cfg = tiny_config(tmp_path)
     det = Detector(cfg)
     good = tmp_path / "good.pt"
-    save_checkpoint(good, {"config": cfg.as_dict(), "model": det.net.state_dict()})
+    save_checkpoint(good, {"config": dataclasses.asdict(cfg), "model": det.net.state_dict()})
     loaded = detector_from_checkpoint(load_checkpoint(good))
     for p, q in zip(loaded.net.parameters(), det.net.parameters()):
         assert torch.equal(p, q)
@@ -79,7 +79,7 @@ def test_truncated_and_foreign_checkpoints_are_clear_errors(tmp_path):
         load_checkpoint(text)
     other = tmp_path / "other.pt"
     bigger = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, head=12))
-    save_checkpoint(other, {"config": bigger.as_dict(), "model": det.net.state_dict()})
+    save_checkpoint(other, {"config": dataclasses.asdict(bigger), "model": det.net.state_dict()})
     with pytest.raises(TorchtrackError, match="do not fit"):
         detector_from_checkpoint(load_checkpoint(other))
 
@@ -122,7 +122,7 @@ def test_export_calibrates_the_threshold_on_validation(tmp_path):
     det = Detector(cfg)
     with torch.no_grad():
         det.net.heads.bias[:4] = 0.0       # scores near 0.5: the threshold matters
-    save_checkpoint(tmp_path / "best.pt", {"config": cfg.as_dict(), "model": det.net.state_dict()})
+    save_checkpoint(tmp_path / "best.pt", {"config": dataclasses.asdict(cfg), "model": det.net.state_dict()})
     val = build_cache(cfg, "val", 0)
     out = export_weights(tmp_path / "best.pt", tmp_path / "w.pt", calibrate=val)
     ck = load_checkpoint(out)

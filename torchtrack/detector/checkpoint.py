@@ -13,18 +13,16 @@ import torch
 
 from torchtrack.detector.config import config_from_dict
 from torchtrack.errors import TorchtrackError
+from torchtrack.io.outputs import atomic_file
 
 FORMAT = "torchtrack-detector"
 VERSION = 1
 
 
 def save_checkpoint(path: str | Path, payload: dict) -> None:
-    """Write ``payload`` (plus format and version) atomically (temporary file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save({"format": FORMAT, "version": VERSION, **payload}, tmp)
-    tmp.replace(path)
+    """Write ``payload`` (plus format and version) atomically (:func:`~torchtrack.io.outputs.atomic_file`)."""
+    with atomic_file(path) as tmp:
+        torch.save({"format": FORMAT, "version": VERSION, **payload}, tmp)
 
 
 def load_checkpoint(path: str | Path) -> dict:

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -68,9 +67,6 @@ class DetectorConfig(Checked):
     data: DataConfig = field(default_factory=DataConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     decode: DecodeConfig = field(default_factory=DecodeConfig)
-
-    def as_dict(self) -> dict:
-        return dataclasses.asdict(self)
 
 
 def config_from_dict(values: dict, source: str = "config") -> DetectorConfig:

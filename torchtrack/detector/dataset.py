@@ -24,6 +24,7 @@ from typing import NamedTuple
 import numpy as np
 import torch
 from torch.utils.data import Dataset
+from tqdm import tqdm
 
 from torchtrack.detector.config import DetectorConfig
 from torchtrack.detector.evaluate import ground_velocity
@@ -31,6 +32,7 @@ from torchtrack.detector.network import STRIDE
 from torchtrack.detector.targets import Targets, gaussian_heatmap, make_targets
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography, warp_previous
+from torchtrack.io.outputs import atomic_file
 
 CACHE_VERSION = 3   # bump when the generator or the cache's content changes
 
@@ -52,10 +54,6 @@ class SequenceCache(NamedTuple):
         a, b = int(self.start[f]), int(self.start[f + 1])
         return self.ids[a:b], self.xy[a:b], self.velocity[a:b]
 
-    def current_to_previous(self, s: int, t: int, tp: int) -> np.ndarray:
-        """The camera map from frame ``t`` to frame ``tp`` of sequence ``s``, ``H_tp H_t⁻¹`` (3, 3)."""
-        return (self.homography[s, tp] @ torch.linalg.inv(self.homography[s, t])).numpy()
-
 
 def normalise(frame: torch.Tensor) -> torch.Tensor:
     """``(I - mean) / (std + 1)`` of a whole frame (H, W) -> float32; the same at training and inference."""
@@ -71,7 +69,7 @@ def split_seed(seed: int, split: str, index: int) -> int:
 def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = None,
                 progress: bool = False) -> SequenceCache:
     """Load the cached sequences of ``split`` or generate and save them (see module docstring)."""
-    from torchtrack.sim.video import VideoConfig, generate_sequence
+    from torchtrack.sim.video import generate_sequence
     from torchtrack.sim.video_config import from_dict
 
     count = count if count is not None else (cfg.data.train_sequences if split == "train" else cfg.data.val_sequences)
@@ -84,14 +82,8 @@ def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = 
             return SequenceCache(**torch.load(path, weights_only=True))
         except Exception as exc:  # a damaged cache is regenerated
             print(f"detector cache {path} unreadable ({exc}); regenerating")
-    assert isinstance(video, VideoConfig)
     frames, ids, xy, vel, homs, start = [], [], [], [], [], [0]
-    it = range(count)
-    if progress:
-        from tqdm import tqdm
-
-        it = tqdm(it, desc=f"generating {split} sequences", unit="seq")
-    for i in it:
+    for i in tqdm(range(count), desc=f"generating {split} sequences", unit="seq", disable=not progress):
         seq, seq_h = [], []
         for f in generate_sequence(video, torch.Generator().manual_seed(split_seed(seed, split, i))):
             seq.append(torch.from_numpy(f.image))
@@ -104,10 +96,8 @@ def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = 
         homs.append(torch.stack(seq_h))
     cache = SequenceCache(torch.stack(frames), torch.tensor(start), torch.cat(ids), torch.cat(xy), torch.cat(vel),
                           torch.stack(homs))
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_suffix(".tmp")
-    torch.save(cache._asdict(), tmp)
-    tmp.replace(path)
+    with atomic_file(path) as tmp:
+        torch.save(cache._asdict(), tmp)
     return cache
 
 
@@ -163,7 +153,7 @@ class PairDataset(Dataset):
         _, xy, vel = cache.truth(s, t)
         _, pxy, _ = cache.truth(s, tp)
         if d.register and not same:
-            m = cache.current_to_previous(s, t, tp)
+            m = (cache.homography[s, tp] @ torch.linalg.inv(cache.homography[s, t])).numpy()  # current -> previous
             prev = torch.from_numpy(warp_previous(cache.frames[s, tp].numpy(), m, (c, c), (x0, y0), fill=crop.numpy()))
             pxy = torch.from_numpy(apply_homography(pxy.numpy(), np.linalg.inv(m))).float()
             vel = torch.from_numpy(ground_velocity(xy.numpy(), vel.numpy(), m)).float()

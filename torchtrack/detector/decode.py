@@ -39,12 +39,8 @@ def decode(heatmap_logits: torch.Tensor, offset: torch.Tensor, velocity: torch.T
     b, _, h, w = heatmap_logits.shape
     logits = heatmap_logits.float().reshape(b, h, w)
     k = min(top_k, h * w)
-    if threshold <= 0:
-        bound = -math.inf
-    elif threshold >= 1:
-        bound = math.inf
-    else:
-        bound = math.log(threshold / (1 - threshold)) - 1e-3      # candidates; the exact test is below
+    bound = (-math.inf if threshold <= 0 else math.inf if threshold >= 1
+             else math.log(threshold / (1 - threshold)) - 1e-3)   # candidates; the exact test is below
     cand = torch.nonzero(logits > bound)                           # (n, 3): batch, row, column
     bi, cy, cx = cand.unbind(1)
     padded = F.pad(logits, (1, 1, 1, 1), value=-math.inf)
@@ -63,8 +59,7 @@ def decode(heatmap_logits: torch.Tensor, offset: torch.Tensor, velocity: torch.T
     top = torch.zeros(b, k, device=logits.device)
     idx[bi[ok], rank[ok]] = lin[ok]
     top[bi[ok], rank[ok]] = sc[ok]
-    mask = torch.zeros(b, k, dtype=torch.bool, device=logits.device)
-    mask[bi[ok], rank[ok]] = True
+    mask = top > 0                                                 # a peak scores above the threshold >= 0
     cx, cy = (idx % w).float(), torch.div(idx, w, rounding_mode="floor").float()
     off = offset.float().reshape(b, 2, -1).gather(2, idx[:, None].expand(b, 2, k))
     vel = velocity.float().reshape(b, 2, -1).gather(2, idx[:, None].expand(b, 2, k))

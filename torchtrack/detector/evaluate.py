@@ -89,9 +89,8 @@ def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = 
     in the previous frame's pixels to use as its prior instead of the previous detections, e.g. the
     previous truth: what a perfect feedback would give) no velocities are passed on."""
     prev, prev_pts, prev_vel = None, None, None
-    override = iter(priors) if priors is not None else None
-    for img, m in zip(frames, motions if motions is not None else itertools.repeat(None)):
-        given = next(override) if override is not None else None
+    unset = itertools.repeat(None)
+    for img, m, given in zip(frames, unset if motions is None else motions, unset if priors is None else priors):
         if prev is not None and given is not None:
             prev_pts = torch.as_tensor(np.asarray(given, np.float64).reshape(-1, 2)).float()
         if prev is not None and m is not None:
@@ -104,7 +103,7 @@ def stream(detector, frames: Iterable[np.ndarray], scores_time: Scores | None = 
             scores_time.cpu_seconds += time.process_time() - c0
         yield det
         # a first frame's velocities were measured without a previous frame: not a motion to continue
-        prev, prev_pts, prev_vel = img, det.xy, det.velocity if prev is not None and override is None else None
+        prev, prev_pts, prev_vel = img, det.xy, det.velocity if prev is not None and priors is None else None
 
 
 def moving_only(det: Detections, min_speed: float, camera: np.ndarray | None = None) -> Detections:
@@ -129,12 +128,10 @@ def ground_velocity(xy: np.ndarray, velocity: np.ndarray, current_to_previous: n
     return xy - apply_homography(xy - velocity, np.linalg.inv(current_to_previous))
 
 
-def camera_velocity(xy: np.ndarray, h_prev: np.ndarray, h_cur: np.ndarray) -> np.ndarray:
-    """Image motion ``x - H_{k-1} H_k^{-1} x`` of static ground points at ``xy`` (K, 2) between frames
-    with the reference-to-frame homographies ``h_prev``, ``h_cur``."""
-    m = h_prev @ np.linalg.inv(h_cur)
-    p = np.c_[xy, np.ones(len(xy))] @ m.T
-    return xy - p[:, :2] / p[:, 2:3]
+def camera_velocity(xy: np.ndarray, current_to_previous: np.ndarray) -> np.ndarray:
+    """Image motion ``x - M x`` of static ground points at ``xy`` (K, 2), ``M = H_{k-1} H_k⁻¹`` the camera map
+    from the current frame to the previous one (:func:`registered_motions`)."""
+    return xy - apply_homography(xy, current_to_previous)
 
 
 def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: float = 2.0,
@@ -157,17 +154,13 @@ def evaluate_frames(detector, video_frames, radius: float = 10.0, min_speed: flo
         motions = registered_motions([f.homography for f in seq])
         priors = None if prior == "stream" else [None] + [p.xy if prior == "truth" else np.zeros((0, 2))
                                                            for p in seq[:-1]]
-        prev_h = None
         for f, m, det in zip(seq, motions, stream(detector, (f.image for f in seq), scores,
                                                   motions if registered else None, priors)):
-            vel = None
-            if m is not None:
-                vel = ground_velocity(f.xy, f.velocity, m) if registered else f.velocity
+            vel = None if m is None else ground_velocity(f.xy, f.velocity, m) if registered else f.velocity
             scores.add(det, f.xy, vel)
-            if prev_h is not None:
-                cam = None if registered else camera_velocity(det.xy.numpy().astype(np.float64), prev_h, f.homography)
+            if m is not None:
+                cam = None if registered else camera_velocity(det.xy.numpy().astype(np.float64), m)
                 moving.add(moving_only(det, min_speed, cam), f.xy, vel, care=f.moving)
-            prev_h = f.homography
     moving.seconds, moving.cpu_seconds = scores.seconds, scores.cpu_seconds
     return {**scores.result(), "moving": moving.result()}
 

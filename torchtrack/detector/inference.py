@@ -70,18 +70,13 @@ class Detector(nn.Module):
             x = F.pad(x, (0, pw, 0, ph))
         return x.contiguous(memory_format=torch.channels_last), (h, w)
 
-    def forward(self, x: torch.Tensor):
-        return self.net(x)
-
     @torch.inference_mode()
     def detect(self, frame, prev_frame=None, prev_points=None, threshold: float | None = None,
                prev_velocity=None) -> Detections:
         x, (h, w) = self.prepare(frame, prev_frame, prev_points)
         device = next(self.net.parameters()).device       # the network may sit on a GPU (training); the rest runs here
         hm, off, vel = (t.cpu() for t in self.net(x.to(device)))
-        hm = hm[..., : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
-        off = off[..., : hm.shape[-2], : hm.shape[-1]]
-        vel = vel[..., : hm.shape[-2], : hm.shape[-1]]
+        hm, off, vel = (t[..., : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE] for t in (hm, off, vel))
         d = self.config.decode
         det = decode(hm, off, vel, STRIDE, d.threshold if threshold is None else threshold, d.top_k)
         keep = det.mask[0]

@@ -65,11 +65,10 @@ def make_targets(xy: torch.Tensor, velocity: torch.Tensor, in_shape: tuple[int, 
     idx = cell[:, 1] * w + cell[:, 0]
     offset = torch.zeros(2, h * w)
     offset[:, idx] = (c - cell).T
-    centre = torch.zeros(h * w, dtype=torch.bool)
-    centre[idx] = True
     known = ~torch.isnan(vel).any(dim=1)
     v = torch.zeros(2, h * w)
     v[:, idx[known]] = vel[known].T
-    has_v = torch.zeros(h * w, dtype=torch.bool)
-    has_v[idx[known]] = True
+    cells = torch.arange(h * w)
+    centre = torch.isin(cells, idx)
+    has_v = torch.isin(cells, idx[known])
     return Targets(heat, offset.view(2, h, w), v.view(2, h, w), centre.view(h, w), has_v.view(h, w))

@@ -20,12 +20,13 @@ import torch
 import torch.distributed as dist
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader, DistributedSampler
+from tqdm import tqdm
 
 from torchtrack.detector.checkpoint import load_checkpoint, save_checkpoint
 from torchtrack.detector.config import DetectorConfig
 from torchtrack.detector.dataset import PairDataset, build_cache, collate
 from torchtrack.detector.evaluate import evaluate_cache
-from torchtrack.detector.inference import Detector
+from torchtrack.detector.inference import Detector, detector_from_checkpoint
 from torchtrack.detector.losses import detection_loss
 from torchtrack.detector.targets import Targets
 from torchtrack.errors import TorchtrackError
@@ -37,8 +38,7 @@ def _init_distributed() -> tuple[int, int, torch.device]:
     device = torch.device("cpu")
     if world > 1:
         if torch.cuda.is_available():
-            local = int(os.environ.get("LOCAL_RANK", "0"))
-            device = torch.device("cuda", local)
+            device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
             torch.cuda.set_device(device)
         if not dist.is_initialized():
             dist.init_process_group("nccl" if device.type == "cuda" else "gloo")
@@ -108,11 +108,8 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
         loader = DataLoader(data, batch_size=t.batch // world, sampler=sampler, collate_fn=collate,
                             num_workers=workers, drop_last=True)
         model.train()
-        bar = None
-        if progress and rank == 0:
-            from tqdm import tqdm
-
-            bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{t.epochs}", unit="step")
+        bar = tqdm(total=len(loader), desc=f"epoch {epoch + 1}/{t.epochs}", unit="step",
+                   disable=not (progress and rank == 0))
         sums = {"loss": 0.0, "heatmap": 0.0, "offset": 0.0, "velocity": 0.0, "matching": 0.0}
         n, t0 = 0, time.perf_counter()
         for x, tg in loader:
@@ -128,12 +125,10 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
             sums["loss"] += loss.item()
             for k, v in parts.items():
                 sums[k] += v
-            if bar is not None:
-                rate = n * t.batch / (time.perf_counter() - t0)
-                bar.set_postfix(loss=f"{sums['loss'] / n:.3f}", samples_per_s=f"{rate:.1f}")
-                bar.update()
-        if bar is not None:
-            bar.close()
+            rate = n * t.batch / (time.perf_counter() - t0)
+            bar.set_postfix(loss=f"{sums['loss'] / n:.3f}", samples_per_s=f"{rate:.1f}")
+            bar.update()
+        bar.close()
         entry = {"epoch": epoch, **{k: v / max(1, n) for k, v in sums.items()},
                  "samples_per_s": n * t.batch / (time.perf_counter() - t0)}
         if rank == 0:
@@ -145,7 +140,7 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
             v = entry["val"]
             log(f"epoch {epoch + 1}: loss {entry['loss']:.4f}  val precision {v['precision']:.3f} recall "
                 f"{v['recall']:.3f} F1 {v['f1']:.3f} velocity error {v['velocity_error_px']:.2f} px/frame")
-            payload = {"config": cfg.as_dict(), "model": model.state_dict(), "epoch": epoch,
+            payload = {"config": dataclasses.asdict(cfg), "model": model.state_dict(), "epoch": epoch,
                        "optimizer": opt.state_dict(), "scheduler": sched.state_dict(), "history": history,
                        "seed": seed}
             save_checkpoint(out / "last.pt", payload)
@@ -180,13 +175,11 @@ def export_weights(src: str | Path, dst: str | Path, extra: dict | None = None, 
     cfg = ck["config"]
     info = {}
     if calibrate is not None:
-        from torchtrack.detector.inference import detector_from_checkpoint
-
         det = detector_from_checkpoint(ck)
         thr, rows = calibrate_threshold(det, calibrate, cfg.train.val_frames, cfg.decode.radius)
         cfg = dataclasses.replace(cfg, decode=dataclasses.replace(cfg.decode, threshold=thr))
         info["calibration"] = rows
-    payload = {"config": cfg.as_dict(), "model": {k: v.contiguous() for k, v in ck["model"].items()},
+    payload = {"config": dataclasses.asdict(cfg), "model": {k: v.contiguous() for k, v in ck["model"].items()},
                "epoch": ck.get("epoch"), "history": ck.get("history", []), **info, **(extra or {})}
     save_checkpoint(dst, payload)
     return Path(dst)

@@ -35,15 +35,11 @@ def read_truth(path: Path, first: int, last: int) -> dict[int, np.ndarray]:
         data = np.loadtxt(csv, delimiter=",", skiprows=1)
     except (OSError, ValueError) as exc:
         raise TorchtrackError(f"{csv}: cannot read the WPAFB truth ({exc})") from exc
-    out = {}
-    for row in data:
-        k = int(row[0])
-        if first <= k <= last:
-            obj = row[1:].reshape(-1, 6)
-            xy = np.stack([obj[:, 1], obj[:, 0]], axis=1)          # (column, row)
-            xy[(obj[:, 0] == 0) & (obj[:, 1] == 0)] = np.nan
-            out[k] = xy
-    return out
+    rows = data[(data[:, 0] >= first) & (data[:, 0] <= last)]
+    obj = rows[:, 1:].reshape(len(rows), -1, 6)
+    xy = obj[..., 1::-1].copy()                                         # (column, row)
+    xy[(obj[..., 0] == 0) & (obj[..., 1] == 0)] = np.nan
+    return dict(zip(rows[:, 0].astype(int).tolist(), xy))
 
 
 def evaluate_wpafb(detector, path: Path | None = None, radius: float = 10.0, min_speed: float = 2.0) -> dict:

@@ -56,8 +56,7 @@ def _clear_sequence(folder: Path) -> None:
         f.unlink(missing_ok=True)
 
 
-def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = None,
-             trackers: list[str] | None = None, truth: str = "moving", detector=None,
+def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = None, truth: str = "moving",
              video_config: VideoConfig | None = None, config: PipelineConfig | None = None,
              progress: bool = True) -> dict:
     """Run the demo (module docstring); returns the ``metrics.json`` payload (its ``files``: the names of
@@ -76,19 +75,18 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     ignore = parked_mask(gt, seq / "velocity.txt") if truth == "moving" else None
     cfg = config or PipelineConfig()
     cfg = cfg.replace(snapshots=tuple(sorted({*cfg.snapshots, min(vcfg.frames, 20)})))
-    result = track_video(FolderSource(seq / "frames"), out, cfg, detector=detector, gt=gt,
-                         gt_path=str(seq / "gt.txt"), ignore=ignore, camera=read_camera(seq / "camera.json"),
-                         keep_detections=True, progress=progress)
+    camera = read_camera(seq / "camera.json")
+    result = track_video(FolderSource(seq / "frames"), out, cfg, gt=gt, gt_path=str(seq / "gt.txt"), ignore=ignore,
+                         camera=camera, keep_detections=True, progress=progress)
     metrics = result.metrics
     scores = {cfg.tracker: {**metrics["clear_mot"], "FPS": metrics["fps"].get("tracking_only", float("inf"))}}
-    for name in [n for n in (trackers or tracker_names()) if n != cfg.tracker]:
+    for name in [n for n in tracker_names() if n != cfg.tracker]:
         with torch_threads(cfg.threads):
             run = run_tracker(make_tracker(name, cfg.options_for(name)), cfg, result.detections,
                               out / "trackers" / f"{name}.txt")
         scores[name] = {**score(gt, run.tracks, cfg.threshold, ignore), "FPS": run.fps}
     homographies = {d.index: d.homography for d in result.detections}
     first = next(iter(FolderSource(seq / "frames"))).image
-    camera = read_camera(seq / "camera.json")
     true_to_first = {k + 1: camera[0] @ np.linalg.inv(h) for k, h in enumerate(camera)}
     plots = {
         "tracks": plot_tracks(first, _paths(result.tracks, homographies),

@@ -23,11 +23,7 @@ def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray)
     over a ``MOTION_WINDOW``-px square at each of ``points (K, 2)`` (x, y): a classical change-detection cue
     (moving vehicles leave a difference of tens of grey levels, static structure only sensor noise and
     parallax). ``(K,)``."""
-    diff = cv2.blur(cv2.absdiff(image, previous), (MOTION_WINDOW, MOTION_WINDOW))
-    h, w = diff.shape
-    x = np.clip(np.rint(points[:, 0]).astype(np.int64), 0, w - 1)
-    y = np.clip(np.rint(points[:, 1]).astype(np.int64), 0, h - 1)
-    return diff[y, x].astype(np.float64)
+    return _at(cv2.blur(cv2.absdiff(image, previous), (MOTION_WINDOW, MOTION_WINDOW)), points)
 
 
 TONE_WINDOW = 3
@@ -38,11 +34,15 @@ def grey_level(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Mean grey level of ``image`` over a ``TONE_WINDOW``-px square at each of ``points (K, 2)`` (x, y): the
     tone of the vehicle detected there, the attribute the GM-PHD's ``tone_sigma`` compares between frames.
     ``(K,)``."""
-    mean = cv2.blur(image, (TONE_WINDOW, TONE_WINDOW))
-    h, w = mean.shape
+    return _at(cv2.blur(image, (TONE_WINDOW, TONE_WINDOW)), points)
+
+
+def _at(image: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """``image`` at the pixels nearest ``points (K, 2)`` (x, y), clipped to the frame, as float64 ``(K,)``."""
+    h, w = image.shape
     x = np.clip(np.rint(points[:, 0]).astype(np.int64), 0, w - 1)
     y = np.clip(np.rint(points[:, 1]).astype(np.int64), 0, h - 1)
-    return mean[y, x].astype(np.float64)
+    return image[y, x].astype(np.float64)
 
 
 class Detection:
@@ -81,11 +81,9 @@ class Detection:
         with self.timer("registration"):
             h = self.registration(image).homography
             h_inv = np.linalg.inv(h)
-            if self.prev_image is None:
-                prev = image
-            else:
-                # Previous frame resampled into the current frame: x_{k-1} = H_{k-1}^{-1} H_k x_k.
-                prev = warp_previous(self.prev_image, np.linalg.inv(self.prev_h) @ h, image.shape, fill=image)
+            # Previous frame resampled into the current frame: x_{k-1} = H_{k-1}^{-1} H_k x_k.
+            prev = image if self.prev_image is None else warp_previous(
+                self.prev_image, np.linalg.inv(self.prev_h) @ h, image.shape, fill=image)
             prior = apply_homography(self.prior_ref, h_inv)
         with self.timer("detection"):
             extra = {} if self.decode_threshold is None else {"threshold": self.decode_threshold}
@@ -107,8 +105,8 @@ class Detection:
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion, scores >= self.strong_threshold,
                                grey_level(image, pos))
 
-    def set_prior(self, points: np.ndarray, velocities: np.ndarray | None = None) -> None:
-        """Use ``points (N, 2)`` (reference coordinates; with their ``velocities (N, 2)`` in px/frame, or None)
-        for the next frame's prior heatmap instead of this frame's detections (``prior: tracks``)."""
+    def set_prior(self, points: np.ndarray) -> None:
+        """Use ``points (N, 2)`` (reference coordinates, without velocities) for the next frame's prior heatmap
+        instead of this frame's detections (``prior: tracks``)."""
         self.prior_ref = np.asarray(points, np.float64).reshape(-1, 2)
-        self.prior_velocity = velocities
+        self.prior_velocity = None

@@ -94,11 +94,12 @@ class FixedLagTracks:
         velocities = np.asarray(velocities, np.float64).reshape(-1, 2)
         frame = _Pending(index, [], [], [], detections, velocities)
         for ident, pos in zip(ids.tolist(), positions):
-            supported = len(detections) > 0 and _nearest(detections, pos)[1] < self.distance
+            q, d = _nearest(detections, pos) if len(detections) else (-1, np.inf)
+            supported = d < self.distance
             if ident in self._last:
                 self._fill_gap(ident, *self._last[ident], index, pos)
-            elif ident not in self._known:
-                self._backfill(ident, pos, index, detections, velocities)
+            elif ident not in self._known and supported:
+                self._backfill(ident, detections[q], velocities[q], index)
             frame.add(ident, pos, supported)
             self._last[ident] = (index, pos)
             self._known.add(ident)
@@ -123,14 +124,8 @@ class FixedLagTracks:
                 a = (frame.index - last_index) / (index - last_index)
                 frame.add(ident, last_pos + a * (pos - last_pos), False)
 
-    def _backfill(self, ident: int, pos: np.ndarray, index: int, detections: np.ndarray,
-                  velocities: np.ndarray) -> None:
-        if not len(detections):
-            return
-        q, d = _nearest(detections, pos)
-        point, velocity, at = detections[q], velocities[q], index
-        if d >= self.distance:
-            return
+    def _backfill(self, ident: int, point: np.ndarray, velocity: np.ndarray, at: int) -> None:
+        """Give ``ident`` the detections it came from: walk back from its detection ``point`` at frame ``at``."""
         for frame in reversed(self._pending):
             if frame.index != at - 1 or np.isnan(velocity).any() or not len(frame.detections):
                 return
@@ -141,10 +136,7 @@ class FixedLagTracks:
             frame.add(ident, point, True)
 
     def _final(self, frame: _Pending, trim: bool = True) -> LaggedFrame:
-        keep = [True] * len(frame.ids)
-        if trim:
-            later = {i for f in self._pending for i, s in zip(f.ids, f.supported) if s}
-            keep = [s or i in later for i, s in zip(frame.ids, frame.supported)]
-        ids = np.array([i for i, k in zip(frame.ids, keep) if k], np.int64)
-        pos = np.array([p for p, k in zip(frame.positions, keep) if k], np.float64).reshape(-1, 2)
-        return LaggedFrame(frame.index, ids, pos)
+        later = {i for f in self._pending for i, s in zip(f.ids, f.supported) if s}
+        keep = np.array([not trim or s or i in later for i, s in zip(frame.ids, frame.supported)], bool)
+        positions = np.array(frame.positions, np.float64).reshape(-1, 2)
+        return LaggedFrame(frame.index, np.array(frame.ids, np.int64)[keep], positions[keep])

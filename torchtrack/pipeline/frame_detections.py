@@ -48,10 +48,8 @@ class FrameDetections(NamedTuple):
 
     def select(self, keep: np.ndarray) -> FrameDetections:
         """The detections where ``keep (K,)`` (a mask or indices)."""
-        fields = ("positions", "velocities", "scores", "image_positions", "image_velocities", "motion", "strong")
-        if self.tones is not None:
-            fields += ("tones",)
-        return self._replace(**{k: getattr(self, k)[keep] for k in fields})
+        return self._replace(**{k: v[keep] for k, v in self._asdict().items()
+                                if k not in ("index", "homography") and v is not None})
 
     def moving(self, min_speed: float = 0.0, min_motion: float = 0.0) -> FrameDetections:
         """The detections with predicted speed ``>= min_speed`` px/frame (or unknown) and motion evidence

@@ -18,8 +18,6 @@ def plot_tracks(first_frame: np.ndarray, tracks: dict[int, np.ndarray], path: st
                 title: str = "", truth: dict[int, np.ndarray] | None = None) -> Path:
     """Each track's positions ``(T_i, 2)`` (first-frame / reference pixel coordinates) drawn as a line in
     its identity's colour over ``first_frame``; ``truth`` (same form) as thin white lines."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     h, w = first_frame.shape[:2]
     fig, ax = plt.subplots(figsize=(7, 7 * h / w), dpi=110)
     ax.imshow(first_frame, cmap="gray", vmin=0, vmax=255, interpolation="nearest")
@@ -33,31 +31,27 @@ def plot_tracks(first_frame: np.ndarray, tracks: dict[int, np.ndarray], path: st
     ax.set_ylim(h - 1, 0)
     ax.set_axis_off()
     ax.set_title(title, fontsize=9)
-    fig.tight_layout()
-    with atomic_file(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
-    return path
+    return _save(fig, path)
 
 
 def plot_scores(rows: dict[str, dict], path: str | Path) -> Path:
     """Bar charts of MOTA and identity switches (IDS) per tracker; ``rows`` tracker → CLEAR-MOT dict."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     names = list(rows)
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.4), dpi=110)
     x = np.arange(len(names))
-    bars = axes[0].bar(x, [100 * rows[n]["MOTA"] for n in names], color="tab:blue")
-    axes[0].bar_label(bars, fmt="%.1f", fontsize=8)
-    axes[0].set_ylabel("MOTA (%)")
-    bars = axes[1].bar(x, [rows[n]["IDS"] for n in names], color="tab:red")
-    axes[1].bar_label(bars, fontsize=8)
-    axes[1].set_ylabel("identity switches")
-    for ax in axes:
+    panels = (("MOTA", 100, "tab:blue", "%.1f", "MOTA (%)"), ("IDS", 1, "tab:red", "%g", "identity switches"))
+    for ax, (key, scale, colour, fmt, label) in zip(axes, panels):
+        ax.bar_label(ax.bar(x, [scale * rows[n][key] for n in names], color=colour), fmt=fmt, fontsize=8)
+        ax.set_ylabel(label)
         ax.set_xticks(x, names, rotation=20, fontsize=8)
         ax.grid(axis="y", alpha=0.3)
+    return _save(fig, path)
+
+
+def _save(fig: plt.Figure, path: str | Path) -> Path:
+    """Lay ``fig`` out, write it to ``path`` whole (parent folders created) and close it."""
     fig.tight_layout()
     with atomic_file(path) as tmp:
         fig.savefig(tmp)
     plt.close(fig)
-    return path
+    return Path(path)

@@ -13,12 +13,13 @@ from __future__ import annotations
 
 import os
 from array import array
-from pathlib import Path
 
 import numpy as np
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import POINT_BOX_SIZE, MOTData, MOTWriter, empty_mot, from_points
+
+_COLUMNS = ("frame", "id", "x", "y", "conf", "vx", "vy")
 
 
 class TrackRecorder:
@@ -32,11 +33,9 @@ class TrackRecorder:
     """
 
     def __init__(self, path: str | os.PathLike | None = None, box: float = POINT_BOX_SIZE) -> None:
-        self.path = None if path is None else Path(path)
         self.box = float(box)
         self._writer = None if path is None else MOTWriter(path, box=box)
-        self._frame, self._id = array("q"), array("q")
-        self._x, self._y, self._conf, self._vx, self._vy = (array("d") for _ in range(5))
+        self._columns = {name: array("q" if name in ("frame", "id") else "d") for name in _COLUMNS}
         self._with_velocity = True
         self._data: MOTData | None = None
 
@@ -48,36 +47,26 @@ class TrackRecorder:
         cx, cy = np.asarray(positions, np.float64).reshape(-1, 2).T
         vx, vy = (None, None) if velocities is None else np.asarray(velocities, np.float64).reshape(-1, 2).T
         frame = from_points(np.full(len(cx), int(index)), ids, cx, cy, box=self.box, conf=scores, vx=vx, vy=vy)
-        self._frame.extend(frame.frame)
-        self._id.extend(frame.id)
-        self._x.extend(frame.x)
-        self._y.extend(frame.y)
-        self._conf.extend(frame.conf)
         self._with_velocity &= velocities is not None
-        if self._with_velocity:
-            self._vx.extend(frame.vx)
-            self._vy.extend(frame.vy)
+        for name, column in self._columns.items():
+            if self._with_velocity or name not in ("vx", "vy"):
+                column.extend(getattr(frame, name))
         if self._writer is not None:
             self._writer.write_lines(frame)
 
     def tracks(self) -> MOTData:
         """Everything recorded, in recording order."""
         if self._data is None:
-            n = len(self._frame)
+            n = len(self._columns["frame"])
             if n == 0:
                 self._data = empty_mot()
             else:
-                column = np.frombuffer
-                velocity = (column(self._vx), column(self._vy)) if self._with_velocity else (None, None)
-                self._data = MOTData(column(self._frame, np.int64), column(self._id, np.int64), column(self._x),
-                                     column(self._y), np.full(n, self.box), np.full(n, self.box),
-                                     column(self._conf), *velocity)
+                data = {name: np.frombuffer(column, np.int64 if column.typecode == "q" else np.float64)
+                        for name, column in self._columns.items()}
+                if not self._with_velocity:
+                    data["vx"] = data["vy"] = None
+                self._data = MOTData(**data, w=np.full(n, self.box), h=np.full(n, self.box))
         return self._data
-
-    def close(self) -> None:
-        """Finish the file under its final name."""
-        if self._writer is not None:
-            self._writer.close()
 
     def __enter__(self) -> TrackRecorder:
         return self

@@ -72,15 +72,7 @@ class Registration:
         if self.config.method == "orb":
             self._orb = cv2.ORB_create(nfeatures=self.config.features, fastThreshold=5)
             self._matcher = cv2.BFMatcher(cv2.NORM_HAMMING, crossCheck=True)
-        self.reset()
-
-    def reset(self) -> None:
-        """Forget the reference: the next frame becomes it."""
-        self._key_image: np.ndarray | None = None
-        self._key_features = None
-        self._key_h = np.eye(3)
-        self._key_age = 0
-        self._last_rel = np.eye(3)
+        self._key_image: np.ndarray | None = None  # the keyframe and its state are set by the first frame
         self.frames = 0
 
     def _features(self, image: np.ndarray):

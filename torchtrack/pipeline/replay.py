@@ -28,13 +28,11 @@ from torchtrack.pipeline.tracker_stream import TrackerStream
 @dataclass
 class TrackerRun:
     """What :func:`run_tracker` produced: the ``tracks`` (frame coordinates), the ``seconds`` spent in the
-    stream (the tracker, its gate and its fixed-lag output), the ``frames`` run and the estimates dropped for
-    repeating an identity within a frame (``duplicates``)."""
+    stream (the tracker, its gate and its fixed-lag output) and the ``frames`` run."""
 
     tracks: MOTData
     seconds: float
     frames: int
-    duplicates: int
 
     @property
     def fps(self) -> float:
@@ -61,4 +59,4 @@ def run_tracker(tracker, config: PipelineConfig, detections: Iterable[FrameDetec
             seconds += time.perf_counter() - t0
             for frame in final:
                 recorder.record(frame.index, frame.ids, apply_homography(frame.positions, to_frame.pop(frame.index)))
-    return TrackerRun(recorder.tracks(), seconds, frames, stream.duplicates)
+    return TrackerRun(recorder.tracks(), seconds, frames)

@@ -64,11 +64,7 @@ def _has_images(folder: Path) -> bool:
 
 def describe_sequence(folder: Path) -> Sequence | None:
     """The :class:`Sequence` stored in ``folder`` (layout in the module docstring), or None."""
-    frames = None
-    for cand in (folder / "frames", folder / "img1", folder):
-        if _has_images(cand):
-            frames = cand
-            break
+    frames = next((c for c in (folder / "frames", folder / "img1", folder) if _has_images(c)), None)
     if frames is None:
         videos = sorted(p for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES)
         if len(videos) > 1:
@@ -203,12 +199,11 @@ def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, det
     else:
         results = mine
     results.sort(key=lambda r: r["name"])
-    summary: dict = {"root": str(root), "tracker": config.tracker, "world_size": world,
-                     "sequences": {r["name"]: r["metrics"] for r in results}}
-    scored = [r for r in results if r["gt"] is not None]
     frames = sum(r["metrics"]["frames"] for r in results)
-    summary["frames"] = frames
-    summary["fps_per_process"] = frames / sum(r["seconds"] for r in results)
+    summary: dict = {"root": str(root), "tracker": config.tracker, "world_size": world,
+                     "sequences": {r["name"]: r["metrics"] for r in results}, "frames": frames,
+                     "fps_per_process": frames / sum(r["seconds"] for r in results)}
+    scored = [r for r in results if r["gt"] is not None]
     if scored:
         masks = np.concatenate([r["ignore"] if r["ignore"] is not None else np.zeros(r["gt"].size, bool)
                                 for r in scored])

@@ -31,7 +31,6 @@ from __future__ import annotations
 
 import time
 import warnings
-from contextlib import ExitStack
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -124,10 +123,6 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
     waiting: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frames whose tracks are not final: image, H_k
     frames = 0
     t_start = time.perf_counter()
-    scope = ExitStack()
-    scope.enter_context(torch_threads(cfg.threads))
-    bar = tqdm(total=n_frames or None, desc=f"track {cfg.tracker}", unit="frame", disable=not progress,
-               leave=False)
 
     def emit(final: list[LaggedFrame], tracks_out: TrackRecorder) -> None:
         """Write and draw the frames whose tracks became final (``output_lag`` frames back)."""
@@ -135,8 +130,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
             image, h = waiting.pop(index)
             h_inv = np.linalg.inv(h)
             with timer("io"):
-                pos_img = apply_homography(pos_ref, h_inv)
-                tracks_out.record(index, ids, pos_img)
+                tracks_out.record(index, ids, apply_homography(pos_ref, h_inv))
             if video is not None:
                 with timer("render"):
                     t = truth.get(index)
@@ -147,11 +141,14 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                         save_png(out / f"frame_{index:06d}.png", drawn)
 
     try:
-        with TrackRecorder(files["tracks"]) as tracks_out, TrackRecorder(files["detections"]) as det_out:
-            it = prefetch(source)
+        with (torch_threads(cfg.threads),
+              tqdm(total=n_frames or None, desc=f"track {cfg.tracker}", unit="frame", disable=not progress,
+                   leave=False) as bar,
+              TrackRecorder(files["tracks"]) as tracks_out, TrackRecorder(files["detections"]) as det_out):
+            frames_in = prefetch(source)
             while True:
                 with timer("io"):
-                    frame = next(it, None)
+                    frame = next(frames_in, None)
                 if frame is None:
                     break
                 det = detection(frame.index, frame.image)
@@ -183,9 +180,6 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         if video is not None:
             video.abort()
         raise
-    finally:
-        bar.close()
-        scope.close()
     wall = time.perf_counter() - t_start
     if frames == 0:
         raise TorchtrackError(f"{source.path}: no frames")
@@ -196,11 +190,10 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         metrics["clear_mot"] = score(gt, tracks_out.tracks(), cfg.threshold, ignore)
         det_scores = score(gt, _detections_as_tracks(det_out.tracks()), cfg.threshold, ignore)
         metrics["detector"] = {k: det_scores[k] for k in ("TP", "FP", "FN", "precision", "recall", "MOTP")}
-    duplicates = stream.duplicates
-    if duplicates:
-        warnings.warn(f"tracker {cfg.tracker} reported {duplicates} estimate(s) under an identity already "
+    if stream.duplicates:
+        warnings.warn(f"tracker {cfg.tracker} reported {stream.duplicates} estimate(s) under an identity already "
                       "reported in the same frame; they were left out of tracks.txt", stacklevel=2)
-        metrics["duplicate_identities_dropped"] = duplicates
+        metrics["duplicate_identities_dropped"] = stream.duplicates
     seconds = dict(timer.seconds)
     metrics["timings_s"] = {**seconds, "total": wall}
     metrics["fps"] = {"end_to_end": frames / wall,

@@ -36,11 +36,8 @@ def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple
     ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype), velocities, **extra)
     ids = as_numpy(ids, ()).astype(np.int64)
     positions = as_numpy(positions, (2,))
-    _, first = np.unique(ids, return_index=True)
-    if len(first) < len(ids):
-        keep = np.sort(first)
-        return ids[keep], positions[keep], len(ids) - len(keep)
-    return ids, positions, 0
+    keep = np.sort(np.unique(ids, return_index=True)[1])  # the first estimate of each identity
+    return ids[keep], positions[keep], len(ids) - len(keep)
 
 
 class TrackerStream:

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import torch
 
+from torchtrack.config import from_mapping
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
 from torchtrack.io.mot import MOTData, write_motdata
@@ -35,7 +36,7 @@ class SimulatedDetector:
     sigma: float = 1.0
     clutter: float = 30.0
     velocity_sigma: float | None = 1.0
-    image_size: tuple[float, float] = (585, 496)
+    image_size: tuple[int, int] = (585, 496)
 
 
 @dataclass
@@ -62,26 +63,13 @@ class BenchmarkConfig:
 
     @classmethod
     def from_mapping(cls, data: dict, where: str) -> BenchmarkConfig:
-        """The config of a YAML mapping; unknown keys and subsets are refused naming ``where``."""
-        sections = {"detections": SimulatedDetector, "moving": MovingRule}
-        values = {}
-        for key, value in (data or {}).items():
-            kind = sections.get(key)
-            values[key] = _build(kind, value or {}, f"{where}: {key}") if kind else value
-        config = _build(cls, values, where)
+        """The config of a YAML mapping (:func:`torchtrack.config.from_mapping`); unknown keys and subsets are
+        refused naming ``where``."""
+        config = from_mapping(cls, data, where)
         unknown = sorted(set(config.subsets) - set(SUBSETS))
         if unknown:
             raise TorchtrackError(f"{where}: unknown subset(s) {unknown} (known: {', '.join(SUBSETS)})")
-        config.detections.image_size = tuple(config.detections.image_size)
         return config
-
-
-def _build(cls, values: dict, where: str):
-    names = {f.name for f in dataclasses.fields(cls)}
-    unknown = sorted(set(values) - names)
-    if unknown:
-        raise TorchtrackError(f"{where}: unknown key(s) {unknown}; known: {sorted(names)}")
-    return cls(**values)
 
 
 @dataclass
@@ -114,9 +102,9 @@ def run_benchmark(config: BenchmarkConfig, truth: MOTData, out: str | Path, seed
     for subset in config.subsets:
         gt = truth
         if subset == "moving":
-            gt = truth.select(moving_mask(truth, float(config.moving.min_displacement), int(config.moving.window)))
-        det = simulate_detections(gt, pd=float(d.pd), sigma=float(d.sigma), clutter=float(d.clutter),
-                                  image_size=d.image_size, velocity_sigma=d.velocity_sigma,
+            gt = truth.select(moving_mask(truth, config.moving.min_displacement, config.moving.window))
+        det = simulate_detections(gt, pd=d.pd, sigma=d.sigma, clutter=d.clutter, image_size=d.image_size,
+                                  velocity_sigma=d.velocity_sigma,
                                   generator=torch.Generator().manual_seed(seed)).detections
         sub_out = Path(out) / subset
         write_motdata(sub_out / "gt.txt", gt)
