@@ -35,7 +35,7 @@ from torch import Tensor
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd_tracker import GMPHDTracker
 from torchtrack.tuning.losses import sinkhorn_gospa
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys, register
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys
 
 DATA_KEYS = ("wpafb", "truth", "simulate_truth", "detections", "detections_file", "train_frames",
              "held_out_frames", "held_out_draws", "window", "burn_in", "threshold", "ospa_c", "gospa_c")
@@ -113,7 +113,6 @@ def quiet_caps() -> Iterator[None]:
         logger.setLevel(level)
 
 
-@register
 class GMPHDTunable(Tunable):
     """The enhanced labelled GM-PHD tracker (or ``tracker: labelled-gmphd``, the baseline)."""
 

@@ -17,7 +17,7 @@ from typing import Any
 from torch import nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.tuning.parameters import set_values, tunable_parameters
+from torchtrack.tuning.parameters import checked_parameters, set_values
 from torchtrack.tuning.registry import Tunable, TuneData, check_keys, search_scores
 
 GRID_KEYS = ("values", "metric", "maximize")
@@ -32,11 +32,7 @@ def grid_search(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], 
     values = config.get("values") or {}
     if not values:
         raise TorchtrackError("grid.values must map parameter names to lists of values")
-    valid = tunable_parameters(module)
-    unknown = [n for n in values if n not in valid]
-    if unknown:
-        raise TorchtrackError(f"grid: unknown parameter(s) {', '.join(map(repr, unknown))}; valid names: "
-                              f"{', '.join(sorted(valid))}")
+    checked_parameters(module, values, "parameter(s)", "grid: ")
     metric = str(config.get("metric", "MOTA"))
     sign = 1.0 if config.get("maximize", True) else -1.0
     names = list(values)

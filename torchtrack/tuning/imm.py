@@ -30,7 +30,7 @@ from torchtrack.models import LinearPosition, ModeControlInput
 from torchtrack.params import RowStochastic
 from torchtrack.tuning.kalman import Track, pad_batch, windows
 from torchtrack.tuning.losses import sinkhorn_gospa
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys, register, split_items
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys, split_items
 
 OPTIONS = ("controls", "sigma", "measurement_sigma", "transition", "transition_floor", "dt", "init_velocity_std",
            "gospa_c", "dtype")
@@ -51,7 +51,6 @@ def floored_transition(value, floor: float) -> Tensor:
     return t / t.sum(-1, keepdim=True)
 
 
-@register
 class IMMTunable(Tunable):
     """IMM with mode-control-input models (default: the gate paper's class-1 model set)."""
 

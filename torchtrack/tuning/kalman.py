@@ -29,7 +29,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.models import ConstantAcceleration, ConstantVelocity, LinearPosition
 from torchtrack.tuning.losses import sinkhorn_gospa
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys, register, split_items
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys, split_items
 
 OPTIONS = ("ndim", "motion", "noise", "q", "sigma", "dt", "init_velocity_std", "init_acceleration_std",
            "gospa_c", "gospa_p", "dtype")
@@ -113,7 +113,6 @@ def read_tracks(path: Path, dtype: torch.dtype, truth_path: Path | None = None) 
     return tracks
 
 
-@register
 class KalmanTunable(Tunable):
     """Kalman filter with a CV (or CA) motion model and a position measurement model."""
 

@@ -21,10 +21,8 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.particle import ParticleFilter
 from torchtrack.models import LinearPosition
 from torchtrack.tuning.kalman import OPTIONS, KalmanTunable, Track, pad_batch
-from torchtrack.tuning.registry import register
 
 
-@register
 class ParticleTunable(KalmanTunable):
     """Particle filter with a CV (or CA) motion model and a position measurement model."""
 
