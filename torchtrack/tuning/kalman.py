@@ -118,7 +118,8 @@ class KalmanTunable(Tunable):
 
     name = "kalman"
     losses = ("nll", "gospa")
-    option_keys = OPTIONS
+    option_keys, data_keys = OPTIONS, DATA_KEYS
+    default_velocity_std, default_gospa_c = 100.0, 20.0
 
     def __init__(self, options: Mapping[str, Any] | None = None):
         super().__init__(options)
@@ -129,9 +130,9 @@ class KalmanTunable(Tunable):
             raise TorchtrackError(f"model.motion must be 'cv' or 'ca'; got {self.kind!r}")
         self.dt = float(self.options.get("dt", 1.0))
         self.dtype = _dtype(self.options.get("dtype", "float64"))
-        self.vel_std = float(self.options.get("init_velocity_std", 100.0))
+        self.vel_std = float(self.options.get("init_velocity_std", self.default_velocity_std))
         self.acc_std = float(self.options.get("init_acceleration_std", 10.0))
-        self.gospa_c = float(self.options.get("gospa_c", 20.0))
+        self.gospa_c = float(self.options.get("gospa_c", self.default_gospa_c))
         self.gospa_p = float(self.options.get("gospa_p", 2.0))
 
     def _motion(self, q: float) -> nn.Module:
@@ -175,8 +176,8 @@ class KalmanTunable(Tunable):
                 z[miss] = float("nan")
         return [Track(z[b], pos[b]) for b in range(B)]
 
-    def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
-        check_keys(config, DATA_KEYS, f"data ({self.name})")
+    def tracks(self, config: Mapping[str, Any], generator: torch.Generator) -> list[Track]:
+        """The tracks of the ``data`` section (simulated or read), before they are cut into windows."""
         if ("simulate" in config) == ("file" in config):
             raise TorchtrackError(f"data ({self.name}) needs exactly one of 'simulate' or 'file'")
         if "simulate" in config:
@@ -186,7 +187,11 @@ class KalmanTunable(Tunable):
             items = read_tracks(Path(config["file"]), self.dtype, Path(truth) if truth else None)
         if config.get("shuffle", False):
             items = [items[i] for i in torch.randperm(len(items), generator=generator).tolist()]
-        items = windows(items, config.get("window"), int(config.get("min_length", 3)))
+        return items
+
+    def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
+        check_keys(config, self.data_keys, f"data ({self.name})")
+        items = windows(self.tracks(config, generator), config.get("window"), int(config.get("min_length", 3)))
         if not items:
             raise TorchtrackError(f"data ({self.name}): no track with enough measurements (min_length "
                                   f"{int(config.get('min_length', 3))})")
@@ -229,14 +234,16 @@ class KalmanTunable(Tunable):
                               c=self.gospa_c, p=self.gospa_p)
         return cost.mean()
 
+    def position_rmse(self, result, truth: Tensor | None) -> dict[str, float]:
+        """``{"rmse": …}``: the position RMSE of a :meth:`filter` result against the truth (none without it)."""
+        if truth is None:
+            return {}
+        err = (result.mean[..., : self.ndim] - truth[1:].to(result.mean)).pow(2).sum(-1)
+        return {"rmse": float(err[~torch.isnan(err)].mean().sqrt())}
+
     def evaluate(self, module: KalmanFilter, items: Sequence[Track]) -> dict[str, float]:
         """Position RMSE against truth (where available) and the mean NIS per measurement dimension."""
         with torch.no_grad():
             result, z, truth = self.filter(module, items)
             present = ~torch.isnan(z[1:]).any(-1)
-            out = {"nis_per_dim": float(result.nis[present].mean() / self.ndim)}
-            if truth is not None:
-                err = (result.mean[..., : self.ndim] - truth[1:].to(result.mean)).pow(2).sum(-1)
-                ok = ~torch.isnan(err)
-                out["rmse"] = float(err[ok].mean().sqrt())
-        return out
+            return {"nis_per_dim": float(result.nis[present].mean() / self.ndim), **self.position_rmse(result, truth)}
