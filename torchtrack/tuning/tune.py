@@ -30,7 +30,7 @@ from torchtrack.config import read_mapping
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.outputs import write_yaml
 from torchtrack.tuning.config import load_params, read_tune_config, save_params
-from torchtrack.tuning.losses import exact_gospa, sinkhorn_gospa
+from torchtrack.tuning.losses import sinkhorn_gospa
 from torchtrack.tuning.parameters import get_values, plain, select_trainable, tunable_parameters
 from torchtrack.tuning.plot import plot_loss_curve
 from torchtrack.tuning.registry import Tunable, TuneData, check_keys, get_tunable, tunable_names
@@ -161,7 +161,7 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
 
 
 __all__ = [
-    "FitResult", "TuneData", "Tunable", "exact_gospa", "fit", "get_tunable", "get_values", "load_filter",
+    "FitResult", "TuneData", "Tunable", "fit", "get_tunable", "get_values", "load_filter",
     "load_params", "plot_loss_curve", "save_params", "select_trainable", "sinkhorn_gospa", "tunable_names",
     "tunable_parameters", "tune",
 ]
