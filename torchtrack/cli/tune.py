@@ -64,14 +64,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _rows(report: dict) -> list[list]:
-    rows = []
-    for name, fitted in report["fitted"].items():
-        start = report["start"].get(name)
-        truth = report["truth"].get(name, "")
-        rel = report["relative_error"].get(name)
-        rows.append([name, _fmt(start), _fmt(fitted), _fmt(truth) if truth != "" else "-",
-                     f"{100 * rel:.1f}%" if rel is not None else "-"])
-    return rows
+    truth, rel = report["truth"], report["relative_error"]
+    return [[name, _fmt(report["start"].get(name)), _fmt(fitted), _fmt(truth[name]) if name in truth else "-",
+             f"{100 * rel[name]:.1f}%" if name in rel else "-"] for name, fitted in report["fitted"].items()]
 
 
 def _fmt(v) -> str:

@@ -50,7 +50,7 @@ def _dtype(name: str) -> torch.dtype:
     return getattr(torch, name)
 
 
-def _factor(Q: Tensor) -> Tensor:
+def psd_factor(Q: Tensor) -> Tensor:
     """A square root ``A`` with ``A Aᵀ = Q`` for a PSD (possibly singular) ``Q``."""
     evals, evecs = torch.linalg.eigh(Q)
     return evecs * evals.clamp_min(0).sqrt().unsqueeze(-2)
@@ -158,7 +158,7 @@ class KalmanTunable(Tunable):
         d, n = self.ndim, motion.state_dim
         with torch.no_grad():
             F = motion.transition_matrix(self.dt)
-            A = _factor(motion.process_noise(self.dt))
+            A = psd_factor(motion.process_noise(self.dt))
             x = torch.zeros(B, n, dtype=self.dtype)
             x[:, :d] = torch.rand(B, d, generator=generator, dtype=self.dtype) * float(cfg.get("area", 1000.0))
             x[:, d: 2 * d] = torch.randn(B, d, generator=generator, dtype=self.dtype) * float(cfg.get("speed", 10.0))

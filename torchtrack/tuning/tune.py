@@ -19,7 +19,7 @@ Example::
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -65,12 +65,16 @@ def _relative_errors(fitted: Mapping[str, Any], truth: Mapping[str, Any]) -> dic
     return out
 
 
+def mean_scores(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """The mean over ``rows`` of each number that every row has (e.g. held-out metrics over folds or draws)."""
+    keys = [k for k in rows[0] if all(isinstance(r.get(k), (int, float)) for r in rows)]
+    return {k: sum(float(r[k]) for r in rows) / len(rows) for k in keys}
+
+
 def _score_draws(tunable: Tunable, module: nn.Module, draws: Mapping[int, list]) -> dict[str, Any]:
     """The held-out metrics on each further draw (``per_draw``, in seed order) and their means."""
     per_draw = [tunable.evaluate(module, items) for items in draws.values()]
-    out: dict[str, Any] = {k: sum(d[k] for d in per_draw) / len(per_draw) for k in per_draw[0]}
-    out["per_draw"] = per_draw
-    return out
+    return {**mean_scores(per_draw), "per_draw": per_draw}
 
 
 def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike | None = None,
