@@ -79,9 +79,8 @@ def _print_folds(summary: dict) -> None:
     from torchtrack.metrics.table import format_table
 
     runs = summary["runs"]
-    draws = "held_out_draws" in runs[0]
     where = (f"mean over {len(runs[0]['held_out_draws']['seeds'])} further detection draws of each held-out block"
-             if draws else "held-out items")
+             if "held_out_draws" in runs[0] else "held-out items")
     first = summary["per_fold"]["tuned"][0]
     metrics = [k for k in ("MOTA", "OSPA", "IDS") if k in first] or list(first)
     methods = list(summary["per_fold"])
@@ -146,10 +145,8 @@ def run(args) -> int:
     _final_paths(report, folder)
     print(format_table(["parameter", "start", "fitted", "truth", "error"], _rows(report)))
     before, after = report["held_out_before"], report["held_out_after"]
-    keys = [k for k in before if k in after]
-    print()
-    print(format_table(["held-out", "before", "after"], [[k, float(before[k]), float(after[k])] for k in keys],
-                       floatfmt=".4g"))
+    print("\n" + format_table(["held-out", "before", "after"],
+                              [[k, float(before[k]), float(after[k])] for k in before if k in after], floatfmt=".4g"))
     fit = report.get("fit", report)
     print(f"\n{report['steps']} steps ({report['stopped']}; kept step {report['best_step']}), "
           f"{fit['filter_evaluations']} item evaluations ({fit['frames']} frames), {fit['seconds']:.1f} s")

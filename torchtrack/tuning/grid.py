@@ -41,13 +41,10 @@ def grid_search(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], 
 
     best: tuple[float, dict | None, dict] = (-math.inf, None, {})
     t0 = time.perf_counter()
-    evaluations = 0
-    train_frames = sum(tunable.item_frames(i) for i in data.train)
     for combo in tqdm(combos, desc="grid", disable=not progress, leave=False):
         point = dict(zip(names, combo))
         set_values(module, point)
         scores = search_scores(tunable, module, data.train, metric, "grid.metric")
-        evaluations += len(data.train)
         if math.isfinite(scores[metric]) and sign * scores[metric] > best[0]:
             best = (sign * scores[metric], point, scores)
     seconds = time.perf_counter() - t0
@@ -56,7 +53,7 @@ def grid_search(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], 
     set_values(module, best[1])
     held = tunable.evaluate(module, data.held_out) if data.held_out else {}
     return {"best": {n: float(v) for n, v in best[1].items()}, "metric": metric, "train": best[2],
-            "held_out": held, "combinations": len(combos), "filter_evaluations": evaluations,
-            "frames": len(combos) * train_frames,
-            "training_passes": evaluations / max(len(data.train), 1), "seconds": seconds,
+            "held_out": held, "combinations": len(combos), "filter_evaluations": len(combos) * len(data.train),
+            "frames": len(combos) * sum(tunable.item_frames(i) for i in data.train),
+            "training_passes": len(combos) * len(data.train) / max(len(data.train), 1), "seconds": seconds,
             "derived": tunable.derived(module)}
