@@ -58,9 +58,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "--set data.held_out_frames=[1,128] --set 'data.train_frames=[[129,512]]'")
     add_force_option(parser)
     add_common_options(parser, seed=None)
-    for action in parser._actions:
-        if action.dest == "seed":
-            action.help = "random seed (default: the config's seed, else 0)"
+    next(a for a in parser._actions if a.dest == "seed").help = "random seed (default: the config's seed, else 0)"
 
 
 def _rows(report: dict) -> list[list]:

@@ -97,20 +97,19 @@ def read_tracks(path: Path, dtype: torch.dtype, truth_path: Path | None = None) 
     truth = read_mot(truth_path) if truth_path is not None else None
     tracks = []
     for ident in np.unique(data.id):
-        sel = data.id == ident
-        frames = data.frame[sel]
+        frames = data.frame[data.id == ident]
         first, last = int(frames.min()), int(frames.max())
-        z = torch.full((last - first + 1, 2), float("nan"), dtype=dtype)
-        z[torch.as_tensor(frames - first)] = torch.as_tensor(data.centers()[sel], dtype=dtype)
-        gt = None
-        if truth is not None:
-            tsel = truth.id == ident
-            gt = torch.full_like(z, float("nan"))
-            keep = (truth.frame[tsel] >= first) & (truth.frame[tsel] <= last)
-            gt[torch.as_tensor(truth.frame[tsel][keep] - first)] = torch.as_tensor(truth.centers()[tsel][keep],
-                                                                                   dtype=dtype)
-        tracks.append(Track(z, gt))
+        tracks.append(Track(_centres(data, ident, first, last, dtype),
+                            None if truth is None else _centres(truth, ident, first, last, dtype)))
     return tracks
+
+
+def _centres(data, ident: int, first: int, last: int, dtype: torch.dtype) -> Tensor:
+    """``(last − first + 1, 2)`` box centres of ``ident`` in frames ``first..last`` of ``data``, NaN where absent."""
+    sel = (data.id == ident) & (data.frame >= first) & (data.frame <= last)
+    out = torch.full((last - first + 1, 2), float("nan"), dtype=dtype)
+    out[torch.as_tensor(data.frame[sel] - first)] = torch.as_tensor(data.centers()[sel], dtype=dtype)
+    return out
 
 
 class KalmanTunable(Tunable):
