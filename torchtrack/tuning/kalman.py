@@ -43,6 +43,10 @@ class Track(NamedTuple):
     z: Tensor
     truth: Tensor | None = None
 
+    def cut(self, start: int, stop: int | None = None) -> Track:
+        """Steps ``start:stop`` of the track."""
+        return Track(self.z[start:stop], None if self.truth is None else self.truth[start:stop])
+
 
 def _dtype(name: str) -> torch.dtype:
     if name not in ("float32", "float64"):
@@ -75,17 +79,10 @@ def windows(items: list[Track], length: int | None, min_length: int) -> list[Tra
     each window starts at a present measurement (leading missing rows are dropped)."""
     out = []
     for t in items:
-        pieces = [t] if not length else [
-            Track(t.z[s: s + length], None if t.truth is None else t.truth[s: s + length])
-            for s in range(0, t.z.shape[0], length)]
-        for piece in pieces:
+        for piece in [t] if not length else [t.cut(s, s + length) for s in range(0, t.z.shape[0], length)]:
             present = ~torch.isnan(piece.z).any(-1)
-            if not bool(present.any()):
-                continue
-            first = int(torch.nonzero(present)[0])
-            piece = Track(piece.z[first:], None if piece.truth is None else piece.truth[first:])
-            if int(present.sum()) >= min_length:
-                out.append(piece)
+            if int(present.sum()) >= max(min_length, 1):
+                out.append(piece.cut(int(torch.nonzero(present)[0])))
     return out
 
 
@@ -139,11 +136,14 @@ class KalmanTunable(Tunable):
             return ConstantVelocity(self.ndim, q, noise=self.options.get("noise", "cwna"))
         return ConstantAcceleration(self.ndim, q, noise=self.options.get("noise", "cwnj"))
 
-    def build(self) -> KalmanFilter:
+    def _models(self) -> tuple[nn.Module, LinearPosition]:
+        """The motion and measurement models at the start values ``q`` and ``sigma``."""
         motion = self._motion(float(self.options.get("q", 1.0)))
-        n = motion.state_dim
-        meas = LinearPosition(self.ndim, state_dim=n, sigma=float(self.options.get("sigma", 1.0)))
-        return KalmanFilter(motion, meas).to(self.dtype)
+        sigma = float(self.options.get("sigma", 1.0))
+        return motion, LinearPosition(self.ndim, state_dim=motion.state_dim, sigma=sigma)
+
+    def build(self) -> KalmanFilter:
+        return KalmanFilter(*self._models()).to(self.dtype)
 
     # -- data -------------------------------------------------------------------------------------
     def simulate(self, cfg: Mapping[str, Any], generator: torch.Generator) -> list[Track]:
