@@ -58,20 +58,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "--set data.held_out_frames=[1,128] --set 'data.train_frames=[[129,512]]'")
     add_force_option(parser)
     add_common_options(parser, seed=None)
-    for action in parser._actions:
-        if action.dest == "seed":
-            action.help = "random seed (default: the config's seed, else 0)"
+    next(a for a in parser._actions if a.dest == "seed").help = "random seed (default: the config's seed, else 0)"
 
 
 def _rows(report: dict) -> list[list]:
-    rows = []
-    for name, fitted in report["fitted"].items():
-        start = report["start"].get(name)
-        truth = report["truth"].get(name, "")
-        rel = report["relative_error"].get(name)
-        rows.append([name, _fmt(start), _fmt(fitted), _fmt(truth) if truth != "" else "-",
-                     f"{100 * rel:.1f}%" if rel is not None else "-"])
-    return rows
+    truth, rel = report["truth"], report["relative_error"]
+    return [[name, _fmt(report["start"].get(name)), _fmt(fitted), _fmt(truth[name]) if name in truth else "-",
+             f"{100 * rel[name]:.1f}%" if name in rel else "-"] for name, fitted in report["fitted"].items()]
 
 
 def _fmt(v) -> str:
@@ -84,9 +77,8 @@ def _print_folds(summary: dict) -> None:
     from torchtrack.metrics.table import format_table
 
     runs = summary["runs"]
-    draws = "held_out_draws" in runs[0]
     where = (f"mean over {len(runs[0]['held_out_draws']['seeds'])} further detection draws of each held-out block"
-             if draws else "held-out items")
+             if "held_out_draws" in runs[0] else "held-out items")
     first = summary["per_fold"]["tuned"][0]
     metrics = [k for k in ("MOTA", "OSPA", "IDS") if k in first] or list(first)
     methods = list(summary["per_fold"])
@@ -151,10 +143,8 @@ def run(args) -> int:
     _final_paths(report, folder)
     print(format_table(["parameter", "start", "fitted", "truth", "error"], _rows(report)))
     before, after = report["held_out_before"], report["held_out_after"]
-    keys = [k for k in before if k in after]
-    print()
-    print(format_table(["held-out", "before", "after"], [[k, float(before[k]), float(after[k])] for k in keys],
-                       floatfmt=".4g"))
+    print("\n" + format_table(["held-out", "before", "after"],
+                              [[k, float(before[k]), float(after[k])] for k in before if k in after], floatfmt=".4g"))
     fit = report.get("fit", report)
     print(f"\n{report['steps']} steps ({report['stopped']}; kept step {report['best_step']}), "
           f"{fit['filter_evaluations']} item evaluations ({fit['frames']} frames), {fit['seconds']:.1f} s")

@@ -146,27 +146,13 @@ def apply_overrides(cfg: dict, assignments: Iterable[str]) -> dict:
     return cfg
 
 
-def _plain(t: torch.Tensor):
-    return t.detach().cpu().double().tolist()
-
-
-def params_document(module: nn.Module, filter_name: str, model: Mapping[str, Any] | None = None,
-                    names: Iterable[str] | None = None, extra: Mapping[str, Any] | None = None) -> dict:
-    """The fitted-parameter document for ``module`` (all tunable parameters unless ``names``)."""
-    names = list(tunable_parameters(module)) if names is None else list(names)
-    doc = {"filter": filter_name, "model": dict(model or {}),
-           "params": {n: _plain(v) for n, v in get_values(module, names).items()},
-           "raw": {n: _plain(v) for n, v in get_raw(module, names).items()}}
-    if extra:
-        doc.update(extra)
-    return doc
-
-
 def save_params(module: nn.Module, path: str | os.PathLike, filter_name: str,
-                model: Mapping[str, Any] | None = None, names: Iterable[str] | None = None,
-                extra: Mapping[str, Any] | None = None) -> Path:
-    """Write the fitted-parameter file (floats written with full precision, so reading is exact)."""
-    return write_yaml(path, params_document(module, filter_name, model, names, extra))
+                model: Mapping[str, Any] | None = None) -> Path:
+    """Write the fitted-parameter file of all of ``module``'s tunable parameters (floats written with full
+    precision, so reading is exact)."""
+    return write_yaml(path, {"filter": filter_name, "model": dict(model or {}),
+                             "params": {n: v.double().tolist() for n, v in get_values(module).items()},
+                             "raw": {n: v.double().tolist() for n, v in get_raw(module).items()}})
 
 
 def read_params_file(path: str | os.PathLike, filters: Iterable[str], where: str) -> dict:

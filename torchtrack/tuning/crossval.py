@@ -18,7 +18,7 @@ import copy
 import math
 import os
 import statistics
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from typing import Any
 
 from torchtrack.errors import TorchtrackError
@@ -49,11 +49,6 @@ def fold_config(config: Mapping[str, Any], fold: int, folds: int) -> dict[str, A
     return cfg
 
 
-def _mean(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
-    keys = [k for k in rows[0] if all(isinstance(r.get(k), (int, float)) for r in rows)]
-    return {k: sum(float(r[k]) for r in rows) / len(rows) for k in keys}
-
-
 def _held_out(report: Mapping[str, Any]) -> dict[str, Any]:
     """Per method, the held-out metrics (on the further draws where the config has them)."""
     draws = report.get("held_out_draws")
@@ -74,7 +69,7 @@ def cross_validate(config: Mapping[str, Any], folds: int, out: str | os.PathLike
     has ``held_out_draws``, else on the held-out items), ``"mean"`` (per method their mean over the folds)
     and, with a grid, ``"difference"`` (tuned − grid of the grid's metric per fold, its mean and standard
     error)}``."""
-    from torchtrack.tuning.tune import output_dir, tune
+    from torchtrack.tuning.tune import mean_scores, output_dir, tune
 
     base = output_dir(config, out)
     runs, per_fold = [], []
@@ -90,7 +85,7 @@ def cross_validate(config: Mapping[str, Any], folds: int, out: str | os.PathLike
     summary: dict[str, Any] = {
         "folds": folds, "runs": runs,
         "per_fold": {m: [f[m] for f in per_fold] for m in methods},
-        "mean": {m: _mean([f[m] for f in per_fold]) for m in methods},
+        "mean": {m: mean_scores([f[m] for f in per_fold]) for m in methods},
     }
     if "grid" in methods:
         metric = runs[0]["grid"]["metric"]

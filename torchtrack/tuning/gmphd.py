@@ -34,8 +34,10 @@ from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd_tracker import GMPHDTracker
+from torchtrack.tuning.kalman import psd_factor
 from torchtrack.tuning.losses import sinkhorn_gospa
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys, register
+from torchtrack.tuning.parameters import get_values, plain
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys
 
 DATA_KEYS = ("wpafb", "truth", "simulate_truth", "detections", "detections_file", "train_frames",
              "held_out_frames", "held_out_draws", "window", "burn_in", "threshold", "ospa_c", "gospa_c")
@@ -86,8 +88,7 @@ def simulate_truth(cfg: Mapping[str, Any], generator: torch.Generator):
     with torch.no_grad():
         cv = ConstantVelocity(2, float(cfg.get("q", 0.1))).double()
         F = cv.transition_matrix(1.0)
-        evals, evecs = torch.linalg.eigh(cv.process_noise(1.0))
-        A = evecs * evals.clamp_min(0).sqrt()
+        A = psd_factor(cv.process_noise(1.0))
         x = torch.cat([torch.rand(N, 2, generator=generator, dtype=f64) * torch.tensor([W, H], dtype=f64),
                        torch.randn(N, 2, generator=generator, dtype=f64) * float(cfg.get("speed", 2.0))], 1)
         pos = []
@@ -113,7 +114,6 @@ def quiet_caps() -> Iterator[None]:
         logger.setLevel(level)
 
 
-@register
 class GMPHDTunable(Tunable):
     """The enhanced labelled GM-PHD tracker (or ``tracker: labelled-gmphd``, the baseline)."""
 
@@ -243,12 +243,9 @@ class GMPHDTunable(Tunable):
 
     def export(self, module: GMPHDTracker) -> tuple[str, dict]:
         """``track.yaml``: the tracker options with the fitted values, for ``torchtrack track --config``."""
-        from torchtrack.tuning.parameters import get_values
-
         opts = {k: dict(v) if isinstance(v, Mapping) else v for k, v in self.tracker_config().items()}
         filt, birth = dict(opts.get("filter") or {}), dict(opts.get("birth") or {})
-        for name, value in get_values(module).items():
-            v = float(value) if value.numel() == 1 else value.tolist()
+        for name, v in plain(get_values(module)).items():
             section, _, key = name.partition(".")
             if section == "phd":
                 filt[{"motion.q": "q", "measurement.sigma": "sigma"}.get(key, key)] = v

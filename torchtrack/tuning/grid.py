@@ -17,7 +17,7 @@ from typing import Any
 from torch import nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.tuning.parameters import set_values, tunable_parameters
+from torchtrack.tuning.parameters import checked_parameters, set_values
 from torchtrack.tuning.registry import Tunable, TuneData, check_keys, search_scores
 
 GRID_KEYS = ("values", "metric", "maximize")
@@ -32,11 +32,7 @@ def grid_search(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], 
     values = config.get("values") or {}
     if not values:
         raise TorchtrackError("grid.values must map parameter names to lists of values")
-    valid = tunable_parameters(module)
-    unknown = [n for n in values if n not in valid]
-    if unknown:
-        raise TorchtrackError(f"grid: unknown parameter(s) {', '.join(map(repr, unknown))}; valid names: "
-                              f"{', '.join(sorted(valid))}")
+    checked_parameters(module, values, "parameter(s)", "grid: ")
     metric = str(config.get("metric", "MOTA"))
     sign = 1.0 if config.get("maximize", True) else -1.0
     names = list(values)
@@ -45,13 +41,10 @@ def grid_search(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], 
 
     best: tuple[float, dict | None, dict] = (-math.inf, None, {})
     t0 = time.perf_counter()
-    evaluations = 0
-    train_frames = sum(tunable.item_frames(i) for i in data.train)
     for combo in tqdm(combos, desc="grid", disable=not progress, leave=False):
         point = dict(zip(names, combo))
         set_values(module, point)
         scores = search_scores(tunable, module, data.train, metric, "grid.metric")
-        evaluations += len(data.train)
         if math.isfinite(scores[metric]) and sign * scores[metric] > best[0]:
             best = (sign * scores[metric], point, scores)
     seconds = time.perf_counter() - t0
@@ -60,7 +53,7 @@ def grid_search(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], 
     set_values(module, best[1])
     held = tunable.evaluate(module, data.held_out) if data.held_out else {}
     return {"best": {n: float(v) for n, v in best[1].items()}, "metric": metric, "train": best[2],
-            "held_out": held, "combinations": len(combos), "filter_evaluations": evaluations,
-            "frames": len(combos) * train_frames,
-            "training_passes": evaluations / max(len(data.train), 1), "seconds": seconds,
+            "held_out": held, "combinations": len(combos), "filter_evaluations": len(combos) * len(data.train),
+            "frames": len(combos) * sum(tunable.item_frames(i) for i in data.train),
+            "training_passes": len(combos) * len(data.train) / max(len(data.train), 1), "seconds": seconds,
             "derived": tunable.derived(module)}

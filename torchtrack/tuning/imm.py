@@ -7,7 +7,8 @@ with a mode-dependent acceleration ``u_j`` and noise ``σ_j`` (the gate paper's 
 measurement is the position. Items are single-target tracks (:class:`~torchtrack.tuning.kalman.Track`)
 as for the Kalman filter, initialised the same way (``x_0 ~ N([z_0, 0], blockdiag(R, σ_v² I))``, uniform
 mode probabilities); the loss ``nll`` is the exact IMM marginal log-likelihood ``Σ_k log Σ_j c_j Λ_j``
-(eq. 26–29) of the rest, per measurement; ``gospa`` as for the Kalman filter.
+(eq. 26–29) of the rest, per measurement; ``gospa`` as for the Kalman filter (the class extends
+:class:`~torchtrack.tuning.kalman.KalmanTunable`, which holds the batching, initialisation and losses).
 
 Simulated data (``data.simulate``) follow the IMM's own generative model on the formation scenario's
 geometry (``sim.formation``): targets start on a vertical line ``separation`` apart moving along +x at
@@ -25,12 +26,12 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.imm import IMMState
 from torchtrack.filters.imm_cv import ConstantVelocityIMM
 from torchtrack.models import LinearPosition, ModeControlInput
 from torchtrack.params import RowStochastic
-from torchtrack.tuning.kalman import Track, pad_batch, windows
-from torchtrack.tuning.losses import sinkhorn_gospa
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys, register, split_items
+from torchtrack.tuning.kalman import KalmanTunable, Track
+from torchtrack.tuning.registry import check_keys
 
 OPTIONS = ("controls", "sigma", "measurement_sigma", "transition", "transition_floor", "dt", "init_velocity_std",
            "gospa_c", "dtype")
@@ -51,23 +52,12 @@ def floored_transition(value, floor: float) -> Tensor:
     return t / t.sum(-1, keepdim=True)
 
 
-@register
-class IMMTunable(Tunable):
+class IMMTunable(KalmanTunable):
     """IMM with mode-control-input models (default: the gate paper's class-1 model set)."""
 
     name = "imm"
-    losses = ("nll", "gospa")
-
-    def __init__(self, options: Mapping[str, Any] | None = None):
-        super().__init__(options)
-        check_keys(self.options, OPTIONS, "model (imm)")
-        self.dt = float(self.options.get("dt", 1.0))
-        self.vel_std = float(self.options.get("init_velocity_std", 50.0))
-        self.gospa_c = float(self.options.get("gospa_c", 300.0))
-        self.dtype = {"float32": torch.float32, "float64": torch.float64}.get(self.options.get("dtype", "float64"))
-        if self.dtype is None:
-            raise TorchtrackError(f"model.dtype must be float32 or float64; got {self.options.get('dtype')!r}")
-        self.ndim = 2
+    option_keys, data_keys = OPTIONS, DATA_KEYS
+    default_velocity_std, default_gospa_c = 50.0, 300.0
 
     def build(self) -> ConstantVelocityIMM:
         controls = self.options.get("controls", DEFAULT_CONTROLS)
@@ -112,15 +102,10 @@ class IMMTunable(Tunable):
             z[miss] = float("nan")
         return [Track(z[b].to(self.dtype), pos[b].to(self.dtype)) for b in range(B)]
 
-    def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
-        check_keys(config, DATA_KEYS, "data (imm)")
+    def tracks(self, config: Mapping[str, Any], generator: torch.Generator) -> list[Track]:
         if "simulate" not in config:
             raise TorchtrackError("data (imm) needs 'simulate' (the IMM's model on the formation geometry)")
-        items = windows(self.simulate(config["simulate"] or {}, generator), config.get("window"),
-                        int(config.get("min_length", 3)))
-        if not items:
-            raise TorchtrackError("data (imm): no track with enough measurements")
-        return split_items(items, config.get("held_out"), "data")
+        return self.simulate(config["simulate"] or {}, generator)
 
     def truth(self, data_config: Mapping[str, Any]) -> dict[str, Any]:
         sim = data_config.get("simulate")
@@ -133,32 +118,13 @@ class IMMTunable(Tunable):
                 "measurement.sigma": float(sim.get("measurement_sigma", 100.0))}
 
     # -- losses -----------------------------------------------------------------------------------
-    def filter(self, module: ConstantVelocityIMM, items: Sequence[Track]):
-        z, truth = pad_batch(items)
-        z = z.to(self.dtype)
-        R = module.measurement.noise_cov()
-        B = z.shape[1]
-        mean = torch.cat([z[0], z.new_zeros(B, 2)], -1)
-        cov = torch.block_diag(R, torch.eye(2, dtype=z.dtype) * self.vel_std**2).expand(B, 4, 4)
-        result = module.run(z[1:], module.initial_state(mean, cov), dt=self.dt, predict_first=True)
-        return result, z, truth
-
-    def loss(self, module: ConstantVelocityIMM, items: Sequence[Track], loss: str) -> Tensor:
-        result, z, truth = self.filter(module, items)
-        if loss == "nll":
-            count = (~torch.isnan(z[1:]).any(-1)).sum().clamp_min(1)
-            return -result.log_likelihood.sum() / count
-        if truth is None:
-            raise TorchtrackError("loss 'gospa' needs truth (simulated data)")
-        gt = truth[1:].to(result.mean)
-        present = ~torch.isnan(gt).any(-1)
-        cost = sinkhorn_gospa(result.mean[..., :2].unsqueeze(-2), torch.nan_to_num(gt).unsqueeze(-2),
-                              truth_mask=present.unsqueeze(-1), c=self.gospa_c)
-        return cost.mean()
+    def initial_state(self, module: ConstantVelocityIMM, z0: Tensor) -> IMMState:
+        """Uniform mode probabilities, each mode at the Kalman tunable's ``N([z_0, 0], blockdiag(R, σ_v² I))``."""
+        prior = super().initial_state(module, z0)
+        return module.initial_state(prior.mean, prior.cov)
 
     def evaluate(self, module: ConstantVelocityIMM, items: Sequence[Track]) -> dict[str, float]:
         """Position RMSE of the combined estimate against the truth."""
         with torch.no_grad():
             result, _, truth = self.filter(module, items)
-            err = (result.mean[..., :2] - truth[1:].to(result.mean)).pow(2).sum(-1)
-            return {"rmse": float(err[~torch.isnan(err)].mean().sqrt())}
+            return self.position_rmse(result, truth)

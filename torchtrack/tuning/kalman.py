@@ -29,7 +29,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import GaussianState, KalmanFilter
 from torchtrack.models import ConstantAcceleration, ConstantVelocity, LinearPosition
 from torchtrack.tuning.losses import sinkhorn_gospa
-from torchtrack.tuning.registry import Tunable, TuneData, check_keys, register, split_items
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys, split_items
 
 OPTIONS = ("ndim", "motion", "noise", "q", "sigma", "dt", "init_velocity_std", "init_acceleration_std",
            "gospa_c", "gospa_p", "dtype")
@@ -43,6 +43,10 @@ class Track(NamedTuple):
     z: Tensor
     truth: Tensor | None = None
 
+    def cut(self, start: int, stop: int | None = None) -> Track:
+        """Steps ``start:stop`` of the track."""
+        return Track(self.z[start:stop], None if self.truth is None else self.truth[start:stop])
+
 
 def _dtype(name: str) -> torch.dtype:
     if name not in ("float32", "float64"):
@@ -50,7 +54,7 @@ def _dtype(name: str) -> torch.dtype:
     return getattr(torch, name)
 
 
-def _factor(Q: Tensor) -> Tensor:
+def psd_factor(Q: Tensor) -> Tensor:
     """A square root ``A`` with ``A Aᵀ = Q`` for a PSD (possibly singular) ``Q``."""
     evals, evecs = torch.linalg.eigh(Q)
     return evecs * evals.clamp_min(0).sqrt().unsqueeze(-2)
@@ -75,17 +79,10 @@ def windows(items: list[Track], length: int | None, min_length: int) -> list[Tra
     each window starts at a present measurement (leading missing rows are dropped)."""
     out = []
     for t in items:
-        pieces = [t] if not length else [
-            Track(t.z[s: s + length], None if t.truth is None else t.truth[s: s + length])
-            for s in range(0, t.z.shape[0], length)]
-        for piece in pieces:
+        for piece in [t] if not length else [t.cut(s, s + length) for s in range(0, t.z.shape[0], length)]:
             present = ~torch.isnan(piece.z).any(-1)
-            if not bool(present.any()):
-                continue
-            first = int(torch.nonzero(present)[0])
-            piece = Track(piece.z[first:], None if piece.truth is None else piece.truth[first:])
-            if int(present.sum()) >= min_length:
-                out.append(piece)
+            if int(present.sum()) >= max(min_length, 1):
+                out.append(piece.cut(int(torch.nonzero(present)[0])))
     return out
 
 
@@ -97,29 +94,28 @@ def read_tracks(path: Path, dtype: torch.dtype, truth_path: Path | None = None) 
     truth = read_mot(truth_path) if truth_path is not None else None
     tracks = []
     for ident in np.unique(data.id):
-        sel = data.id == ident
-        frames = data.frame[sel]
+        frames = data.frame[data.id == ident]
         first, last = int(frames.min()), int(frames.max())
-        z = torch.full((last - first + 1, 2), float("nan"), dtype=dtype)
-        z[torch.as_tensor(frames - first)] = torch.as_tensor(data.centers()[sel], dtype=dtype)
-        gt = None
-        if truth is not None:
-            tsel = truth.id == ident
-            gt = torch.full_like(z, float("nan"))
-            keep = (truth.frame[tsel] >= first) & (truth.frame[tsel] <= last)
-            gt[torch.as_tensor(truth.frame[tsel][keep] - first)] = torch.as_tensor(truth.centers()[tsel][keep],
-                                                                                   dtype=dtype)
-        tracks.append(Track(z, gt))
+        tracks.append(Track(_centres(data, ident, first, last, dtype),
+                            None if truth is None else _centres(truth, ident, first, last, dtype)))
     return tracks
 
 
-@register
+def _centres(data, ident: int, first: int, last: int, dtype: torch.dtype) -> Tensor:
+    """``(last − first + 1, 2)`` box centres of ``ident`` in frames ``first..last`` of ``data``, NaN where absent."""
+    sel = (data.id == ident) & (data.frame >= first) & (data.frame <= last)
+    out = torch.full((last - first + 1, 2), float("nan"), dtype=dtype)
+    out[torch.as_tensor(data.frame[sel] - first)] = torch.as_tensor(data.centers()[sel], dtype=dtype)
+    return out
+
+
 class KalmanTunable(Tunable):
     """Kalman filter with a CV (or CA) motion model and a position measurement model."""
 
     name = "kalman"
     losses = ("nll", "gospa")
-    option_keys = OPTIONS
+    option_keys, data_keys = OPTIONS, DATA_KEYS
+    default_velocity_std, default_gospa_c = 100.0, 20.0
 
     def __init__(self, options: Mapping[str, Any] | None = None):
         super().__init__(options)
@@ -130,9 +126,9 @@ class KalmanTunable(Tunable):
             raise TorchtrackError(f"model.motion must be 'cv' or 'ca'; got {self.kind!r}")
         self.dt = float(self.options.get("dt", 1.0))
         self.dtype = _dtype(self.options.get("dtype", "float64"))
-        self.vel_std = float(self.options.get("init_velocity_std", 100.0))
+        self.vel_std = float(self.options.get("init_velocity_std", self.default_velocity_std))
         self.acc_std = float(self.options.get("init_acceleration_std", 10.0))
-        self.gospa_c = float(self.options.get("gospa_c", 20.0))
+        self.gospa_c = float(self.options.get("gospa_c", self.default_gospa_c))
         self.gospa_p = float(self.options.get("gospa_p", 2.0))
 
     def _motion(self, q: float) -> nn.Module:
@@ -140,11 +136,14 @@ class KalmanTunable(Tunable):
             return ConstantVelocity(self.ndim, q, noise=self.options.get("noise", "cwna"))
         return ConstantAcceleration(self.ndim, q, noise=self.options.get("noise", "cwnj"))
 
-    def build(self) -> KalmanFilter:
+    def _models(self) -> tuple[nn.Module, LinearPosition]:
+        """The motion and measurement models at the start values ``q`` and ``sigma``."""
         motion = self._motion(float(self.options.get("q", 1.0)))
-        n = motion.state_dim
-        meas = LinearPosition(self.ndim, state_dim=n, sigma=float(self.options.get("sigma", 1.0)))
-        return KalmanFilter(motion, meas).to(self.dtype)
+        sigma = float(self.options.get("sigma", 1.0))
+        return motion, LinearPosition(self.ndim, state_dim=motion.state_dim, sigma=sigma)
+
+    def build(self) -> KalmanFilter:
+        return KalmanFilter(*self._models()).to(self.dtype)
 
     # -- data -------------------------------------------------------------------------------------
     def simulate(self, cfg: Mapping[str, Any], generator: torch.Generator) -> list[Track]:
@@ -158,7 +157,7 @@ class KalmanTunable(Tunable):
         d, n = self.ndim, motion.state_dim
         with torch.no_grad():
             F = motion.transition_matrix(self.dt)
-            A = _factor(motion.process_noise(self.dt))
+            A = psd_factor(motion.process_noise(self.dt))
             x = torch.zeros(B, n, dtype=self.dtype)
             x[:, :d] = torch.rand(B, d, generator=generator, dtype=self.dtype) * float(cfg.get("area", 1000.0))
             x[:, d: 2 * d] = torch.randn(B, d, generator=generator, dtype=self.dtype) * float(cfg.get("speed", 10.0))
@@ -176,8 +175,8 @@ class KalmanTunable(Tunable):
                 z[miss] = float("nan")
         return [Track(z[b], pos[b]) for b in range(B)]
 
-    def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
-        check_keys(config, DATA_KEYS, f"data ({self.name})")
+    def tracks(self, config: Mapping[str, Any], generator: torch.Generator) -> list[Track]:
+        """The tracks of the ``data`` section (simulated or read), before they are cut into windows."""
         if ("simulate" in config) == ("file" in config):
             raise TorchtrackError(f"data ({self.name}) needs exactly one of 'simulate' or 'file'")
         if "simulate" in config:
@@ -187,7 +186,11 @@ class KalmanTunable(Tunable):
             items = read_tracks(Path(config["file"]), self.dtype, Path(truth) if truth else None)
         if config.get("shuffle", False):
             items = [items[i] for i in torch.randperm(len(items), generator=generator).tolist()]
-        items = windows(items, config.get("window"), int(config.get("min_length", 3)))
+        return items
+
+    def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
+        check_keys(config, self.data_keys, f"data ({self.name})")
+        items = windows(self.tracks(config, generator), config.get("window"), int(config.get("min_length", 3)))
         if not items:
             raise TorchtrackError(f"data ({self.name}): no track with enough measurements (min_length "
                                   f"{int(config.get('min_length', 3))})")
@@ -230,14 +233,16 @@ class KalmanTunable(Tunable):
                               c=self.gospa_c, p=self.gospa_p)
         return cost.mean()
 
+    def position_rmse(self, result, truth: Tensor | None) -> dict[str, float]:
+        """``{"rmse": …}``: the position RMSE of a :meth:`filter` result against the truth (none without it)."""
+        if truth is None:
+            return {}
+        err = (result.mean[..., : self.ndim] - truth[1:].to(result.mean)).pow(2).sum(-1)
+        return {"rmse": float(err[~torch.isnan(err)].mean().sqrt())}
+
     def evaluate(self, module: KalmanFilter, items: Sequence[Track]) -> dict[str, float]:
         """Position RMSE against truth (where available) and the mean NIS per measurement dimension."""
         with torch.no_grad():
             result, z, truth = self.filter(module, items)
             present = ~torch.isnan(z[1:]).any(-1)
-            out = {"nis_per_dim": float(result.nis[present].mean() / self.ndim)}
-            if truth is not None:
-                err = (result.mean[..., : self.ndim] - truth[1:].to(result.mean)).pow(2).sum(-1)
-                ok = ~torch.isnan(err)
-                out["rmse"] = float(err[ok].mean().sqrt())
-        return out
+            return {"nis_per_dim": float(result.nis[present].mean() / self.ndim), **self.position_rmse(result, truth)}

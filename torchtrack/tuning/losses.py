@@ -79,26 +79,3 @@ def sinkhorn_gospa(estimates: Tensor, truth: Tensor, est_weight: Tensor | None =
     P = torch.exp(K + f.unsqueeze(-1) + g.unsqueeze(-2))
     return (P * C).sum((-1, -2))
 
-
-def exact_gospa(estimates: Tensor, truth: Tensor, c: float = 10.0, p: float = 2.0) -> float:
-    """Exact GOSPA (α = 2) of two unbatched sets ``(N, d)``, ``(M, d)`` by optimal assignment.
-
-    A reference for :func:`sinkhorn_gospa` (uses scipy's assignment solver; not differentiable).
-    """
-    from scipy.optimize import linear_sum_assignment
-
-    x = estimates.detach().cpu().double()
-    y = truth.detach().cpu().double()
-    N, M = x.shape[0], y.shape[0]
-    if N == 0 or M == 0:
-        return ((c**p / 2) * (N + M)) ** (1 / p)
-    D = torch.cdist(x, y).clamp_max(c).pow(p).numpy()
-    rows, cols = linear_sum_assignment(D)
-    cost = 0.0
-    assigned = 0
-    for i, j in zip(rows, cols):
-        if D[i, j] < c**p:
-            cost += D[i, j]
-            assigned += 1
-    cost += c**p / 2 * (N + M - 2 * assigned)
-    return cost ** (1 / p)

@@ -25,10 +25,21 @@ def tunable_parameters(module: nn.Module) -> dict[str, nn.Module]:
     return {name: m for name, m in module.named_modules() if isinstance(m, CONSTRAINED) and name}
 
 
-def _unknown(names: Iterable[str], valid: Iterable[str], what: str) -> TorchtrackError:
-    valid = sorted(valid)
-    return TorchtrackError(f"unknown {what} {', '.join(repr(n) for n in names)}; valid names: "
-                           f"{', '.join(valid) if valid else '(none)'}")
+def checked_parameters(module: nn.Module, names: Iterable[str], what: str = "parameter",
+                       where: str = "") -> dict[str, nn.Module]:
+    """:func:`tunable_parameters`, after checking that each of ``names`` is one of them (an error starting
+    with ``where`` lists the valid names otherwise)."""
+    params = tunable_parameters(module)
+    unknown = [n for n in names if n not in params]
+    if unknown:
+        raise TorchtrackError(f"{where}unknown {what} {', '.join(map(repr, unknown))}; valid names: "
+                              f"{', '.join(sorted(params)) or '(none)'}")
+    return params
+
+
+def plain(values: Mapping[str, Tensor]) -> dict[str, float | list]:
+    """``{name: float}`` for one-entry tensors, ``{name: nested list}`` otherwise (for YAML and JSON)."""
+    return {n: float(v) if v.numel() == 1 else v.tolist() for n, v in values.items()}
 
 
 def select_trainable(module: nn.Module, names: Iterable[str]) -> dict[str, nn.Module]:
@@ -38,10 +49,7 @@ def select_trainable(module: nn.Module, names: Iterable[str]) -> dict[str, nn.Mo
     the valid names when a name does not exist, or when ``names`` is empty.
     """
     names = list(names)
-    params = tunable_parameters(module)
-    missing = [n for n in names if n not in params]
-    if missing:
-        raise _unknown(missing, params, "trainable parameter")
+    params = checked_parameters(module, names, "trainable parameter")
     if not names:
         raise TorchtrackError(f"no trainable parameter selected; valid names: {', '.join(sorted(params))}")
     for p in module.parameters():
@@ -49,12 +57,6 @@ def select_trainable(module: nn.Module, names: Iterable[str]) -> dict[str, nn.Mo
     for n in names:
         params[n].raw.requires_grad_(True)
     return {n: params[n] for n in names}
-
-
-def constrained_value(param: nn.Module) -> Tensor:
-    """The constrained value of one parameter, detached."""
-    with torch.no_grad():
-        return param().detach().clone()
 
 
 def raw_from_value(param: nn.Module, value: Tensor) -> Tensor:
@@ -81,13 +83,11 @@ def raw_from_value(param: nn.Module, value: Tensor) -> Tensor:
 
 
 def get_values(module: nn.Module, names: Iterable[str] | None = None) -> dict[str, Tensor]:
-    """Constrained values ``{name: tensor}`` (all tunable parameters when ``names`` is None)."""
-    params = tunable_parameters(module)
-    names = list(params) if names is None else list(names)
-    missing = [n for n in names if n not in params]
-    if missing:
-        raise _unknown(missing, params, "parameter")
-    return {n: constrained_value(params[n]) for n in names}
+    """Constrained values ``{name: tensor}``, detached copies (all tunable parameters when ``names`` is None)."""
+    names = list(tunable_parameters(module) if names is None else names)
+    params = checked_parameters(module, names)
+    with torch.no_grad():
+        return {n: params[n]().detach().clone() for n in names}
 
 
 def get_raw(module: nn.Module, names: Iterable[str] | None = None) -> dict[str, Tensor]:
@@ -99,10 +99,7 @@ def get_raw(module: nn.Module, names: Iterable[str] | None = None) -> dict[str, 
 
 def set_raw(module: nn.Module, raw: Mapping[str, Tensor]) -> None:
     """Copy unconstrained values into the module (shapes must match), keeping ``requires_grad``."""
-    params = tunable_parameters(module)
-    missing = [n for n in raw if n not in params]
-    if missing:
-        raise _unknown(missing, params, "parameter")
+    params = checked_parameters(module, raw)
     with torch.no_grad():
         for n, value in raw.items():
             target = params[n].raw
@@ -115,10 +112,7 @@ def set_raw(module: nn.Module, raw: Mapping[str, Tensor]) -> None:
 
 def set_values(module: nn.Module, values: Mapping[str, Tensor]) -> None:
     """Set constrained values (through the inverse transform of each parameter)."""
-    params = tunable_parameters(module)
-    missing = [n for n in values if n not in params]
-    if missing:
-        raise _unknown(missing, params, "parameter")
+    params = checked_parameters(module, values)
     raw = {}
     for n, value in values.items():
         ref = params[n].raw

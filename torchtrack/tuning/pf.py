@@ -19,12 +19,9 @@ from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.particle import ParticleFilter
-from torchtrack.models import LinearPosition
 from torchtrack.tuning.kalman import OPTIONS, KalmanTunable, Track, pad_batch
-from torchtrack.tuning.registry import register
 
 
-@register
 class ParticleTunable(KalmanTunable):
     """Particle filter with a CV (or CA) motion model and a position measurement model."""
 
@@ -37,10 +34,8 @@ class ParticleTunable(KalmanTunable):
         self.seed = int(self.options.get("seed", 0))
 
     def build(self) -> ParticleFilter:
-        motion = self._motion(float(self.options.get("q", 1.0)))
-        meas = LinearPosition(self.ndim, state_dim=motion.state_dim, sigma=float(self.options.get("sigma", 1.0)))
         ess = self.options.get("ess_threshold", 0.5)
-        return ParticleFilter(motion, meas, int(self.options.get("particles", 500)),
+        return ParticleFilter(*self._models(), int(self.options.get("particles", 500)),
                               resampler=self.options.get("resampler", "systematic"),
                               ess_threshold=None if ess is None else float(ess)).to(self.dtype)
 

@@ -16,7 +16,6 @@ def plot_loss_curve(result: FitResult, path: str | Path, title: str = "") -> Pat
     import matplotlib.pyplot as plt
 
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(6, 4))
     steps = range(len(result.train_loss))     # the loss of step k is taken before its update
     ax.plot(steps, result.train_loss, label="training (mini-batch)", lw=1)

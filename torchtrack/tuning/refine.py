@@ -37,7 +37,7 @@ from torch import Tensor, nn
 from torchtrack.config import from_mapping
 from torchtrack.errors import TorchtrackError
 from torchtrack.tuning.config import RefineOptions
-from torchtrack.tuning.parameters import get_values, set_raw, tunable_parameters
+from torchtrack.tuning.parameters import checked_parameters, get_values, plain, set_raw
 from torchtrack.tuning.registry import Tunable, TuneData, search_scores
 from torchtrack.tuning.trainer import step_scale
 
@@ -55,13 +55,8 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     options = from_mapping(RefineOptions, config, "tune config", "refine")
     metric, sign = options.metric, 1.0 if options.maximize else -1.0
     names = list(options.parameters or trainable)
-    params = tunable_parameters(module)
-    unknown = [n for n in names if n not in params]
-    if unknown:
-        raise TorchtrackError(f"refine: unknown parameter(s) {', '.join(map(repr, unknown))}; valid names: "
-                              f"{', '.join(sorted(params))}")
-    delta, sweeps, budget, average = options.step, options.sweeps, options.evaluations, options.average
-    lookahead = options.lookahead
+    params = checked_parameters(module, names, "parameter(s)", "refine: ")
+    delta, budget, average = options.step, options.evaluations, options.average
     if not data.train:
         raise TorchtrackError("the training set is empty: refine has nothing to score")
     base: dict[str, Tensor] = {n: params[n].raw.detach().clone() for n in names}
@@ -87,14 +82,14 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     search_budget = budget - (average > 1)      # keep one evaluation for the centroid
     u = {n: 0.0 for n in names}
     start = best = score(u)
-    for _ in range(sweeps):
+    for _ in range(options.sweeps):
         for n in names:
             for direction in (1.0, -1.0):
                 moved = False
                 while evaluations < search_budget:
                     trial = {**u, n: u[n] + direction * delta}
                     value = score(trial)
-                    if value <= best and lookahead and not moved and evaluations < search_budget:
+                    if value <= best and options.lookahead and not moved and evaluations < search_budget:
                         trial = {**u, n: u[n] + 2 * direction * delta}
                         value = score(trial)
                     if value > best:
@@ -114,7 +109,7 @@ def refine(tunable: Tunable, module: nn.Module, config: Mapping[str, Any], data:
     train_frames = sum(tunable.item_frames(i) for i in data.train)
     return {"metric": metric, "parameters": names, "start": sign * start, "best": sign * best,
             "final": sign * final, "average": average, "train": seen[_key(u)][2], "moved": dict(u),
-            "values": {n: (float(v) if v.numel() == 1 else v.tolist()) for n, v in get_values(module, names).items()},
+            "values": plain(get_values(module, names)),
             "metric_evaluations": evaluations, "filter_evaluations": evaluations * len(data.train),
             "frames": evaluations * train_frames, "seconds": time.perf_counter() - t0}
 

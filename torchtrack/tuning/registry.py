@@ -1,8 +1,8 @@
 """Registry of tunable filters: name → builder, data loader and losses.
 
-A tunable filter is a :class:`Tunable` subclass registered under a name (``kalman``, ``imm``,
-``gmphd``, ``pf``) in its own module of this package; modules are imported on first use, so a filter
-whose module is missing only fails when asked for.
+A tunable filter is a :class:`Tunable` subclass listed under a name (``kalman``, ``imm``, ``gmphd``,
+``pf``) in ``_TUNABLES``, in its own module of this package; modules are imported on first use, so a
+filter whose module is missing only fails when asked for.
 """
 
 from __future__ import annotations
@@ -16,14 +16,13 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 
-# name → module defining it (imported lazily)
-_MODULES = {
-    "kalman": "torchtrack.tuning.kalman",
-    "imm": "torchtrack.tuning.imm",
-    "gmphd": "torchtrack.tuning.gmphd",
-    "pf": "torchtrack.tuning.pf",
+# name → (module, class), imported on first use
+_TUNABLES = {
+    "kalman": ("torchtrack.tuning.kalman", "KalmanTunable"),
+    "imm": ("torchtrack.tuning.imm", "IMMTunable"),
+    "gmphd": ("torchtrack.tuning.gmphd", "GMPHDTunable"),
+    "pf": ("torchtrack.tuning.pf", "ParticleTunable"),
 }
-_REGISTRY: dict[str, type[Tunable]] = {}
 
 
 class TuneData(NamedTuple):
@@ -41,7 +40,6 @@ class Tunable:
 
     name: str = ""
     losses: tuple[str, ...] = ()
-    options_help: str = ""
 
     def __init__(self, options: Mapping[str, Any] | None = None):
         self.options = dict(options or {})
@@ -49,6 +47,14 @@ class Tunable:
     def build(self) -> nn.Module:
         """The filter module from ``self.options`` (start values of the parameters included)."""
         raise NotImplementedError
+
+    def loss_name(self, loss: str | None) -> str:
+        """``loss`` (None: the default, the first of :attr:`losses`), checked to be one of :attr:`losses`."""
+        loss = loss or self.losses[0]
+        if loss not in self.losses:
+            raise TorchtrackError(f"unknown loss {loss!r} for filter {self.name!r}; choose from "
+                                  f"{', '.join(self.losses)}")
+        return loss
 
     def load_data(self, config: Mapping[str, Any], generator: torch.Generator) -> TuneData:
         """Training and held-out items from the ``data`` section of a tune config."""
@@ -95,26 +101,20 @@ def search_scores(tunable: Tunable, module: nn.Module, items: Sequence, metric: 
     return scores
 
 
-def register(cls: type[Tunable]) -> type[Tunable]:
-    """Class decorator adding a :class:`Tunable` to the registry under ``cls.name``."""
-    _REGISTRY[cls.name] = cls
-    return cls
-
-
 def tunable_names() -> list[str]:
-    return sorted(_MODULES)
+    return sorted(_TUNABLES)
 
 
 def get_tunable(name: str, options: Mapping[str, Any] | None = None) -> Tunable:
     """An instance of the tunable filter ``name`` with builder ``options``."""
-    if name not in _MODULES:
+    if name not in _TUNABLES:
         raise TorchtrackError(f"unknown filter {name!r}; tunable filters: {', '.join(tunable_names())}")
-    if name not in _REGISTRY:
-        try:
-            importlib.import_module(_MODULES[name])
-        except ModuleNotFoundError as exc:
-            raise TorchtrackError(f"filter {name!r} cannot be tuned in this installation: {exc}") from exc
-    return _REGISTRY[name](options)
+    module, cls = _TUNABLES[name]
+    try:
+        tunable = getattr(importlib.import_module(module), cls)
+    except ModuleNotFoundError as exc:
+        raise TorchtrackError(f"filter {name!r} cannot be tuned in this installation: {exc}") from exc
+    return tunable(options)
 
 
 def check_keys(section: Mapping[str, Any], allowed: Sequence[str], where: str) -> None:

@@ -15,6 +15,7 @@ import math
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Any
 
 import torch
@@ -140,10 +141,7 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
     """
     opts = from_mapping(OptimizerOptions, optimizer, "tune config", "optimizer")
     stop = from_mapping(EarlyStopping, early_stopping, "tune config", "early_stopping")
-    loss = loss or tunable.losses[0]
-    if loss not in tunable.losses:
-        raise TorchtrackError(f"unknown loss {loss!r} for filter {tunable.name!r}; choose from "
-                              f"{', '.join(tunable.losses)}")
+    loss = tunable.loss_name(loss)
     if not data.train:
         raise TorchtrackError("the training set is empty: data selects no training sequence/window")
     generator = generator or torch.Generator().manual_seed(0)
@@ -152,7 +150,6 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
     batch_size = min(opts.batch_size or (n_train if name == "lbfgs" else 8), n_train)
     steps = opts.steps or (20 if name == "lbfgs" else 200)
     eval_every = opts.eval_every or max(1, math.ceil(n_train / batch_size))
-    patience, min_delta, restore_best = stop.patience, stop.min_delta, stop.restore_best
 
     params = select_trainable(module, trainable)
     result = FitResult(start=get_values(module, trainable))
@@ -173,27 +170,26 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
     t0 = time.perf_counter()
     batches = _batches(n_train, batch_size, generator)
 
-    def closure_for(items):
-        def closure():
-            nonlocal last_good
-            opt.zero_grad()
-            scaled.apply()
-            current = scaled.snapshot()
-            try:
-                value = tunable.loss(module, items, loss)
-            except TorchtrackError as exc:
-                raise NonFiniteLoss(f"the filter failed ({exc})") from exc
-            result.evaluations += len(items)
-            result.frames += sum(tunable.item_frames(i) for i in items)
-            if not _finite(value):
-                raise NonFiniteLoss(f"loss is {float(value.detach())}")
-            value.backward()
-            for n, u in scaled.u.items():
-                if u.grad is not None and not _finite(u.grad):
-                    raise NonFiniteLoss(f"gradient of {n} is not finite")
-            last_good = current
-            return value
-        return closure
+    def closure(items: list) -> Tensor:
+        """The loss on ``items`` with its gradient; :class:`NonFiniteLoss` where either is not finite."""
+        nonlocal last_good
+        opt.zero_grad()
+        scaled.apply()
+        current = scaled.snapshot()
+        try:
+            value = tunable.loss(module, items, loss)
+        except TorchtrackError as exc:
+            raise NonFiniteLoss(f"the filter failed ({exc})") from exc
+        result.evaluations += len(items)
+        result.frames += sum(tunable.item_frames(i) for i in items)
+        if not _finite(value):
+            raise NonFiniteLoss(f"loss is {float(value.detach())}")
+        value.backward()
+        for n, u in scaled.u.items():
+            if u.grad is not None and not _finite(u.grad):
+                raise NonFiniteLoss(f"gradient of {n} is not finite")
+        last_good = current
+        return value
 
     held_frames = sum(tunable.item_frames(i) for i in data.held_out)
 
@@ -217,15 +213,14 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
     try:
         for step in bar:
             items = [data.train[i] for i in next(batches)]
-            closure = closure_for(items)
             try:
                 if name == "adam":
-                    value = closure()
+                    value = closure(items)
                     opt.step()
                     if schedule is not None:
                         schedule.step()
                 else:
-                    value = opt.step(closure)
+                    value = opt.step(partial(closure, items))
             except NonFiniteLoss as exc:
                 scaled.restore(last_good)
                 result.stopped = "non-finite"
@@ -238,33 +233,25 @@ def fit(tunable: Tunable, module: nn.Module, trainable: Sequence[str], data: Tun
             if data.held_out and (step % eval_every == 0 or step == steps):
                 held = evaluate_held_out(step)
                 postfix["held_out"] = f"{held:.4g}"
-                if not math.isfinite(held):
-                    bad_evals = patience  # treat as no improvement
-                elif held < best[0] - min_delta:
+                if held < best[0]:
+                    bad_evals = 0 if held < best[0] - stop.min_delta else bad_evals + 1
                     best = (held, step, scaled.snapshot())
-                    bad_evals = 0
                 else:
-                    if held < best[0]:
-                        best = (held, step, scaled.snapshot())
-                    bad_evals += 1
-                if bad_evals >= patience:
+                    bad_evals = bad_evals + 1 if math.isfinite(held) else stop.patience   # non-finite: stop
+                if bad_evals >= stop.patience:
                     result.stopped = "early-stopped"
-                    result.message = f"held-out loss did not improve for {patience} evaluations (step {step})"
+                    result.message = f"held-out loss did not improve for {stop.patience} evaluations (step {step})"
                     break
             bar.set_postfix(postfix)
     finally:
         bar.close()
-        if result.stopped != "non-finite" and best[1] is not None and restore_best and result.train_loss:
+        if result.stopped != "non-finite" and best[1] is not None and stop.restore_best and result.train_loss:
             scaled.restore(best[2])
             result.best_step = best[1]
         scaled.close()
     if result.best_step is None and result.stopped != "non-finite":
         result.best_step = len(result.train_loss)
-    for p in module.parameters():
-        p.requires_grad_(False)
-    for p in params.values():
-        p.raw.requires_grad_(True)
-        p.raw.grad = None
+    select_trainable(module, trainable)   # the fresh raw parameters of the trainable ones, the rest frozen
     result.final = get_values(module, trainable)
     result.seconds = time.perf_counter() - t0
     return result

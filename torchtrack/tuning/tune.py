@@ -19,7 +19,7 @@ Example::
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -30,10 +30,10 @@ from torchtrack.config import read_mapping
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.outputs import write_yaml
 from torchtrack.tuning.config import load_params, read_tune_config, save_params
-from torchtrack.tuning.losses import exact_gospa, sinkhorn_gospa
-from torchtrack.tuning.parameters import get_values, select_trainable, tunable_parameters
+from torchtrack.tuning.losses import sinkhorn_gospa
+from torchtrack.tuning.parameters import get_values, plain, select_trainable, tunable_parameters
 from torchtrack.tuning.plot import plot_loss_curve
-from torchtrack.tuning.registry import Tunable, TuneData, get_tunable, register, tunable_names
+from torchtrack.tuning.registry import Tunable, TuneData, check_keys, get_tunable, tunable_names
 from torchtrack.tuning.trainer import FitResult, evaluate_loss, fit
 
 OUTPUT_KEYS = ("dir", "params", "plot")
@@ -54,10 +54,6 @@ def output_dir(config: Mapping[str, Any], out: str | os.PathLike | None = None) 
     return Path(out if out is not None else (config.get("output") or {}).get("dir", f"out/tune-{config['filter']}"))
 
 
-def _scalars(values: Mapping[str, torch.Tensor]) -> dict[str, Any]:
-    return {n: (float(v) if v.numel() == 1 else v.tolist()) for n, v in values.items()}
-
-
 def _relative_errors(fitted: Mapping[str, Any], truth: Mapping[str, Any]) -> dict[str, Any]:
     """``max |fitted − truth| / max |truth|`` per parameter: the relative error of a scalar; for a vector
     or matrix (e.g. a transition matrix with zero entries) the largest error relative to its scale."""
@@ -69,12 +65,16 @@ def _relative_errors(fitted: Mapping[str, Any], truth: Mapping[str, Any]) -> dic
     return out
 
 
+def mean_scores(rows: Sequence[Mapping[str, Any]]) -> dict[str, float]:
+    """The mean over ``rows`` of each number that every row has (e.g. held-out metrics over folds or draws)."""
+    keys = [k for k in rows[0] if all(isinstance(r.get(k), (int, float)) for r in rows)]
+    return {k: sum(float(r[k]) for r in rows) / len(rows) for k in keys}
+
+
 def _score_draws(tunable: Tunable, module: nn.Module, draws: Mapping[int, list]) -> dict[str, Any]:
     """The held-out metrics on each further draw (``per_draw``, in seed order) and their means."""
     per_draw = [tunable.evaluate(module, items) for items in draws.values()]
-    out: dict[str, Any] = {k: sum(d[k] for d in per_draw) / len(per_draw) for k in per_draw[0]}
-    out["per_draw"] = per_draw
-    return out
+    return {**mean_scores(per_draw), "per_draw": per_draw}
 
 
 def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike | None = None,
@@ -89,15 +89,9 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
     module = tunable.build()
     trainable = [cfg["trainable"]] if isinstance(cfg["trainable"], str) else list(cfg["trainable"])
     select_trainable(module, trainable)  # validates names before any data work
-    loss = cfg.get("loss") or tunable.losses[0]
-    if loss not in tunable.losses:
-        raise TorchtrackError(f"unknown loss {loss!r} for filter {tunable.name!r}; choose from "
-                              f"{', '.join(tunable.losses)}")
-    output = dict(cfg.get("output") or {})
-    extra = sorted(set(output) - set(OUTPUT_KEYS))
-    if extra:
-        raise TorchtrackError(f"unknown key(s) {', '.join(map(repr, extra))} in output; allowed: "
-                              f"{', '.join(OUTPUT_KEYS)}")
+    loss = tunable.loss_name(cfg.get("loss"))
+    output = cfg.get("output") or {}
+    check_keys(output, OUTPUT_KEYS, "output")
     out_dir = output_dir(cfg, out)
     params_path = Path(output["params"]) if "params" in output and out is None else out_dir / "params.yaml"
     plot_path = Path(output["plot"]) if "plot" in output and out is None else out_dir / "loss.png"
@@ -107,6 +101,11 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
 
     # held-out metrics before and after (the training set stands in when nothing is held out)
     held = data.held_out or data.train
+
+    def held_out_scores() -> dict[str, Any]:
+        return {"loss": evaluate_loss(tunable, module, held, loss, batch_eval),
+                **(tunable.evaluate(module, held) if do_eval else {})}
+
     start_derived = tunable.derived(module)
     before = tunable.evaluate(module, held) if do_eval and data.train else {}
     result = fit(tunable, module, trainable, data, loss, cfg.get("optimizer"), cfg.get("early_stopping"),
@@ -115,44 +114,37 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
         before["loss"] = result.held_out[0][1]
     else:
         before["loss"] = result.train_loss[0] if result.train_loss else float("nan")
-    after = {"loss": evaluate_loss(tunable, module, held, loss, batch_eval)}
-    if do_eval:
-        after.update(tunable.evaluate(module, held))
+    after = held_out_scores()
     refined = None
     if cfg.get("refine"):   # a short line search on the task metric over the training items
         from torchtrack.tuning.refine import refine
 
         after_fit = after
         refined = refine(tunable, module, cfg["refine"], data, trainable, progress)
-        after = {"loss": evaluate_loss(tunable, module, held, loss, batch_eval)}
-        if do_eval:
-            after.update(tunable.evaluate(module, held))
+        after = held_out_scores()
 
-    fitted = _scalars(get_values(module, trainable))
+    fitted = plain(get_values(module, trainable))
     fitted.update(tunable.derived(module))
     truth = tunable.truth(cfg["data"] or {})
+    searched = refined or {"filter_evaluations": 0, "frames": 0, "seconds": 0.0}   # the line search's work
+    evaluations = result.evaluations + searched["filter_evaluations"]
     report = {
         "filter": tunable.name, "trainable": trainable, "loss": loss,
         "optimizer": dict(cfg.get("optimizer") or {}), "seed": seed,
         "train_items": len(data.train), "held_out_items": len(data.held_out),
-        "start": {**_scalars(result.start), **start_derived}, "fitted": fitted,
+        "start": {**plain(result.start), **start_derived}, "fitted": fitted,
         "truth": truth, "relative_error": _relative_errors(fitted, truth),
         "held_out_before": before, "held_out_after": after,
         "steps": len(result.train_loss), "best_step": result.best_step, "stopped": result.stopped,
-        "message": result.message, "filter_evaluations": result.evaluations, "frames": result.frames,
-        "training_passes": result.evaluations / max(len(data.train), 1),
-        "seconds": result.seconds,
+        "message": result.message, "filter_evaluations": evaluations, "frames": result.frames + searched["frames"],
+        "training_passes": evaluations / max(len(data.train), 1), "seconds": result.seconds + searched["seconds"],
         "output": {"params": str(params_path), "plot": str(plot_path)},
     }
     if refined is not None:
-        report["fit"] = {"values": _scalars(result.final), "held_out": after_fit,
+        report["fit"] = {"values": plain(result.final), "held_out": after_fit,
                          "filter_evaluations": result.evaluations, "frames": result.frames,
                          "seconds": result.seconds}
         report["refine"] = refined
-        report["filter_evaluations"] += refined["filter_evaluations"]
-        report["frames"] += refined["frames"]
-        report["training_passes"] = report["filter_evaluations"] / max(len(data.train), 1)
-        report["seconds"] += refined["seconds"]
     if data.draws:
         report["held_out_draws"] = {"seeds": list(data.draws), "tuned": _score_draws(tunable, module, data.draws)}
     if cfg.get("grid"):
@@ -173,7 +165,7 @@ def tune(config: str | os.PathLike | Mapping[str, Any], out: str | os.PathLike |
 
 
 __all__ = [
-    "FitResult", "TuneData", "Tunable", "exact_gospa", "fit", "get_tunable", "get_values", "load_filter",
-    "load_params", "plot_loss_curve", "register", "save_params", "select_trainable", "sinkhorn_gospa", "tunable_names",
+    "FitResult", "TuneData", "Tunable", "fit", "get_tunable", "get_values", "load_filter",
+    "load_params", "plot_loss_curve", "save_params", "select_trainable", "sinkhorn_gospa", "tunable_names",
     "tunable_parameters", "tune",
 ]
