@@ -323,7 +323,7 @@ class GMPHD(nn.Module):
             support = torch.zeros(label_index[1], dtype=live_w.dtype, device=live_w.device)
         M, C = z.shape[0], self.chunk
         for start in range(0, M, C):
-            zc, kc = (z, log_kappa) if M <= C else (z[start:start + C], log_kappa[start:start + C])
+            zc, kc = z[start:start + C], log_kappa[start:start + C]
             nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
             nis, loglik = innovations_likelihood(gain, nu)      # (J, C)  νᵀ S⁻¹ ν, log N(ν; 0, S)
             if robust:
@@ -335,7 +335,7 @@ class GMPHD(nn.Module):
                 gated = (nis <= gate) & state.mask.unsqueeze(1)
                 log_num = torch.where(gated, base.unsqueeze(1) + loglik, neg_inf)
             if pair_loglik is not None:
-                log_num = log_num + (pair_loglik if M <= C else pair_loglik[:, start:start + C])
+                log_num = log_num + pair_loglik[:, start:start + C]
             den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
             if support is not None and state.size:
                 support = support.index_add(0, label_index[0], (log_num - kc.unsqueeze(0)).exp().sum(1))
@@ -348,11 +348,11 @@ class GMPHD(nn.Module):
             log_den.append(den)
         if len(log_den) == 1:
             log_den_t, jj, kk, det_logw = log_den[0], pair_j[0], pair_k[0], pair_logw[0]
+        elif log_den:
+            log_den_t, jj, kk, det_logw = (torch.cat(x) for x in (log_den, pair_j, pair_k, pair_logw))
         else:
-            log_den_t = torch.cat(log_den) if log_den else log_kappa
-            jj = torch.cat(pair_j) if pair_j else torch.empty(0, dtype=torch.long, device=z.device)
-            kk = torch.cat(pair_k) if pair_k else torch.empty(0, dtype=torch.long, device=z.device)
-            det_logw = torch.cat(pair_logw) if pair_logw else live_w[:0]
+            jj = kk = torch.empty(0, dtype=torch.long, device=z.device)
+            log_den_t, det_logw = log_kappa, live_w[:0]
         nu_sel = z.index_select(0, kk) - z_hat.index_select(0, jj)          # (G, m)
         det_mean = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K.index_select(0, jj),
                                  nu_sel.unsqueeze(-1)).squeeze(-1)          # m + K ν per gated pair
@@ -381,8 +381,8 @@ class GMPHD(nn.Module):
 
     def prune(self, state: MixtureState) -> MixtureState:
         """Drop empty slots and components with weight below ``prune_threshold``."""
-        keep = state.mask & (state.log_weight > math.log(self.prune_threshold))
-        return state.select(keep)
+        lw = state.log_weight
+        return state.select(state.mask & (lw > scalar(math.log(self.prune_threshold), lw)))
 
     def cap(self, state: MixtureState, capacity: int | None = None) -> MixtureState:
         """Keep the ``capacity`` highest-weight components; a hit cap is logged and counted."""
@@ -395,26 +395,12 @@ class GMPHD(nn.Module):
         idx = torch.topk(state.log_weight.detach(), capacity).indices
         return state.select(idx)
 
-    def merge(self, state: MixtureState, keep_label: Tensor | None = None) -> MixtureState:
-        """Merge components within squared Mahalanobis distance ``merge_threshold`` (see :func:`merge`)."""
-        return merge(state, self.merge_threshold, self.merge_rounds, keep_label)
-
     def reduce(self, state: MixtureState, keep_label: Tensor | None = None) -> MixtureState:
         """Prune, merge, cap (Vo & Ma 2006, Table II); ``keep_label (P,)`` labels that win a merge
         (see :func:`merge`). More than ``2 capacity`` components are capped before merging, so the
         pairwise merge stays bounded in memory."""
-        lw = state.log_weight
-        keep = (state.mask & (lw > scalar(math.log(self.prune_threshold), lw))).nonzero().squeeze(1)
-        J = int(keep.shape[0])
-        if J > 2 * self.capacity or J <= 1 or self.merge_threshold <= 0:
-            state = self.cap(state.select(keep), 2 * self.capacity)   # bounds the O(J²) merge
-            return self.cap(self.merge(state, keep_label))
-        # prune and sort by weight with one composed index (what prune + merge's sort select)
-        order = keep[torch.argsort(state.log_weight[keep], descending=True)]   # indices carry no gradient
-        state = MixtureState(state.log_weight.index_select(0, order), state.mean.index_select(0, order),
-                             state.cov.index_select(0, order), state.label.index_select(0, order),
-                             torch.ones(J, dtype=torch.bool, device=keep.device))
-        return self.cap(_merge_sorted(state, self.merge_threshold, self.merge_rounds, keep_label))
+        state = self.cap(self.prune(state), 2 * self.capacity)   # bounds the O(J²) merge
+        return self.cap(merge(state, self.merge_threshold, self.merge_rounds, keep_label))
 
     def extract(self, state: MixtureState) -> Tensor:
         """Bool mask ``(J,)`` of components reported as targets (weight above ``extract_threshold``)."""

@@ -39,18 +39,6 @@ def find_labels(keys: Tensor, query: Tensor) -> tuple[Tensor, Tensor]:
     return index, keys[index] == query
 
 
-def distance_to_previous(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Tensor) -> Tensor:
-    """Euclidean distance ``(E,)`` from each ``pos (E, d)`` to the previous estimate of its label.
-
-    ``prev_label (P,)`` are unique; a label without a previous estimate gets ``inf``.
-    """
-    if prev_label.numel() == 0:
-        return torch.full(label.shape, float("inf"), dtype=pos.dtype, device=pos.device)
-    index, found = find_labels(prev_label, label)
-    d = (pos - prev_pos[index].to(pos.dtype)).norm(dim=-1)
-    return torch.where(found, d, torch.full_like(d, float("inf")))
-
-
 def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_pos: Tensor,
               next_label: int, pos_dim: int = 2, min_separation: float = 0.0) -> tuple[MixtureState, int]:
     """The label fix of section 2.3: among extracted components sharing a label, the one closest to that
@@ -74,7 +62,11 @@ def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_po
         return state, next_label
     lab = state.label[idx]
     pos = state.mean[idx, :pos_dim].detach()
-    dist = distance_to_previous(lab, pos, prev_label, prev_pos)
+    # distance to the label's previous estimate; inf where it has none
+    dist = torch.full(lab.shape, float("inf"), dtype=pos.dtype, device=pos.device)
+    if prev_label.numel():
+        index, found = find_labels(prev_label, lab)
+        dist = (pos - prev_pos[index].to(pos.dtype)).norm(dim=-1).masked_fill(~found, float("inf"))
     by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
     by_dist = by_weight[torch.sort(dist[by_weight], stable=True).indices]
     o, first = _first_of_label(lab, by_dist)

@@ -143,20 +143,11 @@ class GMPHDTracker(nn.Module):
         options for detections with velocities are used; :func:`~torchtrack.filters.baselines.enhanced_gmphd`
         also follows a positions-only input."""
         cfg = tracker_config("gmphd", config)
-        f, b = cfg.filter, cfg.birth
-        motion = ConstantVelocity(2, q=f.q)
-        measurement = LinearPosition(2, sigma=f.sigma)
-        filter_options = {k: v for k, v in dataclasses.asdict(f).items() if k not in ("q", "sigma")}
-        birth_options = dataclasses.asdict(b)
-        phd = GMPHD(motion, measurement, **filter_options)
-        birth = AdaptiveBirth(**birth_options)
-        return cls(phd, birth, label_fix=cfg.label_fix, settled_velocity_var=cfg.settled_velocity_var,
-                   handover_frames=cfg.handover_frames, handover_distance=cfg.handover_distance,
-                   coast_threshold=cfg.coast_threshold, fix_separation=cfg.fix_separation,
-                   merge_priority=cfg.merge_priority, confirm_new=cfg.confirm_new, confirm_misses=cfg.confirm_misses,
-                   tone_sigma=cfg.tone_sigma, tone_outlier=cfg.tone_outlier, tone_rate=cfg.tone_rate,
-                   tone_handover_gap=cfg.tone_handover_gap,
-                   dtype={"float32": torch.float32, "float64": torch.float64}[cfg.dtype])
+        filter_options = {k: v for k, v in dataclasses.asdict(cfg.filter).items() if k not in ("q", "sigma")}
+        phd = GMPHD(ConstantVelocity(2, q=cfg.filter.q), LinearPosition(2, sigma=cfg.filter.sigma), **filter_options)
+        options = {f.name: getattr(cfg, f.name) for f in dataclasses.fields(cfg)
+                   if f.name not in ("filter", "birth", "dtype", "positions_only")}
+        return cls(phd, AdaptiveBirth(**dataclasses.asdict(cfg.birth)), **options, dtype=getattr(torch, cfg.dtype))
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:

@@ -19,7 +19,7 @@ register a factory ``config -> tracker`` here by module path (imported on first 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from typing import Any, Protocol
 
 from torch import Tensor
@@ -50,20 +50,13 @@ def tracker_names() -> list[str]:
     return list(TRACKERS)
 
 
-def _resolve(path: str) -> Callable:
-    module, _, attr = path.partition(":")
-    obj = importlib.import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
-
-
 def make_tracker(name: str, config: Any = None) -> Tracker:
     """Build the tracker ``name`` from its configuration: its dataclass, a mapping of the keys to change from
     the built-in defaults, or None (the defaults)."""
     if name not in TRACKERS:
         raise TorchtrackError(f"unknown tracker {name!r}; choose one of {', '.join(TRACKERS)}")
-    tracker = _resolve(TRACKERS[name])(config)
+    module, _, factory = TRACKERS[name].partition(":")
+    tracker = getattr(importlib.import_module(module), factory)(config)
     tracker.reset()
     return tracker
 
