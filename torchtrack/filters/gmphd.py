@@ -459,8 +459,51 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     """
     if state.size <= 1 or threshold <= 0:
         return state
-    order = torch.argsort(state.log_weight.detach(), descending=True)
-    return _merge_sorted(state.select(order), threshold, rounds, keep_label)
+    state = state.select(torch.argsort(state.log_weight.detach(), descending=True))
+    J = state.size
+    mean, cov, log_w = state.mean, state.cov, state.log_weight
+    # membership from detached tensors: a selection without gradient (cheaper than a no_grad block)
+    idx = torch.arange(J, device=mean.device)
+    if J <= DENSE_MERGE:
+        owner = _owners_dense(_reach_matrix(mean.detach(), cov.detach(), threshold), rounds)
+    else:
+        owner = _owners_sparse(mean.detach(), cov.detach(), threshold, rounds)
+        if owner is None:
+            return state
+    is_head = owner == idx
+    heads_up_to = torch.cumsum(is_head, 0)          # group g of a head = number of heads up to it, minus 1
+    G = int(heads_up_to[-1])
+    gid = heads_up_to[owner] - 1
+    if G == J:
+        return state
+    w_max = log_w.max()
+    w = torch.exp(log_w - w_max)                                             # (J,)
+    n = mean.shape[1]
+    if J <= DENSE_MERGE:   # group sums as products with the (G, J) membership matrix W[g, j] = w_j [j in g]
+        W = torch.zeros(G, J, dtype=w.dtype, device=w.device).index_put_((gid, idx), w)
+        wsum = W.sum(1)                                                      # (G,)
+        Wn = W / wsum.unsqueeze(1)
+        mu = torch.mm(Wn, mean)                                              # (G, n)
+    else:
+        wsum = torch.zeros(G, dtype=w.dtype, device=w.device).index_add_(0, gid, w)
+        mu = torch.zeros(G, n, dtype=w.dtype, device=w.device).index_add_(0, gid, w.unsqueeze(1) * mean)
+        mu = mu / wsum.unsqueeze(1)
+    d = mean - mu[gid]
+    spread = (cov + d.unsqueeze(-1) * d.unsqueeze(-2)).view(J, n * n)       # P_i + (m_i − m)(m_i − m)ᵀ
+    if J <= DENSE_MERGE:
+        P = torch.mm(Wn, spread).view(G, n, n)
+    else:
+        P = (torch.zeros(G, n * n, dtype=w.dtype, device=w.device).index_add_(0, gid, w.unsqueeze(1) * spread)
+             / wsum.unsqueeze(1)).view(G, n, n)
+    label = state.label[is_head]
+    if keep_label is not None and keep_label.numel():
+        with torch.no_grad():
+            key = torch.isin(state.label, keep_label).to(w.dtype) * 2.0 + w / wsum[gid]
+            best = torch.full((G,), -1.0, dtype=w.dtype, device=w.device).scatter_reduce(0, gid, key, "amax")
+            win = key == best[gid]
+            label = label.clone().scatter_(0, gid[win], state.label[win])
+    return MixtureState(torch.log(wsum) + w_max, mu, P, label,
+                        torch.ones(G, dtype=torch.bool, device=w.device))
 
 
 def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> Tensor | None:
@@ -524,51 +567,3 @@ def _owners_dense(reach: Tensor, rounds: int) -> Tensor:
             break
         live = reach & alive.unsqueeze(0)
     return owner
-
-
-def _merge_sorted(state: MixtureState, threshold: float, rounds: int, keep_label: Tensor | None) -> MixtureState:
-    """:func:`merge` of a compacted mixture already sorted by decreasing weight."""
-    J = state.size
-    mean, cov, log_w = state.mean, state.cov, state.log_weight
-    # membership from detached tensors: a selection without gradient (cheaper than a no_grad block)
-    idx = torch.arange(J, device=mean.device)
-    if J <= DENSE_MERGE:
-        owner = _owners_dense(_reach_matrix(mean.detach(), cov.detach(), threshold), rounds)
-    else:
-        owner = _owners_sparse(mean.detach(), cov.detach(), threshold, rounds)
-        if owner is None:
-            return state
-    is_head = owner == idx
-    heads_up_to = torch.cumsum(is_head, 0)          # group g of a head = number of heads up to it, minus 1
-    G = int(heads_up_to[-1])
-    gid = heads_up_to[owner] - 1
-    if G == J:
-        return state
-    w_max = log_w.max()
-    w = torch.exp(log_w - w_max)                                             # (J,)
-    n = mean.shape[1]
-    if J <= DENSE_MERGE:   # group sums as products with the (G, J) membership matrix W[g, j] = w_j [j in g]
-        W = torch.zeros(G, J, dtype=w.dtype, device=w.device).index_put_((gid, idx), w)
-        wsum = W.sum(1)                                                      # (G,)
-        Wn = W / wsum.unsqueeze(1)
-        mu = torch.mm(Wn, mean)                                              # (G, n)
-    else:
-        wsum = torch.zeros(G, dtype=w.dtype, device=w.device).index_add_(0, gid, w)
-        mu = torch.zeros(G, n, dtype=w.dtype, device=w.device).index_add_(0, gid, w.unsqueeze(1) * mean)
-        mu = mu / wsum.unsqueeze(1)
-    d = mean - mu[gid]
-    spread = (cov + d.unsqueeze(-1) * d.unsqueeze(-2)).view(J, n * n)       # P_i + (m_i − m)(m_i − m)ᵀ
-    if J <= DENSE_MERGE:
-        P = torch.mm(Wn, spread).view(G, n, n)
-    else:
-        P = (torch.zeros(G, n * n, dtype=w.dtype, device=w.device).index_add_(0, gid, w.unsqueeze(1) * spread)
-             / wsum.unsqueeze(1)).view(G, n, n)
-    label = state.label[is_head]
-    if keep_label is not None and keep_label.numel():
-        with torch.no_grad():
-            key = torch.isin(state.label, keep_label).to(w.dtype) * 2.0 + w / wsum[gid]
-            best = torch.full((G,), -1.0, dtype=w.dtype, device=w.device).scatter_reduce(0, gid, key, "amax")
-            win = key == best[gid]
-            label = label.clone().scatter_(0, gid[win], state.label[win])
-    return MixtureState(torch.log(wsum) + w_max, mu, P, label,
-                        torch.ones(G, dtype=torch.bool, device=w.device))
