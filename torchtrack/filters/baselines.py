@@ -22,7 +22,7 @@ from torchtrack.association.assignment import by_component, gated_pairs, hungari
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd_input import InputAwareGMPHD
 from torchtrack.filters.gmphd_tracker import GMPHDTracker
-from torchtrack.filters.tracker_config import GMPHDConfig, GreedyConfig, SORTConfig, tracker_config
+from torchtrack.filters.tracker_config import GMPHDConfig, GreedyConfig, PMBConfig, SORTConfig, tracker_config
 from torchtrack.gaussian import kalman_update, symmetrize
 from torchtrack.models import ConstantVelocity, LinearPosition
 
@@ -50,6 +50,13 @@ def sort(config: SORTConfig | Mapping | None = None) -> SORT:
 def greedy(config: GreedyConfig | Mapping | None = None) -> GreedyTracker:
     """The greedy tracker from its configuration (or the mapping of the keys to change)."""
     return GreedyTracker(**dataclasses.asdict(tracker_config("greedy", config)))
+
+
+def pmb(config: PMBConfig | Mapping | None = None):
+    """The TOMB/P tracker (:mod:`torchtrack.filters.pmb_tracker`) from its configuration."""
+    from torchtrack.filters.pmb_tracker import PMBTracker
+
+    return PMBTracker(config)
 
 
 _SORT, _GREEDY = SORTConfig(), GreedyConfig()   # keyword defaults below (one source: tracker_config)

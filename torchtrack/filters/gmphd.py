@@ -254,16 +254,14 @@ class GMPHD(nn.Module):
         log_w = state.log_weight + mats.log_p_survival
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
-    def update(self, state: MixtureState, z: Tensor, mats: Matrices, clutter: Tensor | None = None,
-               velocity: Tensor | None = None, likelihood: bool = True,
-               pair_loglik: Tensor | None = None,
+    def update(self, state: MixtureState, z: Tensor, mats: Matrices, velocity: Tensor | None = None,
+               likelihood: bool = True, pair_loglik: Tensor | None = None,
                label_index: tuple[Tensor, int] | None = None) -> tuple[MixtureState, UpdateInfo]:
         """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
 
-        ``clutter`` optionally gives ``κ(z_k)`` per measurement ``(M,)``; by default the uniform
-        ``clutter_density``. ``velocity (M, 2)``: the detector's velocities, used as measurements (with
-        ``H = I``, ``R_4 = blockdiag(R, σ_v² I)``, clutter ``κ κ_v``) when the filter has a
-        ``velocity_sigma``, ignored otherwise. Returns the posterior (missed-detection components first,
+        Clutter has the uniform intensity ``clutter_density``. ``velocity (M, 2)``: the detector's velocities,
+        used as measurements (with ``H = I``, ``R_4 = blockdiag(R, σ_v² I)``, clutter ``κ κ_v``) when the filter
+        has a ``velocity_sigma``, ignored otherwise. Returns the posterior (missed-detection components first,
         then the gated detection components, ``J + G`` in all) and :class:`UpdateInfo` (its
         ``log_likelihood`` is None with ``likelihood=False``, which saves its operations when streaming).
         ``pair_loglik (J, M)``: a further log-likelihood ratio per (component, detection) pair, added to each
@@ -277,10 +275,9 @@ class GMPHD(nn.Module):
         m_dim = H.shape[0]
         if z.dim() != 2 or z.shape[1] != m_dim:
             raise TorchtrackError(f"measurements must have shape (M, {m_dim}); got {tuple(z.shape)}")
-        if z.dtype != state.mean.dtype:
-            z = z.to(state.mean.dtype)
+        z = z.to(state.mean.dtype)
         pd, log_pd = mats.p_detection, mats.log_p_detection
-        log_kappa = (mats.log_clutter if clutter is None else torch.log(clutter)).expand(z.shape[0])
+        log_kappa = mats.log_clutter.expand(z.shape[0])
         gate = self.gate
         robust = False
         if velocity is not None and mats.R_velocity is not None:
@@ -346,9 +343,7 @@ class GMPHD(nn.Module):
             pair_k.append(kk + start if start else kk)
             pair_logw.append(log_num[jj, kk] - den[kk])
             log_den.append(den)
-        if len(log_den) == 1:
-            log_den_t, jj, kk, det_logw = log_den[0], pair_j[0], pair_k[0], pair_logw[0]
-        elif log_den:
+        if log_den:
             log_den_t, jj, kk, det_logw = (torch.cat(x) for x in (log_den, pair_j, pair_k, pair_logw))
         else:
             jj = kk = torch.empty(0, dtype=torch.long, device=z.device)

@@ -160,11 +160,8 @@ class AdaptiveBirth(nn.Module):
         far = pred_log_w <= scalar(math.log(self.suppress_weight), pred_log_w)
         inf, reach = scalar(float("inf"), z), scalar(self.distance_threshold ** 2, z)
         p = pred_pos.detach().unsqueeze(0)      # a selection: no gradient (cheaper than a no_grad block)
-        M = z.shape[0]
-        if M <= chunk:
-            return torch.where(far, inf, (z.unsqueeze(1) - p).pow(2).sum(-1)).amin(1) > reach
         out = []
-        for start in range(0, M, chunk):
+        for start in range(0, z.shape[0], chunk):
             d2 = (z[start:start + chunk].unsqueeze(1) - p).pow(2).sum(-1)   # (C, J)
             out.append(torch.where(far, inf, d2).amin(1) > reach)
         return torch.cat(out)

@@ -40,7 +40,7 @@ TRACKERS: dict[str, str] = {
     "labelled-gmphd": "torchtrack.filters.baselines:labelled_gmphd",
     "sort": "torchtrack.filters.baselines:sort",
     "greedy": "torchtrack.filters.baselines:greedy",
-    "pmb": "torchtrack.filters.pmb_tracker:PMBTracker",
+    "pmb": "torchtrack.filters.baselines:pmb",
 }
 """Tracker name → ``module:factory`` taking the tracker's configuration (dataclass, mapping or None)."""
 
