@@ -70,8 +70,6 @@ from torchtrack.gaussian import (
 from torchtrack.models import ConstantVelocity, LinearPosition, MeasurementModel, MotionModel
 from torchtrack.params import Positive, Probability
 
-_F = GMPHDFilterOptions()   # the keyword defaults below (one source: tracker_config)
-
 log = logging.getLogger(__name__)
 
 NEG_INF = float("-inf")
@@ -152,72 +150,41 @@ class GMPHD(nn.Module):
     """The GM-PHD recursion with learnable continuous parameters (all :mod:`torchtrack.params`).
 
     Args:
-        motion: a linear motion model (default ``ConstantVelocity(2, q)``), state ``[x, y, vx, vy]``.
-        measurement: a linear measurement model (default ``LinearPosition(2, sigma)``).
-        The defaults of every argument are :class:`~torchtrack.filters.tracker_config.GMPHDFilterOptions`'.
-        p_survival, p_detection: ``p_S``, ``p_D`` (learnable probabilities).
-        clutter_density: clutter intensity ``κ`` per unit measurement volume (px⁻²; learnable).
-        area: surveillance area for the ``−λ_c`` term of the log-likelihood (None: term dropped).
-        gate_probability: probability mass of the χ² gate (``γ`` = its quantile, ``m`` dof).
-        prune_threshold: components with weight below it are dropped (Vo & Ma's ``T``).
-        merge_threshold: squared Mahalanobis distance ``U`` under which components merge.
-        merge_rounds: vectorised greedy-merging rounds (see :func:`merge`).
-        capacity: maximum number of components ``J_max`` kept after a step.
-        extract_threshold: components with weight above it are reported as targets.
-        chunk: measurements processed per batched chunk of the update.
-        velocity_sigma: noise std ``σ_v`` (px/frame; learnable) of the detector's velocity; when given and
-            the update receives velocities, each detection is the 4-vector ``[z, v]`` measured through
-            ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)`` (None: velocities are not used in the update).
-        velocity_clutter_density: ``κ_v`` (learnable), the density of a clutter detection's velocity; the
-            clutter intensity of ``[z, v]`` is ``κ(z) κ_v`` (default 1/400: uniform over ±10 px/frame).
-        velocity_outlier: ``ε`` in [0, 1), the probability that a target's detected velocity is an outlier
-            (density ``κ_v``); 0: every velocity is Gaussian (see the module docstring).
+        motion: a linear motion model (default ``ConstantVelocity(2, options.q)``), state ``[x, y, vx, vy]``.
+        measurement: a linear measurement model (default ``LinearPosition(2, options.sigma)``).
+        options: :class:`~torchtrack.filters.tracker_config.GMPHDFilterOptions` (their meaning and bounds there):
+            ``p_S``, ``p_D``, ``κ`` (learnable), ``area`` of the log-likelihood's ``−λ_c`` term (None: dropped),
+            the χ² gate's probability (``γ`` its quantile, ``m`` dof), prune threshold ``T``, merge threshold
+            ``U`` and rounds (see :func:`merge`), ``capacity`` ``J_max``, extraction threshold, ``chunk`` (the
+            update's measurements per block) and the detector's velocity: with ``velocity_sigma`` ``σ_v``
+            (learnable) and velocities given to the update, each detection is the 4-vector ``[z, v]`` measured
+            through ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)``, the clutter intensity of ``[z, v]`` is
+            ``κ(z) κ_v`` (``velocity_clutter_density``, learnable) and ``velocity_outlier`` is ``ε`` of the
+            module docstring (None ``σ_v``: velocities are not used in the update).
     """
 
     def __init__(self, motion: MotionModel | None = None, measurement: MeasurementModel | None = None,
-                 p_survival: float = _F.p_survival, p_detection: float = _F.p_detection,
-                 clutter_density: float = _F.clutter_density, area: float | None = _F.area,
-                 gate_probability: float = _F.gate_probability, prune_threshold: float = _F.prune_threshold,
-                 merge_threshold: float = _F.merge_threshold, merge_rounds: int = _F.merge_rounds,
-                 capacity: int = _F.capacity, extract_threshold: float = _F.extract_threshold, chunk: int = _F.chunk,
-                 velocity_sigma: float | None = _F.velocity_sigma,
-                 velocity_clutter_density: float = _F.velocity_clutter_density,
-                 velocity_outlier: float = _F.velocity_outlier):
+                 options: GMPHDFilterOptions | None = None):
         super().__init__()
-        self.motion = motion if motion is not None else ConstantVelocity(2, q=_F.q)
-        self.measurement = measurement if measurement is not None else LinearPosition(2, sigma=_F.sigma)
+        o = self.options = options if options is not None else GMPHDFilterOptions()
+        self.motion = motion if motion is not None else ConstantVelocity(2, q=o.q)
+        self.measurement = measurement if measurement is not None else LinearPosition(2, sigma=o.sigma)
         if not (self.motion.is_linear and self.measurement.is_linear):
             raise TorchtrackError("GMPHD needs linear motion and measurement models")
         if self.measurement.state_dim != self.motion.state_dim:
             raise TorchtrackError(f"measurement state_dim {self.measurement.state_dim} != motion state_dim "
                                   f"{self.motion.state_dim}")
-        if not 0.0 < gate_probability <= 1.0:
-            raise TorchtrackError(f"gate_probability must lie in (0, 1]; got {gate_probability}")
-        if capacity < 1:
-            raise TorchtrackError(f"capacity must be >= 1; got {capacity}")
-        if not 0.0 <= velocity_outlier < 1.0:
-            raise TorchtrackError(f"velocity_outlier must lie in [0, 1); got {velocity_outlier}")
-        if prune_threshold <= 0 or merge_threshold < 0 or extract_threshold <= 0 or merge_rounds < 1:
-            raise TorchtrackError("prune_threshold and extract_threshold must be > 0, merge_threshold >= 0, "
-                                  "merge_rounds >= 1")
-        self.p_survival = Probability(p_survival, "p_survival")
-        self.p_detection = Probability(p_detection, "p_detection")
-        self.clutter_density = Positive(clutter_density, "clutter_density")
-        self.area = area
+        self.p_survival = Probability(o.p_survival, "p_survival")
+        self.p_detection = Probability(o.p_detection, "p_detection")
+        self.clutter_density = Positive(o.clutter_density, "clutter_density")
+        self.area = o.area
         m = self.measurement.meas_dim
-        self.gate = chi2_quantile(gate_probability, m)
-        self.prune_threshold = prune_threshold
-        self.merge_threshold = merge_threshold
-        self.merge_rounds = merge_rounds
-        self.capacity = capacity
-        self.extract_threshold = extract_threshold
-        self.chunk = chunk
+        self.gate = chi2_quantile(o.gate_probability, m)
+        self.gate_velocity = chi2_quantile(o.gate_probability, m + 2)   # gate of [z, v] (velocity_sigma)
         self.cap_hits = 0
-        self.gate_velocity = chi2_quantile(gate_probability, m + 2)   # gate of [z, v] (velocity_sigma)
-        self.velocity_sigma = None if velocity_sigma is None else Positive(velocity_sigma, "velocity_sigma")
-        self.velocity_clutter_density = (None if velocity_sigma is None
-                                         else Positive(velocity_clutter_density, "velocity_clutter_density"))
-        self.velocity_outlier = velocity_outlier
+        self.velocity_sigma = None if o.velocity_sigma is None else Positive(o.velocity_sigma, "velocity_sigma")
+        self.velocity_clutter_density = (None if o.velocity_sigma is None
+                                         else Positive(o.velocity_clutter_density, "velocity_clutter_density"))
 
     @property
     def state_dim(self) -> int:
@@ -237,8 +204,8 @@ class GMPHD(nn.Module):
                 raise TorchtrackError("GMPHD velocity_sigma needs H = [I 0] and a state [position, velocity]")
             R_v = torch.block_diag(R, self.velocity_sigma().pow(2) * torch.eye(2, dtype=R.dtype, device=R.device))
             log_kv = torch.log(self.velocity_clutter_density())
-            if self.velocity_outlier > 0:
-                log_eps = torch.tensor(math.log(self.velocity_outlier), dtype=R.dtype, device=R.device)
+            if self.options.velocity_outlier > 0:
+                log_eps = torch.tensor(math.log(self.options.velocity_outlier), dtype=R.dtype, device=R.device)
         F = self.motion.transition_matrix(dt)
         return Matrices(F, self.motion.process_noise(dt), H, R, ps, pd, kappa,
                         torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa), torch.kron(F, F).T, selects,
@@ -318,7 +285,7 @@ class GMPHD(nn.Module):
         support = None
         if label_index is not None:
             support = torch.zeros(label_index[1], dtype=live_w.dtype, device=live_w.device)
-        M, C = z.shape[0], self.chunk
+        M, C = z.shape[0], self.options.chunk
         for start in range(0, M, C):
             zc, kc = z[start:start + C], log_kappa[start:start + C]
             nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
@@ -377,11 +344,11 @@ class GMPHD(nn.Module):
     def prune(self, state: MixtureState) -> MixtureState:
         """Drop empty slots and components with weight below ``prune_threshold``."""
         lw = state.log_weight
-        return state.select(state.mask & (lw > scalar(math.log(self.prune_threshold), lw)))
+        return state.select(state.mask & (lw > scalar(math.log(self.options.prune_threshold), lw)))
 
     def cap(self, state: MixtureState, capacity: int | None = None) -> MixtureState:
         """Keep the ``capacity`` highest-weight components; a hit cap is logged and counted."""
-        capacity = self.capacity if capacity is None else capacity
+        capacity = self.options.capacity if capacity is None else capacity
         if state.size <= capacity:
             return state
         self.cap_hits += 1
@@ -394,13 +361,13 @@ class GMPHD(nn.Module):
         """Prune, merge, cap (Vo & Ma 2006, Table II); ``keep_label (P,)`` labels that win a merge
         (see :func:`merge`). More than ``2 capacity`` components are capped before merging, so the
         pairwise merge stays bounded in memory."""
-        state = self.cap(self.prune(state), 2 * self.capacity)   # bounds the O(J²) merge
-        return self.cap(merge(state, self.merge_threshold, self.merge_rounds, keep_label))
+        state = self.cap(self.prune(state), 2 * self.options.capacity)   # bounds the O(J²) merge
+        return self.cap(merge(state, self.options.merge_threshold, self.options.merge_rounds, keep_label))
 
     def extract(self, state: MixtureState) -> Tensor:
         """Bool mask ``(J,)`` of components reported as targets (weight above ``extract_threshold``)."""
         lw = state.log_weight
-        return state.mask & (lw > scalar(math.log(self.extract_threshold), lw))
+        return state.mask & (lw > scalar(math.log(self.options.extract_threshold), lw))
 
     def gaussian_birth(self, mean: Tensor, std: Tensor, log_weight: Tensor, label: Tensor) -> MixtureState:
         """Birth components ``N(mean, diag(std²))`` with log-weights ``log_weight``; ``mean, std (B, n)``."""
