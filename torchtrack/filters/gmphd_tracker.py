@@ -167,17 +167,14 @@ class GMPHDTracker(nn.Module):
             expected = memory.prev_pos + memory.prev_vel * dt
             post, next_label = label_fix(post, est, memory.prev_label, expected, next_label,
                                          min_separation=o.fix_separation)
-            sel = best_per_label(post, est)
-            if o.coast_threshold is not None:
-                coast = (~est & (post.log_weight > math.log(o.coast_threshold))
-                         & torch.isin(post.label, memory.prev_label) & ~torch.isin(post.label, post.label[sel]))
-                sel = torch.cat([sel, best_per_label(post, coast)])
-        else:
-            sel = best_per_label(post, est)
+        sel = best_per_label(post, est)
+        if o.label_fix and o.coast_threshold is not None:
+            coast = (~est & (post.log_weight > math.log(o.coast_threshold))
+                     & torch.isin(post.label, memory.prev_label) & ~torch.isin(post.label, post.label[sel]))
+            sel = torch.cat([sel, best_per_label(post, coast)])
         ids = post.label[sel]
         mean = post.mean[sel]
-        pos = mean[:, :2]
-        vel = mean[:, 2:4]
+        pos, vel = mean[:, :2], mean[:, 2:4]
         lost = memory.lost
         if o.handover_frames > 0:
             tone_of = (lambda lab: lookup(memory.tones, lab)) if use_tone else None
