@@ -471,21 +471,17 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
 def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> Tensor | None:
     """The greedy leader rounds of :func:`merge` on screened candidate pairs; None when nothing merges."""
     J = mean.shape[0]
-    idx = torch.arange(J, device=mean.device)
     ii, jj = _within_reach(mean, cov, threshold)   # i within reach of heavier j
     if ii.numel() == 0:
         return None
     big = torch.full((J,), J, dtype=torch.long, device=mean.device)
-    # round 1 (every component alive): leaders have no heavier component within reach
-    blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii, True)
     # amin over the candidates: a non-candidate pair offers J, the initial value (no bool indexing)
     none = scalar(J, jj)
-    first = big.scatter_reduce(0, ii, torch.where(blocked[jj], none, jj), "amin")
-    joins = first < J
-    owner = torch.where(joins, first, idx)
-    alive = blocked & ~joins
-    for _ in range(rounds - 1 if bool(alive.any()) else 0):
+    owner = torch.arange(J, device=mean.device)
+    alive = torch.ones(J, dtype=torch.bool, device=mean.device)
+    for _ in range(rounds):
         live = alive[ii] & alive[jj]
+        # leaders: alive, with no alive heavier component within reach
         blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii[live], True)
         leader = alive & ~blocked
         cand = alive[ii] & leader[jj]
@@ -515,14 +511,12 @@ def _reach_matrix(mean: Tensor, cov: Tensor, threshold: float) -> Tensor:
 def _owners_dense(reach: Tensor, rounds: int) -> Tensor:
     """The greedy leader rounds of :func:`merge` on a dense reach matrix; ``owner (J,)`` per component."""
     owner = torch.arange(reach.shape[0], device=reach.device)
-    live = reach                                   # [i, j]: alive heavier j within reach of i (all alive)
-    alive = None
+    alive = torch.ones_like(owner, dtype=torch.bool)
+    live = reach                                   # [i, j]: alive heavier j within reach of i
     for _ in range(rounds):
-        blocked = live.any(1)                      # an alive heavier component within reach: not a leader
-        leader = ~blocked if alive is None else alive & ~blocked
+        blocked = live.any(1) & alive              # an alive heavier component within reach: not a leader
+        leader = alive & ~blocked
         has, first = (live & leader.unsqueeze(0)).max(1)     # first (heaviest) leader within reach
-        if alive is not None:
-            blocked = blocked & alive
         owner = torch.where(blocked & has, first, owner)     # joins its leader
         alive = blocked & ~has
         if not bool(alive.any()):
