@@ -18,9 +18,9 @@ import torch
 from torch import Tensor
 
 from torchtrack.association.assignment import by_component, gated_pairs, hungarian
-from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd_input import InputAwareGMPHD
 from torchtrack.filters.gmphd_tracker import GMPHDTracker
+from torchtrack.filters.multitarget import frame_step
 from torchtrack.filters.tracker_config import GMPHDConfig, GreedyConfig, PMBConfig, SORTConfig, tracker_config
 from torchtrack.gaussian import kalman_update, symmetrize
 from torchtrack.models import ConstantVelocity, LinearPosition
@@ -105,9 +105,7 @@ class SORT:
 
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
         z = _as_points(positions, self.dtype)
-        dt = 1.0 if self._last_frame is None else float(frame - self._last_frame)
-        if dt <= 0:
-            raise TorchtrackError(f"frames must increase: frame {frame} after {self._last_frame}")
+        dt = frame_step(self._last_frame, frame)
         self._last_frame = frame
         self.frame_count += 1
         with torch.no_grad():
@@ -173,8 +171,7 @@ class GreedyTracker:
         self._last_frame: int | None = None
 
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        if self._last_frame is not None and frame <= self._last_frame:
-            raise TorchtrackError(f"frames must increase: frame {frame} after {self._last_frame}")
+        frame_step(self._last_frame, frame)
         self._last_frame = frame
         p = _as_points(positions, torch.float64).numpy()
         back = p - (_as_points(velocities, torch.float64).numpy() if velocities is not None else 0.0)

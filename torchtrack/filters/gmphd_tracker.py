@@ -56,6 +56,7 @@ from torchtrack.filters.gmphd_tone import (
     tone_log_ratio,
     update_tones,
 )
+from torchtrack.filters.multitarget import frame_step
 from torchtrack.filters.tracker_config import GMPHDConfig, tracker_config
 
 
@@ -278,9 +279,7 @@ class GMPHDTracker(nn.Module):
         v = None if velocities is None else torch.as_tensor(velocities, dtype=self.dtype).reshape(-1, 2)
         t = None if tones is None else torch.as_tensor(tones, dtype=self.dtype).reshape(-1)
         s = self._stream
-        dt = 1.0 if s.last_frame is None else float(frame - s.last_frame)
-        if dt <= 0:
-            raise TorchtrackError(f"frames must increase: frame {frame} after {s.last_frame}")
+        dt = frame_step(s.last_frame, frame)
         with torch.inference_mode():
             mats = s.mats.get(dt)
             if mats is None:

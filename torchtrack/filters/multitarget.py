@@ -45,6 +45,14 @@ TRACKERS: dict[str, str] = {
 """Tracker name → ``module:factory`` taking the tracker's configuration (dataclass, mapping or None)."""
 
 
+def frame_step(last_frame: int | None, frame: int) -> float:
+    """Frames from ``last_frame`` to ``frame`` (1 for the first frame): the ``dt`` of a tracker's step; an error
+    unless frames increase."""
+    if last_frame is not None and frame <= last_frame:
+        raise TorchtrackError(f"frames must increase: frame {frame} after {last_frame}")
+    return 1.0 if last_frame is None else float(frame - last_frame)
+
+
 def tracker_names() -> list[str]:
     """Registered tracker names, in registration order."""
     return list(TRACKERS)

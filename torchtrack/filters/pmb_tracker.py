@@ -16,7 +16,7 @@ from collections.abc import Mapping
 import torch
 from torch import Tensor
 
-from torchtrack.errors import TorchtrackError
+from torchtrack.filters.multitarget import frame_step
 from torchtrack.filters.pmb import PMBFilter, PMBState
 from torchtrack.filters.tracker_config import PMBConfig, tracker_config
 from torchtrack.models import ConstantVelocity, LinearPosition
@@ -48,9 +48,7 @@ class PMBTracker:
     @torch.no_grad()
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
         z = torch.as_tensor(positions, dtype=torch.float64).reshape(-1, 2)
-        dt = 1.0 if self._last_frame is None else float(frame - self._last_frame)
-        if dt <= 0:
-            raise TorchtrackError(f"frames must increase: frame {frame} after {self._last_frame}")
+        dt = frame_step(self._last_frame, frame)
         self._last_frame = frame
         self.state, _ = self.filter.step(self.state, z, dt=dt)
         est = self.filter.estimate(self.state)
