@@ -369,12 +369,6 @@ class GMPHD(nn.Module):
         lw = state.log_weight
         return state.mask & (lw > scalar(math.log(self.options.extract_threshold), lw))
 
-    def gaussian_birth(self, mean: Tensor, std: Tensor, log_weight: Tensor, label: Tensor) -> MixtureState:
-        """Birth components ``N(mean, diag(std²))`` with log-weights ``log_weight``; ``mean, std (B, n)``."""
-        cov = torch.diag_embed(std.pow(2))
-        return MixtureState(log_weight, mean, cov, label, torch.ones(label.shape[0], dtype=torch.bool,
-                                                                    device=label.device))
-
 
 def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
     """Pairs ``(i, j)`` (two ``(K,)`` index tensors) with ``j < i`` and ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U``.

@@ -210,7 +210,8 @@ class GMPHDTracker(nn.Module):
         b_mean, b_std, b_logw = birth.forward(zb, vb, vmap, birth_consts)
         B = int(zb.shape[0])
         b_label = torch.arange(next_label, next_label + B, dtype=torch.long, device=z.device)
-        births = phd.gaussian_birth(b_mean, b_std, b_logw, b_label)
+        births = MixtureState(b_logw, b_mean, torch.diag_embed(b_std.pow(2)), b_label,       # N(mean, diag(std²))
+                              torch.ones(B, dtype=torch.bool, device=z.device))
         if use_tone and B:
             tones = add_births(tones, b_label, tone[is_birth])
         new_state = phd.cap(concat(post, births))
