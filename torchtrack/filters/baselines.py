@@ -182,14 +182,10 @@ class GreedyTracker:
             # each detection's candidates within the gate, nearest first (ties: the earlier track)
             di, tj, d = gated_pairs(back, self.pos, self.options.max_distance)
             order = np.lexsort((tj, d, di))
-            di, tj = di[order], tj[order]
-            starts = np.searchsorted(di, np.arange(M + 1))
-            for i in range(M):
-                for j in tj[starts[i]:starts[i + 1]]:
-                    if not taken[j]:
-                        taken[j] = True
-                        ids[i] = self.ids[j]
-                        break
+            for i, j in zip(di[order].tolist(), tj[order].tolist()):
+                if not ids[i] and not taken[j]:          # detection i unmatched yet, track j free
+                    taken[j] = True
+                    ids[i] = self.ids[j]
         new = ids == 0
         ids[new] = np.arange(self.next_id, self.next_id + int(new.sum()))
         self.next_id += int(new.sum())
