@@ -100,11 +100,7 @@ def relabel(state: MixtureState, old: Tensor, new: Tensor) -> MixtureState:
     changed = old != new
     if not bool(changed.any()):
         return state
-    o, n = old[changed], new[changed]
-    so, perm = torch.sort(o)
-    loc = torch.searchsorted(so, state.label).clamp(max=so.numel() - 1)
-    hit = so[loc] == state.label
-    return state._replace(label=torch.where(hit, n[perm[loc]], state.label))
+    return state._replace(label=value_of_labels(old[changed], new[changed], state.label, state.label))
 
 
 class LostLabels(NamedTuple):
