@@ -222,10 +222,7 @@ def tracker_config(name: str, options: Any = None, source: str = "tracker option
     if name not in DEFAULTS:
         raise TorchtrackError(f"{source}: unknown tracker {name!r}; known: {', '.join(DEFAULTS)}")
     base = DEFAULTS[name]
-    if isinstance(options, type(base)):
-        config = options
-    else:
-        config = from_mapping(type(base), options, source, name, base=base)
+    config = from_mapping(type(base), options, source, name, base=base)     # a dataclass is taken as it is
     if isinstance(config, GMPHDConfig):
         config.for_input(False, source, name)      # the positions-only keys are checked here
     return config
