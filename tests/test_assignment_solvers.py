@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.association.assignment import assign, assignment_mask, greedy, hungarian
+from torchtrack.association.assignment import assign, greedy, hungarian
 from torchtrack.errors import TorchtrackError
 
 
@@ -80,7 +80,7 @@ def test_batched_assign_equals_per_matrix_and_mask():
             ref = torch.full((4,), -1, dtype=torch.long)
             ref[r] = k
             assert torch.equal(out[a, b], ref)
-    mask = assignment_mask(out, 5)
+    mask = out.unsqueeze(-1) == torch.arange(5)                 # one-hot (*, R, C)
     assert mask.sum(-1).le(1).all() and mask.sum(-2).le(1).all()
     assert not (mask & ~valid).any()
 

@@ -167,11 +167,12 @@ def test_sort_on_gated_pairs_equals_the_dense_assignment(monkeypatch):
     import torch
 
     import torchtrack.filters.baselines as baselines
+    from torchtrack.filters.tracker_config import SORTConfig
 
     frames = _random_frames(np.random.default_rng(1))
 
     def run():
-        tracker = baselines.SORT(max_distance=6.0, min_hits=1)
+        tracker = baselines.SORT(SORTConfig(max_distance=6.0, min_hits=1))
         return [tuple(t.tolist() for t in tracker.step(k + 1, torch.as_tensor(z))) for k, z in enumerate(frames)]
 
     dense = run()
@@ -183,9 +184,10 @@ def test_greedy_on_gated_pairs_equals_the_brute_force_rule():
     import torch
 
     from torchtrack.filters.baselines import GreedyTracker
+    from torchtrack.filters.tracker_config import GreedyConfig
 
     frames = _random_frames(np.random.default_rng(2))
-    tracker = GreedyTracker(max_distance=5.0, max_age=1)
+    tracker = GreedyTracker(GreedyConfig(max_distance=5.0, max_age=1))
     pos, ids, age, next_id = np.empty((0, 2)), np.empty(0, np.int64), np.empty(0, np.int64), 1
     for k, z in enumerate(frames):
         got, _ = tracker.step(k + 1, torch.as_tensor(z))

@@ -5,12 +5,13 @@ from __future__ import annotations
 import torch
 
 from torchtrack.filters.gmphd_birth import AdaptiveBirth, VelocityMap
+from torchtrack.filters.tracker_config import GMPHDBirthOptions, VelocityMapOptions
 
 F64 = torch.float64
 
 
 def test_birth_measurements_are_those_far_from_every_heavy_prediction():
-    birth = AdaptiveBirth(distance_threshold=5.0, suppress_weight=0.1)
+    birth = AdaptiveBirth(GMPHDBirthOptions(distance_threshold=5.0, suppress_weight=0.1))
     pred_pos = torch.tensor([[0.0, 0.0], [100.0, 0.0], [50.0, 50.0]], dtype=F64)
     pred_logw = torch.tensor([0.0, 0.0, -5.0], dtype=F64)          # the third is too light to explain
     z = torch.tensor([[3.0, 4.0], [3.0, 4.1], [100.0, 6.0], [50.0, 50.0]], dtype=F64)
@@ -19,7 +20,7 @@ def test_birth_measurements_are_those_far_from_every_heavy_prediction():
 
 
 def test_velocity_map_answers_only_consistent_cells():
-    vmap = VelocityMap(cell=10.0, min_count=2, max_spread=1.0, dtype=F64)
+    vmap = VelocityMap(VelocityMapOptions(cell=10.0, min_count=2, max_spread=1.0), dtype=F64)
     # cell (0, 0): a one-way road; cell (0, 1): a two-way road; cell (0, 2): one sample only
     pos = torch.tensor([[1.0, 1.0], [5.0, 5.0], [12.0, 2.0], [15.0, 3.0], [25.0, 5.0]], dtype=F64)
     vel = torch.tensor([[3.0, 0.0], [3.2, 0.2], [5.0, 0.0], [-5.0, 0.0], [1.0, 1.0]], dtype=F64)
@@ -30,9 +31,10 @@ def test_velocity_map_answers_only_consistent_cells():
 
 
 def test_initial_state_follows_equation_6():
-    vmap = VelocityMap(cell=10.0, min_count=1, dtype=F64)
+    vmap = VelocityMap(VelocityMapOptions(cell=10.0, min_count=1), dtype=F64)
     vmap.update(torch.tensor([[5.0, 5.0]], dtype=F64), torch.tensor([[4.0, -2.0]], dtype=F64))
-    birth = AdaptiveBirth(sigma_pos=2.0, sigma_vel_unknown=8.0, sigma_vel_detector=1.5, sigma_vel_map=2.5).double()
+    birth = AdaptiveBirth(GMPHDBirthOptions(sigma_pos=2.0, sigma_vel_unknown=8.0, sigma_vel_detector=1.5,
+                                            sigma_vel_map=2.5)).double()
     z = torch.tensor([[6.0, 6.0], [55.0, 55.0]], dtype=F64)
     v_det = torch.tensor([[1.0, 1.0], [-1.0, 2.0]], dtype=F64)
     mean, std, logw = birth(z, v_det, vmap)

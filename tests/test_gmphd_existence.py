@@ -9,6 +9,7 @@ import torch
 
 from torchtrack.filters.gmphd import GMPHD, MixtureState
 from torchtrack.filters.gmphd_existence import LabelExistence, bernoulli_step, no_existence
+from torchtrack.filters.tracker_config import GMPHDFilterOptions
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 F64 = torch.float64
@@ -38,8 +39,8 @@ def test_bernoulli_step_is_the_bernoulli_filters_existence_update_and_likelihood
 
 
 def test_update_reports_each_labels_support():
-    phd = GMPHD(ConstantVelocity(2, q=1.0), LinearPosition(2, sigma=1.0), p_detection=0.8,
-                clutter_density=1e-3).to(F64)
+    phd = GMPHD(ConstantVelocity(2, q=1.0), LinearPosition(2, sigma=1.0),
+                GMPHDFilterOptions(p_detection=0.8, clutter_density=1e-3)).to(F64)
     mean = torch.tensor([[0.0, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [3.0, 0.0, 0.0, 0.0]], dtype=F64)
     cov = torch.eye(4, dtype=F64).expand(3, 4, 4).clone()
     weights = [0.5, 0.4, 0.7]

@@ -13,6 +13,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd import GMPHD, MixtureState, merge
 from torchtrack.filters.gmphd_birth import AdaptiveBirth
 from torchtrack.filters.gmphd_tracker import GMPHDTracker
+from torchtrack.filters.tracker_config import GMPHDBirthOptions, GMPHDConfig, GMPHDFilterOptions
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 F64 = torch.float64
@@ -24,8 +25,8 @@ def one(mean, cov, w=1.0, label=1) -> MixtureState:
 
 
 def make_phd(q=0.5, sigma=1.5, pd=0.9, kappa=1e-4, **kw) -> GMPHD:
-    return GMPHD(ConstantVelocity(2, q=q), LinearPosition(2, sigma=sigma), p_detection=pd,
-                 clutter_density=kappa, **kw).double()
+    return GMPHD(ConstantVelocity(2, q=q), LinearPosition(2, sigma=sigma),
+                 GMPHDFilterOptions(p_detection=pd, clutter_density=kappa, **kw)).double()
 
 
 def test_single_target_pd1_no_clutter_is_the_kalman_filter():
@@ -156,8 +157,9 @@ def test_expected_cardinality_tracks_true_count():
 
 
 def test_gradients_reach_pd_kappa_q_r_and_birth_weight():
-    tracker = GMPHDTracker(GMPHD(ConstantVelocity(2, q=0.5), LinearPosition(2, sigma=1.0), area=1e4),
-                           AdaptiveBirth(birth_weight=0.05), dtype=F64)
+    tracker = GMPHDTracker(GMPHD(ConstantVelocity(2, q=0.5), LinearPosition(2, sigma=1.0),
+                                 GMPHDFilterOptions(area=1e4)),
+                           AdaptiveBirth(GMPHDBirthOptions(birth_weight=0.05)), GMPHDConfig(dtype="float64"))
     g = torch.Generator().manual_seed(0)
     p = torch.tensor([[20.0, 30.0], [60.0, 50.0]], dtype=F64)
     v = torch.tensor([[1.0, 0.5], [-0.5, 1.0]], dtype=F64)
@@ -273,8 +275,9 @@ def test_velocity_outliers_mix_the_velocity_and_position_only_updates():
 
 
 def test_gradients_reach_the_velocity_noise_and_velocity_clutter_density():
-    tracker = GMPHDTracker(GMPHD(ConstantVelocity(2, q=0.5), LinearPosition(2, sigma=1.0), velocity_sigma=1.0),
-                           AdaptiveBirth(birth_weight=0.05), dtype=F64)
+    tracker = GMPHDTracker(GMPHD(ConstantVelocity(2, q=0.5), LinearPosition(2, sigma=1.0),
+                                 GMPHDFilterOptions(velocity_sigma=1.0)),
+                           AdaptiveBirth(GMPHDBirthOptions(birth_weight=0.05)), GMPHDConfig(dtype="float64"))
     g = torch.Generator().manual_seed(1)
     p = torch.tensor([[20.0, 30.0], [60.0, 50.0]], dtype=F64)
     v = torch.tensor([[1.0, 0.5], [-0.5, 1.0]], dtype=F64)

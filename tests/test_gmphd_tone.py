@@ -14,6 +14,7 @@ from torchtrack.filters.gmphd import GMPHD, MixtureState
 from torchtrack.filters.gmphd_labels import label_handover, no_lost_labels
 from torchtrack.filters.gmphd_tone import LabelTones, add_births, lookup, no_label_tones, tone_log_ratio, update_tones
 from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.tracker_config import GMPHDFilterOptions
 from torchtrack.models import ConstantVelocity, LinearPosition
 from torchtrack.pipeline.detection import grey_level
 from torchtrack.pipeline.frame_detections import FrameDetections
@@ -55,8 +56,8 @@ def test_label_tones_are_a_running_then_exponential_mean_and_forget_labels_no_lo
 
 
 def test_update_multiplies_each_pairs_likelihood_by_the_given_ratio():
-    phd = GMPHD(ConstantVelocity(2, q=1.0), LinearPosition(2, sigma=1.0), p_detection=0.8,
-                clutter_density=1e-3).to(F64)
+    phd = GMPHD(ConstantVelocity(2, q=1.0), LinearPosition(2, sigma=1.0),
+                GMPHDFilterOptions(p_detection=0.8, clutter_density=1e-3)).to(F64)
     with torch.no_grad():
         mats = phd.matrices()
     mean = torch.tensor([[0.0, 0.0, 0.0, 0.0], [3.0, 0.0, 0.0, 0.0]], dtype=F64)

@@ -105,7 +105,7 @@ def test_each_frame_runs_with_the_options_of_its_input(velocities):
     out = _run(tracker, _frames(velocities))
     chosen = config.for_input(velocities)
     assert tracker.active is (tracker.with_velocity if velocities else tracker.positions_only)
-    assert tracker.active.fix_separation == chosen.fix_separation
+    assert tracker.active.options.fix_separation == chosen.fix_separation
     assert tracker.active.phd.motion.q().item() == pytest.approx(chosen.filter.q)
     # same output as a tracker built from the chosen options alone
     alone = make_tracker("gmphd", dataclasses.replace(chosen, positions_only={}))
@@ -118,7 +118,7 @@ def test_a_switch_of_input_carries_the_mixture_and_labels_over():
     before = _run(tracker, _frames(True, 1, 10))
     assert tracker.active is tracker.with_velocity
     after = _run(tracker, _frames(False, 11, 20), reset=False)
-    assert tracker.active is tracker.positions_only and tracker.active.fix_separation == 12.0
+    assert tracker.active is tracker.positions_only and tracker.active.options.fix_separation == 12.0
     assert sorted(before[-1][0]) == [1, 2, 3]
     assert all(sorted(ids) == [1, 2, 3] for ids, _ in after)          # the same labels, no new track
     back = _run(tracker, _frames(True, 21, 25), reset=False)

@@ -213,24 +213,16 @@ def convert(value: Any, hint: Any, source: str, key: str) -> Any:
     if hint is Any:
         return value
     if hint is float:
-        if isinstance(value, bool):
-            raise _bad(source, key, value, "a number")
         try:
-            return float(value)
+            if not isinstance(value, bool):
+                return float(value)
         except (TypeError, ValueError):
-            raise _bad(source, key, value, "a number") from None
-    if hint is int:
-        if isinstance(value, bool) or not isinstance(value, int):
-            raise _bad(source, key, value, "a whole number")
-        return value
-    if hint is bool:
-        if not isinstance(value, bool):
-            raise _bad(source, key, value, "true or false")
-        return value
-    if hint is str:
-        if not isinstance(value, str):
-            raise _bad(source, key, value, "a string")
-        return value
+            pass
+        raise _bad(source, key, value, "a number")
+    if hint in _TAKEN_AS_IS:        # never converted (a bool is not a whole number here)
+        if isinstance(value, hint) and not (hint is int and isinstance(value, bool)):
+            return value
+        raise _bad(source, key, value, _TAKEN_AS_IS[hint])
     if origin is tuple or hint is tuple:
         args = typing.get_args(hint)
         if not isinstance(value, (list, tuple)):
@@ -251,6 +243,9 @@ def convert(value: Any, hint: Any, source: str, key: str) -> Any:
             raise _bad(source, key, value, "a list")
         return list(value)
     return value
+
+
+_TAKEN_AS_IS = {int: "a whole number", bool: "true or false", str: "a string"}
 
 
 def _bad(source: str, key: str, value: Any, expected: str) -> TorchtrackError:

@@ -86,19 +86,15 @@ def greedy(cost, valid=None, unassigned_cost: float | None = None) -> tuple[Tens
         ok &= c < 2.0 * float(unassigned_cost)
     rows, cols = np.nonzero(ok)
     order = np.argsort(c[rows, cols], kind="stable")
-    used_r, used_c = set(), set()
-    out_r, out_c = [], []
-    for idx in order:
-        i, j = int(rows[idx]), int(cols[idx])
-        if i in used_r or j in used_c:
-            continue
-        used_r.add(i)
-        used_c.add(j)
-        out_r.append(i)
-        out_c.append(j)
-    out = np.argsort(out_r, kind="stable")
-    return (torch.as_tensor(np.asarray(out_r, dtype=np.int64)[out]),
-            torch.as_tensor(np.asarray(out_c, dtype=np.int64)[out]))
+    taken: dict[int, int] = {}                     # row → its column
+    used = set()
+    for i, j in zip(rows[order].tolist(), cols[order].tolist()):
+        if i not in taken and j not in used:
+            taken[i] = j
+            used.add(j)
+    matched = sorted(taken)
+    return (torch.as_tensor(matched, dtype=torch.long),
+            torch.as_tensor([taken[i] for i in matched], dtype=torch.long))
 
 
 _SOLVERS = {"hungarian": hungarian, "greedy": greedy}
@@ -126,10 +122,4 @@ def assign(cost: Tensor, valid: Tensor | None = None, method: str = "hungarian",
     return out.reshape(*batch, R).to(cost.device)
 
 
-def assignment_mask(assignment: Tensor, num_cols: int) -> Tensor:
-    """One-hot ``(*, R, C)`` bool mask from an assignment ``(*, R)`` (``-1`` rows are all False)."""
-    cols = torch.arange(num_cols, device=assignment.device)
-    return assignment.unsqueeze(-1) == cols
-
-
-__all__ = ["assign", "assignment_mask", "greedy", "hungarian"]
+__all__ = ["assign", "greedy", "hungarian"]

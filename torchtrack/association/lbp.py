@@ -142,23 +142,6 @@ def _sum_of_others(v: Tensor, floor: Tensor | float, dim: int) -> tuple[Tensor, 
     return (total - v).scatter(dim, top, rest), total
 
 
-def _iterate_functional(a: Tensor, a0: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
-    """``a_ij ν_ji`` after the iterations, differentiable (new tensors each pass)."""
-    prod = a                                                        # ν = 1
-    last = None
-    for it in range(1, iterations + 1):
-        others, t = _sum_of_others(prod, a0, -1)
-        mu = a / others                                             # track → measurement
-        others, s = _sum_of_others(mu, 1.0, -2)
-        prod = a / others                                           # a_ij ν_ji, measurement → track
-        if tol is not None and (it % 2 == 0 or it == iterations):
-            stat = torch.cat([(a0 / t).flatten(), s.flatten().reciprocal()]).detach()
-            if last is not None and (stat.numel() == 0 or float((stat - last).abs().amax()) < tol):
-                return prod, it, True
-            last = stat
-    return prod, iterations, False
-
-
 class _Lines(NamedTuple):
     """Constants of one direction for :func:`_others_inplace`, made once per call."""
 
@@ -189,19 +172,27 @@ def _others_inplace(v: Tensor, dim: int, out: Tensor, lines: _Lines) -> Tensor:
     return total
 
 
-def _iterate_inplace(a: Tensor, a0: Tensor, iterations: int, tol: float | None) -> tuple[Tensor, int, bool]:
-    """The same iteration in two buffers (no autograd); returns ``a_ij ν_ji``."""
-    prod = a.clone()
-    mu = torch.empty_like(a)
-    rows, cols = _lines(a, -1, a0), _lines(a, -2, scalar(1.0, a))
+def _iterate(a: Tensor, a0: Tensor, iterations: int, tol: float | None, inplace: bool) -> tuple[Tensor, int, bool]:
+    """``a_ij ν_ji`` after the iterations: differentiable (new tensors each pass), or with ``inplace`` in two
+    buffers (no autograd; ``a`` contiguous)."""
+    prod = a.clone() if inplace else a                              # ν = 1
+    if inplace:
+        mu = torch.empty_like(a)
+        rows, cols = _lines(a, -1, a0), _lines(a, -2, scalar(1.0, a))
     last = None
     for it in range(1, iterations + 1):
-        t = _others_inplace(prod, -1, mu, rows)
-        torch.div(a, mu, out=mu)
-        s = _others_inplace(mu, -2, prod, cols)
-        torch.div(a, prod, out=prod)
+        if inplace:
+            t = _others_inplace(prod, -1, mu, rows)
+            torch.div(a, mu, out=mu)
+            s = _others_inplace(mu, -2, prod, cols)
+            torch.div(a, prod, out=prod)
+        else:
+            others, t = _sum_of_others(prod, a0, -1)
+            mu = a / others                                         # track → measurement
+            others, s = _sum_of_others(mu, 1.0, -2)
+            prod = a / others                                       # a_ij ν_ji, measurement → track
         if tol is not None and (it % 2 == 0 or it == iterations):
-            stat = torch.cat([(a0 / t).flatten(), s.flatten().reciprocal()])
+            stat = torch.cat([(a0 / t).flatten(), s.flatten().reciprocal()]).detach()
             if last is not None and (stat.numel() == 0 or float((stat - last).abs().amax()) < tol):
                 return prod, it, True
             last = stat
@@ -238,12 +229,12 @@ def lbp_marginals(log_w: Tensor, log_miss: Tensor, log_new: Tensor, iterations: 
     if n == 0 or m == 0:                                            # nothing to associate
         return LBPResult(a, (a0 / a0.clamp_min(tiny)).squeeze(-1), a.new_ones(*batch, m), a, 0, True)
     if torch.is_grad_enabled() and (a.requires_grad or a0.requires_grad):
-        prod, it, converged = _iterate_functional(a, a0, iterations, tol)
+        prod, it, converged = _iterate(a, a0, iterations, tol, inplace=False)
         others, t = _sum_of_others(prod, a0, -1)
         mu = a / others                                             # μ from the final ν
         s = (mu.sum(-2, keepdim=True) + 1.0).clamp_min(tiny)
         return LBPResult(prod / t, (a0 / t).squeeze(-1), 1.0 / s.squeeze(-2), mu / s, it, converged)
-    prod, it, converged = _iterate_inplace(a.contiguous(), a0, iterations, tol)
+    prod, it, converged = _iterate(a.contiguous(), a0, iterations, tol, inplace=True)
     t = (prod.sum(-1, keepdim=True) + a0).clamp_min_(tiny)
     assoc = prod / t
     mu = torch.empty_like(prod)

@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Mapping
 
 import numpy as np
@@ -20,9 +19,9 @@ from torch import Tensor
 
 from torchtrack.association.assignment import hungarian
 from torchtrack.association.pairs import by_component, gated_pairs
-from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd_input import InputAwareGMPHD
 from torchtrack.filters.gmphd_tracker import GMPHDTracker
+from torchtrack.filters.multitarget import frame_step
 from torchtrack.filters.tracker_config import GMPHDConfig, GreedyConfig, PMBConfig, SORTConfig, tracker_config
 from torchtrack.gaussian import kalman_update, symmetrize
 from torchtrack.models import ConstantVelocity, LinearPosition
@@ -45,22 +44,19 @@ def labelled_gmphd(config: GMPHDConfig | Mapping | None = None) -> GMPHDTracker:
 
 def sort(config: SORTConfig | Mapping | None = None) -> SORT:
     """SORT from its configuration (or the mapping of the keys to change)."""
-    return SORT(**dataclasses.asdict(tracker_config("sort", config)))
+    return SORT(tracker_config("sort", config))
 
 
 def greedy(config: GreedyConfig | Mapping | None = None) -> GreedyTracker:
     """The greedy tracker from its configuration (or the mapping of the keys to change)."""
-    return GreedyTracker(**dataclasses.asdict(tracker_config("greedy", config)))
+    return GreedyTracker(tracker_config("greedy", config))
 
 
 def pmb(config: PMBConfig | Mapping | None = None):
     """The TOMB/P tracker (:mod:`torchtrack.filters.pmb_tracker`) from its configuration."""
     from torchtrack.filters.pmb_tracker import PMBTracker
 
-    return PMBTracker(**dataclasses.asdict(tracker_config("pmb", config)))
-
-
-_SORT, _GREEDY = SORTConfig(), GreedyConfig()   # keyword defaults below (one source: tracker_config)
+    return PMBTracker(config)
 
 
 DENSE_PAIRS = 1 << 20
@@ -85,16 +81,14 @@ class SORT:
     are assigned by the Hungarian algorithm on centre distance (pairs farther than ``max_distance`` are
     forbidden); an unmatched detection starts a track at rest (velocity std ``sigma_vel``); a track
     missed for more than ``max_age`` frames is deleted; a track is reported in a frame where it was
-    updated once it has ``min_hits`` consecutive hits (or during the first ``min_hits`` frames).
+    updated once it has ``min_hits`` consecutive hits (or during the first ``min_hits`` frames). The options
+    (:class:`~torchtrack.filters.tracker_config.SORTConfig`) are in px and frames.
     """
 
-    def __init__(self, q: float = _SORT.q, sigma: float = _SORT.sigma, sigma_vel: float = _SORT.sigma_vel,
-                 max_distance: float = _SORT.max_distance, max_age: int = _SORT.max_age,
-                 min_hits: int = _SORT.min_hits, dtype: torch.dtype = torch.float64):
-        self.motion = ConstantVelocity(2, q=q, learnable=False).to(dtype)
-        self.measurement = LinearPosition(2, sigma=sigma, learnable=False).to(dtype)
-        self.sigma_pos, self.sigma_vel = sigma, sigma_vel
-        self.max_distance, self.max_age, self.min_hits = max_distance, max_age, min_hits
+    def __init__(self, options: SORTConfig | None = None, dtype: torch.dtype = torch.float64):
+        o = self.options = options if options is not None else SORTConfig()
+        self.motion = ConstantVelocity(2, q=o.q, learnable=False).to(dtype)
+        self.measurement = LinearPosition(2, sigma=o.sigma, learnable=False).to(dtype)
         self.dtype = dtype
         with torch.no_grad():
             self.H, self.R = self.measurement.matrix(), self.measurement.noise_cov()
@@ -112,9 +106,7 @@ class SORT:
 
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
         z = _as_points(positions, self.dtype)
-        dt = 1.0 if self._last_frame is None else float(frame - self._last_frame)
-        if dt <= 0:
-            raise TorchtrackError(f"frames must increase: frame {frame} after {self._last_frame}")
+        dt = frame_step(self._last_frame, frame)
         self._last_frame = frame
         self.frame_count += 1
         with torch.no_grad():
@@ -125,9 +117,9 @@ class SORT:
             ti_t = di_t = torch.zeros(0, dtype=torch.long)
             if T and M and T * M <= DENSE_PAIRS:
                 dist = torch.cdist(mean[:, :2], z)
-                ti_t, di_t = hungarian(dist, dist <= self.max_distance)
+                ti_t, di_t = hungarian(dist, dist <= self.options.max_distance)
             elif T and M:          # many tracks and detections: only the gated pairs, solved per component
-                i, j, d = gated_pairs(mean[:, :2].numpy(), z.numpy(), self.max_distance)
+                i, j, d = gated_pairs(mean[:, :2].numpy(), z.numpy(), self.options.max_distance)
                 ti, di, _ = by_component(T, M, i, j, d, _hungarian_block)
                 order = np.argsort(ti)
                 ti_t, di_t = torch.as_tensor(ti[order]), torch.as_tensor(di[order])
@@ -143,16 +135,17 @@ class SORT:
             zn = z[new]
             B = zn.shape[0]
             b_mean = torch.cat([zn, torch.zeros_like(zn)], 1)
-            b_cov = torch.diag(torch.tensor([self.sigma_pos**2] * 2 + [self.sigma_vel**2] * 2,
+            b_cov = torch.diag(torch.tensor([self.options.sigma**2] * 2 + [self.options.sigma_vel**2] * 2,
                                             dtype=self.dtype)).expand(B, 4, 4)
-            keep = missed <= self.max_age
+            keep = missed <= self.options.max_age
             self.mean = torch.cat([mean[keep], b_mean])
             self.cov = torch.cat([cov[keep], b_cov])
             self.ids = torch.cat([self.ids[keep], torch.arange(self.next_id, self.next_id + B)])
             self.streak = torch.cat([streak[keep], torch.ones(B, dtype=torch.long)])
             self.missed = torch.cat([missed[keep], torch.zeros(B, dtype=torch.long)])
             self.next_id += B
-            report = (self.missed == 0) & ((self.streak >= self.min_hits) | (self.frame_count <= self.min_hits))
+            hits = self.options.min_hits
+            report = (self.missed == 0) & ((self.streak >= hits) | (self.frame_count <= hits))
             return self.ids[report], self.mean[report, :2].clone()
 
 
@@ -164,11 +157,11 @@ class GreedyTracker:
     order), each take the nearest still-unmatched track of the previous frame within ``max_distance``
     and inherit its id; the others start new tracks. A track not matched for more than ``max_age``
     frames is forgotten (``max_age = 0``: CenterTrack's default, no memory). Every detection is
-    reported.
+    reported. Options: :class:`~torchtrack.filters.tracker_config.GreedyConfig`.
     """
 
-    def __init__(self, max_distance: float = _GREEDY.max_distance, max_age: int = _GREEDY.max_age):
-        self.max_distance, self.max_age = max_distance, max_age
+    def __init__(self, options: GreedyConfig | None = None):
+        self.options = options if options is not None else GreedyConfig()
         self.reset()
 
     def reset(self) -> None:
@@ -179,8 +172,7 @@ class GreedyTracker:
         self._last_frame: int | None = None
 
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        if self._last_frame is not None and frame <= self._last_frame:
-            raise TorchtrackError(f"frames must increase: frame {frame} after {self._last_frame}")
+        frame_step(self._last_frame, frame)
         self._last_frame = frame
         p = _as_points(positions, torch.float64).numpy()
         back = p - (_as_points(velocities, torch.float64).numpy() if velocities is not None else 0.0)
@@ -189,21 +181,17 @@ class GreedyTracker:
         taken = np.zeros(T, dtype=bool)
         if T and M:
             # each detection's candidates within the gate, nearest first (ties: the earlier track)
-            di, tj, d = gated_pairs(back, self.pos, self.max_distance)
+            di, tj, d = gated_pairs(back, self.pos, self.options.max_distance)
             order = np.lexsort((tj, d, di))
-            di, tj = di[order], tj[order]
-            starts = np.searchsorted(di, np.arange(M + 1))
-            for i in range(M):
-                for j in tj[starts[i]:starts[i + 1]]:
-                    if not taken[j]:
-                        taken[j] = True
-                        ids[i] = self.ids[j]
-                        break
+            for i, j in zip(di[order].tolist(), tj[order].tolist()):
+                if not ids[i] and not taken[j]:          # detection i unmatched yet, track j free
+                    taken[j] = True
+                    ids[i] = self.ids[j]
         new = ids == 0
         ids[new] = np.arange(self.next_id, self.next_id + int(new.sum()))
         self.next_id += int(new.sum())
         age = self.age[~taken] + 1
-        keep = age <= self.max_age
+        keep = age <= self.options.max_age
         self.pos = np.concatenate([p, self.pos[~taken][keep]])
         self.ids = np.concatenate([ids, self.ids[~taken][keep]])
         self.age = np.concatenate([np.zeros(M, dtype=np.int64), age[keep]])

@@ -70,8 +70,6 @@ from torchtrack.gaussian import (
 from torchtrack.models import ConstantVelocity, LinearPosition, MeasurementModel, MotionModel
 from torchtrack.params import Positive, Probability
 
-_F = GMPHDFilterOptions()   # the keyword defaults below (one source: tracker_config)
-
 log = logging.getLogger(__name__)
 
 NEG_INF = float("-inf")
@@ -152,72 +150,41 @@ class GMPHD(nn.Module):
     """The GM-PHD recursion with learnable continuous parameters (all :mod:`torchtrack.params`).
 
     Args:
-        motion: a linear motion model (default ``ConstantVelocity(2, q)``), state ``[x, y, vx, vy]``.
-        measurement: a linear measurement model (default ``LinearPosition(2, sigma)``).
-        The defaults of every argument are :class:`~torchtrack.filters.tracker_config.GMPHDFilterOptions`'.
-        p_survival, p_detection: ``p_S``, ``p_D`` (learnable probabilities).
-        clutter_density: clutter intensity ``κ`` per unit measurement volume (px⁻²; learnable).
-        area: surveillance area for the ``−λ_c`` term of the log-likelihood (None: term dropped).
-        gate_probability: probability mass of the χ² gate (``γ`` = its quantile, ``m`` dof).
-        prune_threshold: components with weight below it are dropped (Vo & Ma's ``T``).
-        merge_threshold: squared Mahalanobis distance ``U`` under which components merge.
-        merge_rounds: vectorised greedy-merging rounds (see :func:`merge`).
-        capacity: maximum number of components ``J_max`` kept after a step.
-        extract_threshold: components with weight above it are reported as targets.
-        chunk: measurements processed per batched chunk of the update.
-        velocity_sigma: noise std ``σ_v`` (px/frame; learnable) of the detector's velocity; when given and
-            the update receives velocities, each detection is the 4-vector ``[z, v]`` measured through
-            ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)`` (None: velocities are not used in the update).
-        velocity_clutter_density: ``κ_v`` (learnable), the density of a clutter detection's velocity; the
-            clutter intensity of ``[z, v]`` is ``κ(z) κ_v`` (default 1/400: uniform over ±10 px/frame).
-        velocity_outlier: ``ε`` in [0, 1), the probability that a target's detected velocity is an outlier
-            (density ``κ_v``); 0: every velocity is Gaussian (see the module docstring).
+        motion: a linear motion model (default ``ConstantVelocity(2, options.q)``), state ``[x, y, vx, vy]``.
+        measurement: a linear measurement model (default ``LinearPosition(2, options.sigma)``).
+        options: :class:`~torchtrack.filters.tracker_config.GMPHDFilterOptions` (their meaning and bounds there):
+            ``p_S``, ``p_D``, ``κ`` (learnable), ``area`` of the log-likelihood's ``−λ_c`` term (None: dropped),
+            the χ² gate's probability (``γ`` its quantile, ``m`` dof), prune threshold ``T``, merge threshold
+            ``U`` and rounds (see :func:`merge`), ``capacity`` ``J_max``, extraction threshold, ``chunk`` (the
+            update's measurements per block) and the detector's velocity: with ``velocity_sigma`` ``σ_v``
+            (learnable) and velocities given to the update, each detection is the 4-vector ``[z, v]`` measured
+            through ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)``, the clutter intensity of ``[z, v]`` is
+            ``κ(z) κ_v`` (``velocity_clutter_density``, learnable) and ``velocity_outlier`` is ``ε`` of the
+            module docstring (None ``σ_v``: velocities are not used in the update).
     """
 
     def __init__(self, motion: MotionModel | None = None, measurement: MeasurementModel | None = None,
-                 p_survival: float = _F.p_survival, p_detection: float = _F.p_detection,
-                 clutter_density: float = _F.clutter_density, area: float | None = _F.area,
-                 gate_probability: float = _F.gate_probability, prune_threshold: float = _F.prune_threshold,
-                 merge_threshold: float = _F.merge_threshold, merge_rounds: int = _F.merge_rounds,
-                 capacity: int = _F.capacity, extract_threshold: float = _F.extract_threshold, chunk: int = _F.chunk,
-                 velocity_sigma: float | None = _F.velocity_sigma,
-                 velocity_clutter_density: float = _F.velocity_clutter_density,
-                 velocity_outlier: float = _F.velocity_outlier):
+                 options: GMPHDFilterOptions | None = None):
         super().__init__()
-        self.motion = motion if motion is not None else ConstantVelocity(2, q=_F.q)
-        self.measurement = measurement if measurement is not None else LinearPosition(2, sigma=_F.sigma)
+        o = self.options = options if options is not None else GMPHDFilterOptions()
+        self.motion = motion if motion is not None else ConstantVelocity(2, q=o.q)
+        self.measurement = measurement if measurement is not None else LinearPosition(2, sigma=o.sigma)
         if not (self.motion.is_linear and self.measurement.is_linear):
             raise TorchtrackError("GMPHD needs linear motion and measurement models")
         if self.measurement.state_dim != self.motion.state_dim:
             raise TorchtrackError(f"measurement state_dim {self.measurement.state_dim} != motion state_dim "
                                   f"{self.motion.state_dim}")
-        if not 0.0 < gate_probability <= 1.0:
-            raise TorchtrackError(f"gate_probability must lie in (0, 1]; got {gate_probability}")
-        if capacity < 1:
-            raise TorchtrackError(f"capacity must be >= 1; got {capacity}")
-        if not 0.0 <= velocity_outlier < 1.0:
-            raise TorchtrackError(f"velocity_outlier must lie in [0, 1); got {velocity_outlier}")
-        if prune_threshold <= 0 or merge_threshold < 0 or extract_threshold <= 0 or merge_rounds < 1:
-            raise TorchtrackError("prune_threshold and extract_threshold must be > 0, merge_threshold >= 0, "
-                                  "merge_rounds >= 1")
-        self.p_survival = Probability(p_survival, "p_survival")
-        self.p_detection = Probability(p_detection, "p_detection")
-        self.clutter_density = Positive(clutter_density, "clutter_density")
-        self.area = area
+        self.p_survival = Probability(o.p_survival, "p_survival")
+        self.p_detection = Probability(o.p_detection, "p_detection")
+        self.clutter_density = Positive(o.clutter_density, "clutter_density")
+        self.area = o.area
         m = self.measurement.meas_dim
-        self.gate = chi2_quantile(gate_probability, m)
-        self.prune_threshold = prune_threshold
-        self.merge_threshold = merge_threshold
-        self.merge_rounds = merge_rounds
-        self.capacity = capacity
-        self.extract_threshold = extract_threshold
-        self.chunk = chunk
+        self.gate = chi2_quantile(o.gate_probability, m)
+        self.gate_velocity = chi2_quantile(o.gate_probability, m + 2)   # gate of [z, v] (velocity_sigma)
         self.cap_hits = 0
-        self.gate_velocity = chi2_quantile(gate_probability, m + 2)   # gate of [z, v] (velocity_sigma)
-        self.velocity_sigma = None if velocity_sigma is None else Positive(velocity_sigma, "velocity_sigma")
-        self.velocity_clutter_density = (None if velocity_sigma is None
-                                         else Positive(velocity_clutter_density, "velocity_clutter_density"))
-        self.velocity_outlier = velocity_outlier
+        self.velocity_sigma = None if o.velocity_sigma is None else Positive(o.velocity_sigma, "velocity_sigma")
+        self.velocity_clutter_density = (None if o.velocity_sigma is None
+                                         else Positive(o.velocity_clutter_density, "velocity_clutter_density"))
 
     @property
     def state_dim(self) -> int:
@@ -237,8 +204,8 @@ class GMPHD(nn.Module):
                 raise TorchtrackError("GMPHD velocity_sigma needs H = [I 0] and a state [position, velocity]")
             R_v = torch.block_diag(R, self.velocity_sigma().pow(2) * torch.eye(2, dtype=R.dtype, device=R.device))
             log_kv = torch.log(self.velocity_clutter_density())
-            if self.velocity_outlier > 0:
-                log_eps = torch.tensor(math.log(self.velocity_outlier), dtype=R.dtype, device=R.device)
+            if self.options.velocity_outlier > 0:
+                log_eps = torch.tensor(math.log(self.options.velocity_outlier), dtype=R.dtype, device=R.device)
         F = self.motion.transition_matrix(dt)
         return Matrices(F, self.motion.process_noise(dt), H, R, ps, pd, kappa,
                         torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa), torch.kron(F, F).T, selects,
@@ -254,16 +221,14 @@ class GMPHD(nn.Module):
         log_w = state.log_weight + mats.log_p_survival
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
-    def update(self, state: MixtureState, z: Tensor, mats: Matrices, clutter: Tensor | None = None,
-               velocity: Tensor | None = None, likelihood: bool = True,
-               pair_loglik: Tensor | None = None,
+    def update(self, state: MixtureState, z: Tensor, mats: Matrices, velocity: Tensor | None = None,
+               likelihood: bool = True, pair_loglik: Tensor | None = None,
                label_index: tuple[Tensor, int] | None = None) -> tuple[MixtureState, UpdateInfo]:
         """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
 
-        ``clutter`` optionally gives ``κ(z_k)`` per measurement ``(M,)``; by default the uniform
-        ``clutter_density``. ``velocity (M, 2)``: the detector's velocities, used as measurements (with
-        ``H = I``, ``R_4 = blockdiag(R, σ_v² I)``, clutter ``κ κ_v``) when the filter has a
-        ``velocity_sigma``, ignored otherwise. Returns the posterior (missed-detection components first,
+        Clutter has the uniform intensity ``clutter_density``. ``velocity (M, 2)``: the detector's velocities,
+        used as measurements (with ``H = I``, ``R_4 = blockdiag(R, σ_v² I)``, clutter ``κ κ_v``) when the filter
+        has a ``velocity_sigma``, ignored otherwise. Returns the posterior (missed-detection components first,
         then the gated detection components, ``J + G`` in all) and :class:`UpdateInfo` (its
         ``log_likelihood`` is None with ``likelihood=False``, which saves its operations when streaming).
         ``pair_loglik (J, M)``: a further log-likelihood ratio per (component, detection) pair, added to each
@@ -277,10 +242,9 @@ class GMPHD(nn.Module):
         m_dim = H.shape[0]
         if z.dim() != 2 or z.shape[1] != m_dim:
             raise TorchtrackError(f"measurements must have shape (M, {m_dim}); got {tuple(z.shape)}")
-        if z.dtype != state.mean.dtype:
-            z = z.to(state.mean.dtype)
+        z = z.to(state.mean.dtype)
         pd, log_pd = mats.p_detection, mats.log_p_detection
-        log_kappa = (mats.log_clutter if clutter is None else torch.log(clutter)).expand(z.shape[0])
+        log_kappa = mats.log_clutter.expand(z.shape[0])
         gate = self.gate
         robust = False
         if velocity is not None and mats.R_velocity is not None:
@@ -321,9 +285,9 @@ class GMPHD(nn.Module):
         support = None
         if label_index is not None:
             support = torch.zeros(label_index[1], dtype=live_w.dtype, device=live_w.device)
-        M, C = z.shape[0], self.chunk
+        M, C = z.shape[0], self.options.chunk
         for start in range(0, M, C):
-            zc, kc = (z, log_kappa) if M <= C else (z[start:start + C], log_kappa[start:start + C])
+            zc, kc = z[start:start + C], log_kappa[start:start + C]
             nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
             nis, loglik = innovations_likelihood(gain, nu)      # (J, C)  νᵀ S⁻¹ ν, log N(ν; 0, S)
             if robust:
@@ -335,7 +299,7 @@ class GMPHD(nn.Module):
                 gated = (nis <= gate) & state.mask.unsqueeze(1)
                 log_num = torch.where(gated, base.unsqueeze(1) + loglik, neg_inf)
             if pair_loglik is not None:
-                log_num = log_num + (pair_loglik if M <= C else pair_loglik[:, start:start + C])
+                log_num = log_num + pair_loglik[:, start:start + C]
             den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
             if support is not None and state.size:
                 support = support.index_add(0, label_index[0], (log_num - kc.unsqueeze(0)).exp().sum(1))
@@ -346,13 +310,11 @@ class GMPHD(nn.Module):
             pair_k.append(kk + start if start else kk)
             pair_logw.append(log_num[jj, kk] - den[kk])
             log_den.append(den)
-        if len(log_den) == 1:
-            log_den_t, jj, kk, det_logw = log_den[0], pair_j[0], pair_k[0], pair_logw[0]
+        if log_den:
+            log_den_t, jj, kk, det_logw = (torch.cat(x) for x in (log_den, pair_j, pair_k, pair_logw))
         else:
-            log_den_t = torch.cat(log_den) if log_den else log_kappa
-            jj = torch.cat(pair_j) if pair_j else torch.empty(0, dtype=torch.long, device=z.device)
-            kk = torch.cat(pair_k) if pair_k else torch.empty(0, dtype=torch.long, device=z.device)
-            det_logw = torch.cat(pair_logw) if pair_logw else live_w[:0]
+            jj = kk = torch.empty(0, dtype=torch.long, device=z.device)
+            log_den_t, det_logw = log_kappa, live_w[:0]
         nu_sel = z.index_select(0, kk) - z_hat.index_select(0, jj)          # (G, m)
         det_mean = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K.index_select(0, jj),
                                  nu_sel.unsqueeze(-1)).squeeze(-1)          # m + K ν per gated pair
@@ -381,12 +343,12 @@ class GMPHD(nn.Module):
 
     def prune(self, state: MixtureState) -> MixtureState:
         """Drop empty slots and components with weight below ``prune_threshold``."""
-        keep = state.mask & (state.log_weight > math.log(self.prune_threshold))
-        return state.select(keep)
+        lw = state.log_weight
+        return state.select(state.mask & (lw > scalar(math.log(self.options.prune_threshold), lw)))
 
     def cap(self, state: MixtureState, capacity: int | None = None) -> MixtureState:
         """Keep the ``capacity`` highest-weight components; a hit cap is logged and counted."""
-        capacity = self.capacity if capacity is None else capacity
+        capacity = self.options.capacity if capacity is None else capacity
         if state.size <= capacity:
             return state
         self.cap_hits += 1
@@ -395,37 +357,17 @@ class GMPHD(nn.Module):
         idx = torch.topk(state.log_weight.detach(), capacity).indices
         return state.select(idx)
 
-    def merge(self, state: MixtureState, keep_label: Tensor | None = None) -> MixtureState:
-        """Merge components within squared Mahalanobis distance ``merge_threshold`` (see :func:`merge`)."""
-        return merge(state, self.merge_threshold, self.merge_rounds, keep_label)
-
     def reduce(self, state: MixtureState, keep_label: Tensor | None = None) -> MixtureState:
         """Prune, merge, cap (Vo & Ma 2006, Table II); ``keep_label (P,)`` labels that win a merge
         (see :func:`merge`). More than ``2 capacity`` components are capped before merging, so the
         pairwise merge stays bounded in memory."""
-        lw = state.log_weight
-        keep = (state.mask & (lw > scalar(math.log(self.prune_threshold), lw))).nonzero().squeeze(1)
-        J = int(keep.shape[0])
-        if J > 2 * self.capacity or J <= 1 or self.merge_threshold <= 0:
-            state = self.cap(state.select(keep), 2 * self.capacity)   # bounds the O(J²) merge
-            return self.cap(self.merge(state, keep_label))
-        # prune and sort by weight with one composed index (what prune + merge's sort select)
-        order = keep[torch.argsort(state.log_weight[keep], descending=True)]   # indices carry no gradient
-        state = MixtureState(state.log_weight.index_select(0, order), state.mean.index_select(0, order),
-                             state.cov.index_select(0, order), state.label.index_select(0, order),
-                             torch.ones(J, dtype=torch.bool, device=keep.device))
-        return self.cap(_merge_sorted(state, self.merge_threshold, self.merge_rounds, keep_label))
+        state = self.cap(self.prune(state), 2 * self.options.capacity)   # bounds the O(J²) merge
+        return self.cap(merge(state, self.options.merge_threshold, self.options.merge_rounds, keep_label))
 
     def extract(self, state: MixtureState) -> Tensor:
         """Bool mask ``(J,)`` of components reported as targets (weight above ``extract_threshold``)."""
         lw = state.log_weight
-        return state.mask & (lw > scalar(math.log(self.extract_threshold), lw))
-
-    def gaussian_birth(self, mean: Tensor, std: Tensor, log_weight: Tensor, label: Tensor) -> MixtureState:
-        """Birth components ``N(mean, diag(std²))`` with log-weights ``log_weight``; ``mean, std (B, n)``."""
-        cov = torch.diag_embed(std.pow(2))
-        return MixtureState(log_weight, mean, cov, label, torch.ones(label.shape[0], dtype=torch.bool,
-                                                                    device=label.device))
+        return state.mask & (lw > scalar(math.log(self.options.extract_threshold), lw))
 
 
 def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
@@ -473,75 +415,7 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     """
     if state.size <= 1 or threshold <= 0:
         return state
-    order = torch.argsort(state.log_weight.detach(), descending=True)
-    return _merge_sorted(state.select(order), threshold, rounds, keep_label)
-
-
-def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> Tensor | None:
-    """The greedy leader rounds of :func:`merge` on screened candidate pairs; None when nothing merges."""
-    J = mean.shape[0]
-    idx = torch.arange(J, device=mean.device)
-    ii, jj = _within_reach(mean, cov, threshold)   # i within reach of heavier j
-    if ii.numel() == 0:
-        return None
-    big = torch.full((J,), J, dtype=torch.long, device=mean.device)
-    # round 1 (every component alive): leaders have no heavier component within reach
-    blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii, True)
-    # amin over the candidates: a non-candidate pair offers J, the initial value (no bool indexing)
-    none = scalar(J, jj)
-    first = big.scatter_reduce(0, ii, torch.where(blocked[jj], none, jj), "amin")
-    joins = first < J
-    owner = torch.where(joins, first, idx)
-    alive = blocked & ~joins
-    for _ in range(rounds - 1 if bool(alive.any()) else 0):
-        live = alive[ii] & alive[jj]
-        blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii[live], True)
-        leader = alive & ~blocked
-        cand = alive[ii] & leader[jj]
-        first = big.scatter_reduce(0, ii, torch.where(cand, jj, none), "amin")   # heaviest leader within reach
-        joins = alive & ~leader & (first < J)
-        owner = torch.where(joins, first, owner)
-        alive = alive & ~leader & ~joins
-        if not bool(alive.any()):
-            break
-    return owner
-
-
-DENSE_MERGE = 128
-"""Up to this many components the merge tests every pair at once (one batched solve, few operations);
-above it, pairs are screened on positions first (:func:`_within_reach`, memory ``O(candidates)``)."""
-
-
-def _reach_matrix(mean: Tensor, cov: Tensor, threshold: float) -> Tensor:
-    """Bool ``(J, J)``: ``[i, j]`` when ``j < i`` and ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U`` (every pair in one
-    batched triangular solve ``L_i⁻¹ [m_1 − m_i, …, m_J − m_i]``)."""
-    L, _ = torch.linalg.cholesky_ex(cov)
-    diff = (mean.unsqueeze(0) - mean.unsqueeze(1)).transpose(1, 2)              # [i, :, j] = m_j − m_i
-    y = torch.linalg.solve_triangular(L, diff, upper=False)                    # (J, n, J)
-    return torch.tril(y.pow(2).sum(1) <= scalar(threshold, y), diagonal=-1)
-
-
-def _owners_dense(reach: Tensor, rounds: int) -> Tensor:
-    """The greedy leader rounds of :func:`merge` on a dense reach matrix; ``owner (J,)`` per component."""
-    owner = torch.arange(reach.shape[0], device=reach.device)
-    live = reach                                   # [i, j]: alive heavier j within reach of i (all alive)
-    alive = None
-    for _ in range(rounds):
-        blocked = live.any(1)                      # an alive heavier component within reach: not a leader
-        leader = ~blocked if alive is None else alive & ~blocked
-        has, first = (live & leader.unsqueeze(0)).max(1)     # first (heaviest) leader within reach
-        if alive is not None:
-            blocked = blocked & alive
-        owner = torch.where(blocked & has, first, owner)     # joins its leader
-        alive = blocked & ~has
-        if not bool(alive.any()):
-            break
-        live = reach & alive.unsqueeze(0)
-    return owner
-
-
-def _merge_sorted(state: MixtureState, threshold: float, rounds: int, keep_label: Tensor | None) -> MixtureState:
-    """:func:`merge` of a compacted mixture already sorted by decreasing weight."""
+    state = state.select(torch.argsort(state.log_weight.detach(), descending=True))
     J = state.size
     mean, cov, log_w = state.mean, state.cov, state.log_weight
     # membership from detached tensors: a selection without gradient (cheaper than a no_grad block)
@@ -586,3 +460,60 @@ def _merge_sorted(state: MixtureState, threshold: float, rounds: int, keep_label
             label = label.clone().scatter_(0, gid[win], state.label[win])
     return MixtureState(torch.log(wsum) + w_max, mu, P, label,
                         torch.ones(G, dtype=torch.bool, device=w.device))
+
+
+def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> Tensor | None:
+    """The greedy leader rounds of :func:`merge` on screened candidate pairs; None when nothing merges."""
+    J = mean.shape[0]
+    ii, jj = _within_reach(mean, cov, threshold)   # i within reach of heavier j
+    if ii.numel() == 0:
+        return None
+    big = torch.full((J,), J, dtype=torch.long, device=mean.device)
+    # amin over the candidates: a non-candidate pair offers J, the initial value (no bool indexing)
+    none = scalar(J, jj)
+    owner = torch.arange(J, device=mean.device)
+    alive = torch.ones(J, dtype=torch.bool, device=mean.device)
+    for _ in range(rounds):
+        live = alive[ii] & alive[jj]
+        # leaders: alive, with no alive heavier component within reach
+        blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii[live], True)
+        leader = alive & ~blocked
+        cand = alive[ii] & leader[jj]
+        first = big.scatter_reduce(0, ii, torch.where(cand, jj, none), "amin")   # heaviest leader within reach
+        joins = alive & ~leader & (first < J)
+        owner = torch.where(joins, first, owner)
+        alive = alive & ~leader & ~joins
+        if not bool(alive.any()):
+            break
+    return owner
+
+
+DENSE_MERGE = 128
+"""Up to this many components the merge tests every pair at once (one batched solve, few operations);
+above it, pairs are screened on positions first (:func:`_within_reach`, memory ``O(candidates)``)."""
+
+
+def _reach_matrix(mean: Tensor, cov: Tensor, threshold: float) -> Tensor:
+    """Bool ``(J, J)``: ``[i, j]`` when ``j < i`` and ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U`` (every pair in one
+    batched triangular solve ``L_i⁻¹ [m_1 − m_i, …, m_J − m_i]``)."""
+    L, _ = torch.linalg.cholesky_ex(cov)
+    diff = (mean.unsqueeze(0) - mean.unsqueeze(1)).transpose(1, 2)              # [i, :, j] = m_j − m_i
+    y = torch.linalg.solve_triangular(L, diff, upper=False)                    # (J, n, J)
+    return torch.tril(y.pow(2).sum(1) <= scalar(threshold, y), diagonal=-1)
+
+
+def _owners_dense(reach: Tensor, rounds: int) -> Tensor:
+    """The greedy leader rounds of :func:`merge` on a dense reach matrix; ``owner (J,)`` per component."""
+    owner = torch.arange(reach.shape[0], device=reach.device)
+    alive = torch.ones_like(owner, dtype=torch.bool)
+    live = reach                                   # [i, j]: alive heavier j within reach of i
+    for _ in range(rounds):
+        blocked = live.any(1) & alive              # an alive heavier component within reach: not a leader
+        leader = alive & ~blocked
+        has, first = (live & leader.unsqueeze(0)).max(1)     # first (heaviest) leader within reach
+        owner = torch.where(blocked & has, first, owner)     # joins its leader
+        alive = blocked & ~has
+        if not bool(alive.any()):
+            break
+        live = reach & alive.unsqueeze(0)
+    return owner

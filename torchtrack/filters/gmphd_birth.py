@@ -31,55 +31,47 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.tracker_config import GMPHDBirthOptions
+from torchtrack.filters.tracker_config import GMPHDBirthOptions, VelocityMapOptions
 from torchtrack.gaussian import scalar
 from torchtrack.params import Positive
 
-_B = GMPHDBirthOptions()   # the keyword defaults of AdaptiveBirth (one source: tracker_config)
-
 
 class VelocityMap:
-    """Grid of accumulated velocities; ``cell`` pixels per cell, ``shape = (rows, cols)`` cells starting at
-    ``origin = (x0, y0)``. Positions outside the grid are ignored (update) or answer nothing (lookup)."""
+    """Grid of accumulated velocities (:class:`~torchtrack.filters.tracker_config.VelocityMapOptions`: ``cell``
+    pixels per cell, ``shape = (rows, cols)`` cells starting at ``origin = (x0, y0)``, ``min_count``,
+    ``max_spread``, ``decay``). Positions outside the grid are ignored (update) or answer nothing (lookup)."""
 
-    def __init__(self, cell: float = 10.0, origin: tuple[float, float] = (0.0, 0.0),
-                 shape: tuple[int, int] = (512, 512), min_count: int = 2, max_spread: float = 2.0,
-                 decay: float = 1.0, dtype: torch.dtype = torch.float32, device=None):
-        if cell <= 0 or min_count < 1 or max_spread <= 0 or not 0 < decay <= 1:
-            raise TorchtrackError("velocity map: cell > 0, min_count >= 1, max_spread > 0, 0 < decay <= 1")
-        self.cell = cell
-        self.origin = origin
-        self.shape = shape
-        self.min_count = min_count
-        self.max_spread = max_spread
-        self.decay = decay
+    def __init__(self, options: VelocityMapOptions | None = None, dtype: torch.dtype = torch.float32, device=None):
+        self.options = options if options is not None else VelocityMapOptions()
         self.dtype, self.device = dtype, device
         self._geom: tuple[Tensor, Tensor, Tensor] | None = None   # origin, grid size, strides as tensors
         self.reset()
 
     def reset(self) -> None:
-        n = self.shape[0] * self.shape[1]
+        n = self.options.shape[0] * self.options.shape[1]
         self.count = torch.zeros(n, dtype=self.dtype, device=self.device)
         self.sum_v = torch.zeros(n, 2, dtype=self.dtype, device=self.device)
         self.sum_v2 = torch.zeros(n, dtype=self.dtype, device=self.device)
 
     def _cells(self, pos: Tensor) -> tuple[Tensor, Tensor]:
         """Flat cell index ``(E,)`` (clamped into the grid) and a bool ``(E,)``: inside the grid."""
+        o = self.options
         if self._geom is None or self._geom[0].dtype != pos.dtype or self._geom[0].device != pos.device:
-            self._geom = (torch.tensor(self.origin, dtype=pos.dtype, device=pos.device),
-                          torch.tensor([self.shape[1], self.shape[0]], device=pos.device),        # cols, rows
-                          torch.tensor([1, self.shape[1]], device=pos.device))                    # flat strides
+            self._geom = (torch.tensor(o.origin, dtype=pos.dtype, device=pos.device),
+                          torch.tensor([o.shape[1], o.shape[0]], device=pos.device),        # cols, rows
+                          torch.tensor([1, o.shape[1]], device=pos.device))                 # flat strides
         origin, size, stride = self._geom
-        colrow = torch.floor((pos - origin) / self.cell).long()                                     # (E, 2)
+        colrow = torch.floor((pos - origin) / o.cell).long()                                  # (E, 2)
         inside = ((colrow >= 0) & (colrow < size)).all(1)
         return (torch.minimum(colrow.clamp_min(0), size - 1) * stride).sum(1), inside
 
     def update(self, pos: Tensor, vel: Tensor) -> None:
         """Add estimates ``pos, vel (E, 2)`` to their cells (no gradient)."""
-        if self.decay < 1:
-            self.count.mul_(self.decay)
-            self.sum_v.mul_(self.decay)
-            self.sum_v2.mul_(self.decay)
+        decay = self.options.decay
+        if decay < 1:
+            self.count.mul_(decay)
+            self.sum_v.mul_(decay)
+            self.sum_v2.mul_(decay)
         if pos.shape[0] == 0:
             return
         pos, vel = pos.detach().to(self.dtype), vel.detach().to(self.dtype)
@@ -95,7 +87,8 @@ class VelocityMap:
         c = self.count[cell]
         mean = self.sum_v[cell] / c.clamp_min(1e-12).unsqueeze(1)
         spread = self.sum_v2[cell] / c.clamp_min(1e-12) - mean.pow(2).sum(1)
-        valid = inside & (c >= self.min_count) & (spread <= self.max_spread ** 2) & (mean.norm(dim=1) > 0)
+        valid = (inside & (c >= self.options.min_count) & (spread <= self.options.max_spread ** 2)
+                 & (mean.norm(dim=1) > 0))
         return mean.to(pos.dtype), valid
 
 
@@ -112,42 +105,21 @@ class BirthConstants(NamedTuple):
 class AdaptiveBirth(nn.Module):
     """Measurement-driven birth with velocity initialisation from a velocity map and/or the detector.
 
-    Args:
-        birth_weight: weight of each birth component (learnable).
-        sigma_pos: birth position standard deviation (px; learnable).
-        sigma_vel_unknown: velocity std when no velocity is known (px/frame; learnable).
-        sigma_vel_detector: velocity std when initialised from the detector's velocity (learnable).
-        sigma_vel_map: velocity std when initialised from the velocity map (learnable).
-        distance_threshold: ``T_B`` in px (eq. 4).
-        suppress_weight: predicted components below this weight do not explain measurements.
-        use_detector_velocity, use_velocity_map: the two enhancements of eq. 6.
-        velocity_map: keyword arguments of :class:`VelocityMap`.
-        Defaults: :class:`~torchtrack.filters.tracker_config.GMPHDBirthOptions`.
+    ``options``: :class:`~torchtrack.filters.tracker_config.GMPHDBirthOptions` (meaning and defaults there); the
+    birth weight and the position and velocity standard deviations are learnable parameters.
     """
 
-    def __init__(self, birth_weight: float = _B.birth_weight, sigma_pos: float = _B.sigma_pos,
-                 sigma_vel_unknown: float = _B.sigma_vel_unknown, sigma_vel_detector: float = _B.sigma_vel_detector,
-                 sigma_vel_map: float = _B.sigma_vel_map, distance_threshold: float = _B.distance_threshold,
-                 suppress_weight: float = _B.suppress_weight, use_detector_velocity: bool = _B.use_detector_velocity,
-                 use_velocity_map: bool = _B.use_velocity_map, velocity_map: dict | None = None):
+    def __init__(self, options: GMPHDBirthOptions | None = None):
         super().__init__()
-        self.birth_weight = Positive(birth_weight, "birth_weight")
-        self.sigma_pos = Positive(sigma_pos, "birth sigma_pos")
-        self.sigma_vel_unknown = Positive(sigma_vel_unknown, "birth sigma_vel_unknown")
-        self.sigma_vel_detector = Positive(sigma_vel_detector, "birth sigma_vel_detector")
-        self.sigma_vel_map = Positive(sigma_vel_map, "birth sigma_vel_map")
-        if distance_threshold < 0:
-            raise TorchtrackError(f"birth distance_threshold must be >= 0; got {distance_threshold}")
-        self.distance_threshold = distance_threshold
-        self.suppress_weight = suppress_weight
-        self.use_detector_velocity = use_detector_velocity
-        self.use_velocity_map = use_velocity_map
-        self.velocity_map_options = dict(velocity_map or {})
+        o = self.options = options if options is not None else GMPHDBirthOptions()
+        self.birth_weight = Positive(o.birth_weight, "birth_weight")
+        self.sigma_pos = Positive(o.sigma_pos, "birth sigma_pos")
+        self.sigma_vel_unknown = Positive(o.sigma_vel_unknown, "birth sigma_vel_unknown")
+        self.sigma_vel_detector = Positive(o.sigma_vel_detector, "birth sigma_vel_detector")
+        self.sigma_vel_map = Positive(o.sigma_vel_map, "birth sigma_vel_map")
 
     def new_velocity_map(self, dtype: torch.dtype, device=None) -> VelocityMap | None:
-        if not self.use_velocity_map:
-            return None
-        return VelocityMap(dtype=dtype, device=device, **self.velocity_map_options)
+        return VelocityMap(self.options.velocity_map, dtype, device) if self.options.use_velocity_map else None
 
     def birth_measurements(self, pred_pos: Tensor, pred_log_w: Tensor, z: Tensor, chunk: int = 4096) -> Tensor:
         """Bool ``(M,)``: measurements farther than ``T_B`` from every predicted position (eq. 4).
@@ -157,14 +129,11 @@ class AdaptiveBirth(nn.Module):
         if pred_pos.shape[0] == 0 or z.shape[0] == 0:
             return torch.ones(z.shape[0], dtype=torch.bool, device=z.device)
         # a component below the suppression weight is infinitely far (same minimum as dropping it)
-        far = pred_log_w <= scalar(math.log(self.suppress_weight), pred_log_w)
-        inf, reach = scalar(float("inf"), z), scalar(self.distance_threshold ** 2, z)
+        far = pred_log_w <= scalar(math.log(self.options.suppress_weight), pred_log_w)
+        inf, reach = scalar(float("inf"), z), scalar(self.options.distance_threshold ** 2, z)
         p = pred_pos.detach().unsqueeze(0)      # a selection: no gradient (cheaper than a no_grad block)
-        M = z.shape[0]
-        if M <= chunk:
-            return torch.where(far, inf, (z.unsqueeze(1) - p).pow(2).sum(-1)).amin(1) > reach
         out = []
-        for start in range(0, M, chunk):
+        for start in range(0, z.shape[0], chunk):
             d2 = (z[start:start + chunk].unsqueeze(1) - p).pow(2).sum(-1)   # (C, J)
             out.append(torch.where(far, inf, d2).amin(1) > reach)
         return torch.cat(out)
@@ -187,7 +156,7 @@ class AdaptiveBirth(nn.Module):
         B = z.shape[0]
         vel = torch.zeros(B, 2, dtype=z.dtype, device=z.device)
         s_vel = c.sigma_vel_unknown.expand(B)
-        if velocity is not None and self.use_detector_velocity:
+        if velocity is not None and self.options.use_detector_velocity:
             vel = velocity
             s_vel = c.sigma_vel_detector.expand(B)
         if vmap is not None:

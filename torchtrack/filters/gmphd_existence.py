@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.filters.gmphd_labels import find_labels
+from torchtrack.filters.gmphd_labels import value_of_labels
 
 if TYPE_CHECKING:
     from torchtrack.filters.gmphd import Matrices, MixtureState
@@ -45,10 +45,7 @@ def bernoulli_step(existence: LabelExistence, labels: Tensor, mass: Tensor, supp
     """One frame: ``labels (L,)`` of the predicted mixture, their predicted masses ``W_ℓ (L,)`` and supports
     ``Σ_z Σ_{j∈ℓ} p_D w_j g_j(z)/κ(z) (L,)`` (:attr:`UpdateInfo.label_support`). Returns the frame's
     ``Σ_ℓ log(1 − r⁻ p_D + r⁻ p_D s_ℓ)`` and the posterior existences (module docstring)."""
-    r_pred = mass.clamp(max=1.0)
-    if existence.label.numel():
-        index, known = find_labels(existence.label, labels)
-        r_pred = torch.where(known, p_survival * existence.r[index], r_pred)
+    r_pred = value_of_labels(existence.label, p_survival * existence.r, labels, mass.clamp(max=1.0))
     detected = support / mass.clamp_min(1e-300)          # p_D Σ_z g_ℓ(z)/κ(z)
     factor = 1.0 - r_pred * p_detection + r_pred * detected
     r_post = r_pred * (1.0 - p_detection + detected) / factor

@@ -28,27 +28,15 @@ def _first_of_label(label: Tensor, order: Tensor) -> Tensor:
     return o, first
 
 
-def find_labels(keys: Tensor, query: Tensor) -> tuple[Tensor, Tensor]:
-    """Where each of ``query (Q,)`` is in the unique labels ``keys (K,)``: ``(index (Q,), found (Q,))``;
-    ``index`` is meaningful only where ``found``."""
+def value_of_labels(keys: Tensor, values: Tensor, query: Tensor, default: Tensor) -> Tensor:
+    """The value ``values[k] (K, …)`` of each label of ``query (Q,)`` found as ``keys[k]`` among the unique labels
+    ``keys (K,)``; ``default (Q, …)`` where it is not there."""
     if keys.numel() == 0:
-        return torch.zeros_like(query), torch.zeros(query.shape, dtype=torch.bool, device=query.device)
+        return default
     order = torch.argsort(keys)
-    loc = torch.searchsorted(keys[order], query).clamp(max=keys.numel() - 1)
-    index = order[loc]
-    return index, keys[index] == query
-
-
-def distance_to_previous(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Tensor) -> Tensor:
-    """Euclidean distance ``(E,)`` from each ``pos (E, d)`` to the previous estimate of its label.
-
-    ``prev_label (P,)`` are unique; a label without a previous estimate gets ``inf``.
-    """
-    if prev_label.numel() == 0:
-        return torch.full(label.shape, float("inf"), dtype=pos.dtype, device=pos.device)
-    index, found = find_labels(prev_label, label)
-    d = (pos - prev_pos[index].to(pos.dtype)).norm(dim=-1)
-    return torch.where(found, d, torch.full_like(d, float("inf")))
+    index = order[torch.searchsorted(keys[order], query).clamp(max=keys.numel() - 1)]
+    found = (keys[index] == query).view(-1, *(1,) * (values.dim() - 1))
+    return torch.where(found, values[index], default)
 
 
 def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_pos: Tensor,
@@ -74,7 +62,9 @@ def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_po
         return state, next_label
     lab = state.label[idx]
     pos = state.mean[idx, :pos_dim].detach()
-    dist = distance_to_previous(lab, pos, prev_label, prev_pos)
+    # distance to the label's previous estimate; inf where it has none
+    previous = value_of_labels(prev_label, prev_pos.to(pos.dtype), lab, torch.full_like(pos, float("inf")))
+    dist = (pos - previous).norm(dim=-1)
     by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
     by_dist = by_weight[torch.sort(dist[by_weight], stable=True).indices]
     o, first = _first_of_label(lab, by_dist)
@@ -110,11 +100,7 @@ def relabel(state: MixtureState, old: Tensor, new: Tensor) -> MixtureState:
     changed = old != new
     if not bool(changed.any()):
         return state
-    o, n = old[changed], new[changed]
-    so, perm = torch.sort(o)
-    loc = torch.searchsorted(so, state.label).clamp(max=so.numel() - 1)
-    hit = so[loc] == state.label
-    return state._replace(label=torch.where(hit, n[perm[loc]], state.label))
+    return state._replace(label=value_of_labels(old[changed], new[changed], state.label, state.label))
 
 
 class LostLabels(NamedTuple):
@@ -211,10 +197,7 @@ def confirm_labels(label: Tensor, known: Tensor, tentative: TentativeLabels, ali
 
     Returns the bool mask ``(E,)`` of estimates to report and the tentative labels after this frame.
     """
-    count = torch.ones_like(label)
-    if tentative.label.numel():
-        index, found = find_labels(tentative.label, label)
-        count = torch.where(found, tentative.count[index] + 1, count)
+    count = value_of_labels(tentative.label, tentative.count + 1, label, torch.ones_like(label))
     report = known | (count >= frames)
     wait = ~torch.isin(tentative.label, label) & (tentative.misses < max_misses) & torch.isin(tentative.label, alive)
     new = ~report

@@ -23,7 +23,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.filters.gmphd_labels import find_labels
+from torchtrack.filters.gmphd_labels import value_of_labels
 
 TONE_MATCH_DISTANCE = 3.0
 """An estimate takes the tone of the nearest detection within this many px (:func:`update_tones`)."""
@@ -46,10 +46,7 @@ def no_label_tones(dtype: torch.dtype = torch.float32, device=None) -> LabelTone
 def lookup(tones: LabelTones, label: Tensor) -> Tensor:
     """The tone of each ``label (J,)``; NaN where the label has none."""
     unknown = torch.full(label.shape, float("nan"), dtype=tones.tone.dtype, device=label.device)
-    if tones.label.numel() == 0:
-        return unknown
-    index, found = find_labels(tones.label, label)
-    return torch.where(found, tones.tone[index], unknown)
+    return value_of_labels(tones.label, tones.tone, label, unknown)
 
 
 def tone_log_ratio(component_tone: Tensor, detection_tone: Tensor, sigma: float, outlier: float,
@@ -74,10 +71,7 @@ def update_tones(tones: LabelTones, label: Tensor, position: Tensor, z: Tensor, 
         near, k = dist.min(dim=1)
         hit = near <= max_distance
         lab, t = label[hit], z_tone[k[hit]].to(tones.tone.dtype)
-        old, n = lookup(tones, lab), torch.zeros_like(lab)
-        if tones.label.numel():
-            index, found = find_labels(tones.label, lab)
-            n = torch.where(found, tones.count[index], n)
+        old, n = lookup(tones, lab), value_of_labels(tones.label, tones.count, lab, torch.zeros_like(lab))
         step = torch.clamp(1.0 / (n + 1).to(t.dtype), min=rate)
         new = torch.where(torch.isnan(old), t, old + step * (t - old))
         keep = ~torch.isin(tones.label, lab)

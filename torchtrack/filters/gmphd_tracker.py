@@ -23,7 +23,6 @@ reports one estimate per label (the highest weight).
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -57,10 +56,9 @@ from torchtrack.filters.gmphd_tone import (
     tone_log_ratio,
     update_tones,
 )
+from torchtrack.filters.multitarget import frame_step
 from torchtrack.filters.tracker_config import GMPHDConfig, tracker_config
-from torchtrack.models import ConstantVelocity, LinearPosition
 
-_D = GMPHDConfig()   # the defaults of the keyword arguments below (one source: tracker_config)
 
 class TrackerMemory(NamedTuple):
     """Everything carried from frame to frame besides the mixture (no gradient)."""
@@ -90,50 +88,28 @@ class GMPHDTracker(nn.Module):
     :mod:`torchtrack.filters.multitarget` and ``log_likelihood`` the differentiable training loss.
 
     Args:
-        phd: the :class:`GMPHD` recursion (its parameters: ``p_S, p_D, κ, Q, R``).
-        birth: the :class:`AdaptiveBirth` (parameters: birth weight and covariance).
-        label_fix … tone_handover_gap: the options of the same names of
-            :class:`~torchtrack.filters.tracker_config.GMPHDConfig` (meaning and defaults there).
-        dtype: floating dtype of the streaming state (float32 is fast, float64 accurate).
+        phd: the :class:`GMPHD` recursion (its parameters: ``p_S, p_D, κ, Q, R``; default: ``options.filter``'s).
+        birth: the :class:`AdaptiveBirth` (parameters: birth weight and covariance; default: ``options.birth``'s).
+        options: :class:`~torchtrack.filters.tracker_config.GMPHDConfig` (meaning and defaults there): the label
+            fix, coasting, hand-over, confirmation and tone options, and ``dtype``, the floating dtype of the
+            streaming state (float32 is fast, float64 accurate).
     """
 
-    def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None, label_fix: bool = _D.label_fix,
-                 settled_velocity_var: float = _D.settled_velocity_var, handover_frames: int = _D.handover_frames,
-                 handover_distance: float = _D.handover_distance, coast_threshold: float | None = _D.coast_threshold,
-                 fix_separation: float = _D.fix_separation, merge_priority: bool = _D.merge_priority,
-                 confirm_new: bool | int = _D.confirm_new, confirm_misses: int = _D.confirm_misses,
-                 tone_sigma: float | None = _D.tone_sigma, tone_outlier: float = _D.tone_outlier,
-                 tone_rate: float = _D.tone_rate, tone_handover_gap: float = _D.tone_handover_gap,
-                 dtype: torch.dtype = torch.float32):
+    def __init__(self, phd: GMPHD | None = None, birth: AdaptiveBirth | None = None,
+                 options: GMPHDConfig | None = None):
         super().__init__()
-        self.phd = phd if phd is not None else GMPHD()
-        self.birth = birth if birth is not None else AdaptiveBirth()
-        self.label_fix = label_fix
-        self.settled_velocity_var = settled_velocity_var
-        self.handover_frames = handover_frames
-        self.handover_distance = handover_distance
-        self.coast_threshold = coast_threshold
-        self.fix_separation = fix_separation
-        self.merge_priority = merge_priority
-        frames = 2 if confirm_new is True else 1 if confirm_new is False else confirm_new
+        o = self.options = options if options is not None else GMPHDConfig()
+        self.phd = phd if phd is not None else GMPHD(options=o.filter)
+        self.birth = birth if birth is not None else AdaptiveBirth(o.birth)
+        frames = 2 if o.confirm_new is True else 1 if o.confirm_new is False else o.confirm_new
         if isinstance(frames, bool) or not isinstance(frames, int) or frames < 1:
             raise TorchtrackError("confirm_new must be true, false or a whole number of frames >= 1; "
-                                  f"got {confirm_new!r}")
-        if isinstance(confirm_misses, bool) or not isinstance(confirm_misses, int) or confirm_misses < 0:
-            raise TorchtrackError(f"confirm_misses must be a whole number of frames >= 0; got {confirm_misses!r}")
+                                  f"got {o.confirm_new!r}")
+        if isinstance(o.confirm_misses, bool) or not isinstance(o.confirm_misses, int):
+            raise TorchtrackError(f"confirm_misses must be a whole number of frames >= 0; got {o.confirm_misses!r}")
         self.confirm_frames = frames
-        self.confirm_misses = confirm_misses
-        if tone_sigma is not None and not tone_sigma > 0:
-            raise TorchtrackError(f"tone_sigma must be positive or null; got {tone_sigma!r}")
-        if not 0.0 < tone_outlier < 1.0 or not 0.0 < tone_rate <= 1.0 or not tone_handover_gap > 0:
-            raise TorchtrackError("tone_outlier must lie in (0, 1), tone_rate in (0, 1] and tone_handover_gap be "
-                                  f"positive; got {tone_outlier!r}, {tone_rate!r}, {tone_handover_gap!r}")
-        self.tone_sigma = tone_sigma
-        self.tone_outlier = tone_outlier
-        self.tone_rate = tone_rate
-        self.tone_handover_gap = tone_handover_gap
-        self.to(dtype)
-        self.dtype = dtype
+        self.dtype = getattr(torch, o.dtype)
+        self.to(self.dtype)
         self.reset()
 
     @classmethod
@@ -142,21 +118,12 @@ class GMPHDTracker(nn.Module):
         change from its defaults, the ``gmphd`` section of ``configs/gmphd.yaml``; None: the defaults). The
         options for detections with velocities are used; :func:`~torchtrack.filters.baselines.enhanced_gmphd`
         also follows a positions-only input."""
-        cfg = tracker_config("gmphd", config)
-        f, b = cfg.filter, cfg.birth
-        motion = ConstantVelocity(2, q=f.q)
-        measurement = LinearPosition(2, sigma=f.sigma)
-        filter_options = {k: v for k, v in dataclasses.asdict(f).items() if k not in ("q", "sigma")}
-        birth_options = dataclasses.asdict(b)
-        phd = GMPHD(motion, measurement, **filter_options)
-        birth = AdaptiveBirth(**birth_options)
-        return cls(phd, birth, label_fix=cfg.label_fix, settled_velocity_var=cfg.settled_velocity_var,
-                   handover_frames=cfg.handover_frames, handover_distance=cfg.handover_distance,
-                   coast_threshold=cfg.coast_threshold, fix_separation=cfg.fix_separation,
-                   merge_priority=cfg.merge_priority, confirm_new=cfg.confirm_new, confirm_misses=cfg.confirm_misses,
-                   tone_sigma=cfg.tone_sigma, tone_outlier=cfg.tone_outlier, tone_rate=cfg.tone_rate,
-                   tone_handover_gap=cfg.tone_handover_gap,
-                   dtype={"float32": torch.float32, "float64": torch.float64}[cfg.dtype])
+        return cls(options=tracker_config("gmphd", config))
+
+    @property
+    def tone_sigma(self) -> float | None:
+        """``σ_t`` of the detections' grey levels (None: tones unused)."""
+        return self.options.tone_sigma
 
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
@@ -180,11 +147,11 @@ class GMPHDTracker(nn.Module):
         velocity, ``p̂_{k−1} + v̂_{k−1} dt`` (the position the label is expected at now). With
         ``likelihood=False`` the result's ``log_likelihood`` is None (not computed).
         """
-        phd, birth = self.phd, self.birth
+        phd, birth, o = self.phd, self.birth, self.options
         pred = phd.predict(state, mats)
-        use_tone = tone is not None and self.tone_sigma is not None
-        is_birth = birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.chunk)
-        pair = (tone_log_ratio(lookup(memory.tones, pred.label), tone.to(z.dtype), self.tone_sigma, self.tone_outlier)
+        use_tone = tone is not None and o.tone_sigma is not None
+        is_birth = birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.options.chunk)
+        pair = (tone_log_ratio(lookup(memory.tones, pred.label), tone.to(z.dtype), o.tone_sigma, o.tone_outlier)
                 if use_tone else None)
         groups = label_groups(pred) if likelihood and bernoulli else None
         post, info = phd.update(pred, z, mats, velocity=velocity, likelihood=likelihood, pair_loglik=pair,
@@ -194,59 +161,57 @@ class GMPHDTracker(nn.Module):
             with_velocity = velocity is not None and mats.R_velocity is not None
             log_lik, existence = bernoulli_log_likelihood(existence, groups, info.label_support, mats, z.shape[0],
                                                           with_velocity, phd.area)
-        post = phd.reduce(post, memory.prev_label if self.label_fix and self.merge_priority else None)
+        post = phd.reduce(post, memory.prev_label if o.label_fix and o.merge_priority else None)
         est = phd.extract(post)
         next_label = memory.next_label
-        if self.label_fix:
+        if o.label_fix:
             expected = memory.prev_pos + memory.prev_vel * dt
             post, next_label = label_fix(post, est, memory.prev_label, expected, next_label,
-                                         min_separation=self.fix_separation)
-            sel = best_per_label(post, est)
-            if self.coast_threshold is not None:
-                coast = (~est & (post.log_weight > math.log(self.coast_threshold))
-                         & torch.isin(post.label, memory.prev_label) & ~torch.isin(post.label, post.label[sel]))
-                sel = torch.cat([sel, best_per_label(post, coast)])
-        else:
-            sel = best_per_label(post, est)
+                                         min_separation=o.fix_separation)
+        sel = best_per_label(post, est)
+        if o.label_fix and o.coast_threshold is not None:
+            coast = (~est & (post.log_weight > math.log(o.coast_threshold))
+                     & torch.isin(post.label, memory.prev_label) & ~torch.isin(post.label, post.label[sel]))
+            sel = torch.cat([sel, best_per_label(post, coast)])
         ids = post.label[sel]
         mean = post.mean[sel]
-        pos = mean[:, :2]
-        vel = mean[:, 2:4]
+        pos, vel = mean[:, :2], mean[:, 2:4]
         lost = memory.lost
-        if self.handover_frames > 0:
+        if o.handover_frames > 0:
             tone_of = (lambda lab: lookup(memory.tones, lab)) if use_tone else None
             handed = label_handover(ids, pos.detach(), memory.prev_label, memory.prev_pos, memory.prev_vel, lost,
-                                    self.handover_distance, dt, tone_of,
-                                    self.tone_handover_gap * self.tone_sigma if use_tone else float("inf"))
+                                    o.handover_distance, dt, tone_of,
+                                    o.tone_handover_gap * o.tone_sigma if use_tone else float("inf"))
             post = relabel(post, ids, handed)
             ids = handed
             lost_before = lost
-            lost = update_lost(lost, memory.prev_label, memory.prev_pos, memory.prev_vel, ids, self.handover_frames)
+            lost = update_lost(lost, memory.prev_label, memory.prev_pos, memory.prev_vel, ids, o.handover_frames)
         tones = memory.tones
         if use_tone:
-            tones = update_tones(tones, ids, pos.detach(), z, tone, self.tone_rate, TONE_MATCH_DISTANCE,
+            tones = update_tones(tones, ids, pos.detach(), z, tone, o.tone_rate, TONE_MATCH_DISTANCE,
                                  torch.cat([post.label, lost.label]))
         tentative = memory.tentative
         pending = pos[:0].detach()
         if self.confirm_frames > 1:
             known = torch.isin(ids, memory.prev_label)
-            if self.handover_frames > 0:
+            if o.handover_frames > 0:
                 known = known | torch.isin(ids, lost_before.label)
             report, tentative = confirm_labels(ids, known, tentative, post.label, self.confirm_frames,
-                                               self.confirm_misses)
+                                               o.confirm_misses)
             pending = pos[~report].detach()
             sel, ids, pos, vel = sel[report], ids[report], pos[report], vel[report]
         pos_d, vel_d = pos.detach(), vel.detach()
         if vmap is not None:
             cov = post.cov.detach()[sel]
-            settled = (cov[:, 2, 2] + cov[:, 3, 3]) < self.settled_velocity_var
+            settled = (cov[:, 2, 2] + cov[:, 3, 3]) < o.settled_velocity_var
             vmap.update(pos_d[settled], vel_d[settled])
         zb = z[is_birth]
         vb = velocity[is_birth] if velocity is not None else None
         b_mean, b_std, b_logw = birth.forward(zb, vb, vmap, birth_consts)
         B = int(zb.shape[0])
         b_label = torch.arange(next_label, next_label + B, dtype=torch.long, device=z.device)
-        births = phd.gaussian_birth(b_mean, b_std, b_logw, b_label)
+        births = MixtureState(b_logw, b_mean, torch.diag_embed(b_std.pow(2)), b_label,       # N(mean, diag(std²))
+                              torch.ones(B, dtype=torch.bool, device=z.device))
         if use_tone and B:
             tones = add_births(tones, b_label, tone[is_birth])
         new_state = phd.cap(concat(post, births))
@@ -315,9 +280,7 @@ class GMPHDTracker(nn.Module):
         v = None if velocities is None else torch.as_tensor(velocities, dtype=self.dtype).reshape(-1, 2)
         t = None if tones is None else torch.as_tensor(tones, dtype=self.dtype).reshape(-1)
         s = self._stream
-        dt = 1.0 if s.last_frame is None else float(frame - s.last_frame)
-        if dt <= 0:
-            raise TorchtrackError(f"frames must increase: frame {frame} after {s.last_frame}")
+        dt = frame_step(s.last_frame, frame)
         with torch.inference_mode():
             mats = s.mats.get(dt)
             if mats is None:

@@ -19,7 +19,7 @@ register a factory ``config -> tracker`` here by module path (imported on first 
 from __future__ import annotations
 
 import importlib
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 from typing import Any, Protocol
 
 from torch import Tensor
@@ -45,17 +45,17 @@ TRACKERS: dict[str, str] = {
 """Tracker name → ``module:factory`` taking the tracker's configuration (dataclass, mapping or None)."""
 
 
+def frame_step(last_frame: int | None, frame: int) -> float:
+    """Frames from ``last_frame`` to ``frame`` (1 for the first frame): the ``dt`` of a tracker's step; an error
+    unless frames increase."""
+    if last_frame is not None and frame <= last_frame:
+        raise TorchtrackError(f"frames must increase: frame {frame} after {last_frame}")
+    return 1.0 if last_frame is None else float(frame - last_frame)
+
+
 def tracker_names() -> list[str]:
     """Registered tracker names, in registration order."""
     return list(TRACKERS)
-
-
-def _resolve(path: str) -> Callable:
-    module, _, attr = path.partition(":")
-    obj = importlib.import_module(module)
-    for part in attr.split("."):
-        obj = getattr(obj, part)
-    return obj
 
 
 def make_tracker(name: str, config: Any = None) -> Tracker:
@@ -63,7 +63,8 @@ def make_tracker(name: str, config: Any = None) -> Tracker:
     the built-in defaults, or None (the defaults)."""
     if name not in TRACKERS:
         raise TorchtrackError(f"unknown tracker {name!r}; choose one of {', '.join(TRACKERS)}")
-    tracker = _resolve(TRACKERS[name])(config)
+    module, _, factory = TRACKERS[name].partition(":")
+    tracker = getattr(importlib.import_module(module), factory)(config)
     tracker.reset()
     return tracker
 

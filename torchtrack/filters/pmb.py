@@ -94,9 +94,6 @@ class PMBUpdateInfo(NamedTuple):
     """What an update reveals besides the new state."""
 
     marginals: LBPResult       # association marginals of the existing tracks (*, N, M) and new targets (*, M)
-    log_new_weight: Tensor     # (*, M) log λ_j = log(e_j + κ)
-    new_existence: Tensor      # (*, M) r_j of the Bernoulli each measurement created (before pruning)
-    gated: Tensor              # (*, N, M) bool, pair inside the gate
 
 
 class Estimates(NamedTuple):
@@ -404,7 +401,7 @@ class PMBFilter(nn.Module):
         plw = state.poisson_log_weight + log_1mpd
         plw = plw.masked_fill(plw < math.log(self.prune_poisson), NEG_INF)
         new_state = PMBState(plw, state.poisson_mean, state.poisson_cov, existence, mean, cov, label, next_label)
-        return new_state, PMBUpdateInfo(marg, log_lam, r_new, gated)
+        return new_state, PMBUpdateInfo(marg)
 
     def _compact(self, existence: Tensor, mean: Tensor, cov: Tensor, label: Tensor):
         """Prune ``r < prune_existence`` and keep the ``capacity`` most likely slots (stop-gradient)."""

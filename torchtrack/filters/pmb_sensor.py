@@ -52,13 +52,6 @@ class SensorState(NamedTuple):
     cov: Tensor   # (*, n_s, n_s)
 
 
-def position_matrix(d: int, n: int, like: Tensor) -> Tensor:
-    """``H = [I_d 0]`` of shape ``(d, n)``: the position block of a ``[p, v]`` state."""
-    H = torch.zeros(d, n, dtype=like.dtype, device=like.device)
-    H[:, :d] = torch.eye(d, dtype=like.dtype, device=like.device)
-    return H
-
-
 def v2f_update(pmb: PMBFilter, state: PMBState, z_rel: Tensor, mask: Tensor | None, sensor_mean: Tensor,
                sensor_cov: Tensor | None = None) -> tuple[PMBState, PMBUpdateInfo]:
     """TOMB/P update with relative measurements from a sensor at ``sensor_mean`` (naive / inflated).
@@ -111,7 +104,7 @@ class JointSensorPMB(nn.Module):
     def gnss_update(self, sensor: SensorState, z_gnss: Tensor, mask: Tensor | None = None) -> SensorState:
         """Kalman update of the vehicle by a GNSS fix ``z_gnss (*, d)`` (eq. 6); ``mask (*,)`` False skips."""
         d = z_gnss.shape[-1]
-        H = position_matrix(d, sensor.mean.shape[-1], sensor.mean)
+        H = torch.eye(d, sensor.mean.shape[-1], dtype=sensor.mean.dtype, device=sensor.mean.device)   # [I 0]
         R = self.gnss_var.to(sensor.mean) * torch.eye(d, dtype=sensor.mean.dtype, device=sensor.mean.device)
         upd = kalman_update(sensor.mean, sensor.cov, z_gnss.to(sensor.mean), H, R)
         if mask is None:
@@ -142,5 +135,6 @@ class JointSensorPMB(nn.Module):
         LL = cholesky(symmetrize(info_mat) + ridge, "joint PMB: vehicle information matrix")
         y_comb = chol_solve(LL, info_vec.unsqueeze(-1)).squeeze(-1)
         R_comb = symmetrize(chol_solve(LL, eye.expand_as(LL)))
-        upd = kalman_update(sensor.mean, sensor.cov, y_comb, position_matrix(d, ref.shape[-1], ref), R_comb)
+        H1 = torch.eye(d, ref.shape[-1], dtype=ref.dtype, device=ref.device)   # [I 0]: the vehicle's position
+        upd = kalman_update(sensor.mean, sensor.cov, y_comb, H1, R_comb)
         return SensorState(upd.mean, upd.cov), new_state, info

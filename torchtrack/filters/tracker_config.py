@@ -13,8 +13,8 @@ only, :attr:`GMPHDConfig.positions_only` is applied on top (chosen per frame, :m
 
 from __future__ import annotations
 
+import copy
 import dataclasses
-from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -95,10 +95,6 @@ class GMPHDBirthOptions(Checked):
     velocity_map: VelocityMapOptions = field(default_factory=VelocityMapOptions)
 
 
-def _copy(mapping: Mapping) -> dict:
-    return {k: _copy(v) if isinstance(v, Mapping) else v for k, v in mapping.items()}
-
-
 POSITIONS_ONLY: dict = {"filter": {"q": 1.0, "clutter_density": 3e-4}, "birth": {"sigma_vel_unknown": 16.0},
                         "fix_separation": 12.0}
 """The enhanced GM-PHD's options on detections without velocities, over the others (validation seeds
@@ -145,7 +141,7 @@ class GMPHDConfig(Checked):
     tone_rate: float = option(0.1, gt=0, le=1)
     tone_handover_gap: float = option(6.0, gt=0)
     dtype: str = option("float32", one_of=("float32", "float64"))
-    positions_only: dict = field(default_factory=lambda: _copy(POSITIONS_ONLY))
+    positions_only: dict = field(default_factory=lambda: copy.deepcopy(POSITIONS_ONLY))
 
     def for_input(self, velocities: bool, source: str = "config", prefix: str = "") -> GMPHDConfig:
         """The options for detections with (``velocities``) or without the detector's velocities."""
@@ -226,10 +222,7 @@ def tracker_config(name: str, options: Any = None, source: str = "tracker option
     if name not in DEFAULTS:
         raise TorchtrackError(f"{source}: unknown tracker {name!r}; known: {', '.join(DEFAULTS)}")
     base = DEFAULTS[name]
-    if isinstance(options, type(base)):
-        config = options
-    else:
-        config = from_mapping(type(base), options, source, name, base=base)
+    config = from_mapping(type(base), options, source, name, base=base)     # a dataclass is taken as it is
     if isinstance(config, GMPHDConfig):
         config.for_input(False, source, name)      # the positions-only keys are checked here
     return config
