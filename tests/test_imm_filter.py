@@ -161,7 +161,8 @@ def test_compiled_step_falls_back_to_eager(monkeypatch):
             raise RuntimeError("no compiler here")
         return call
 
-    monkeypatch.setattr(imm_cv, "_COMPILED", {})
+    monkeypatch.setattr(imm_cv.compiled_step, "compiled", None)
+    monkeypatch.setattr(imm_cv.compiled_step, "failed", False)
     monkeypatch.setattr(torch, "compile", broken)
     motion, meas, Tm = _paper_models()
     fast = ConstantVelocityIMM(motion, meas, Tm)

@@ -367,23 +367,3 @@ def sample(mean: Tensor, cov: Tensor, generator: torch.Generator | None = None,
     n = mean.shape[-1]
     eps = torch.randn((*sample_shape, *batch, n, 1), generator=generator, dtype=mean.dtype, device=mean.device)
     return mean + (L @ eps).squeeze(-1)
-
-
-def check_covariance(P: Tensor, name: str, size: int | None = None) -> None:
-    """Raise :class:`TorchtrackError` naming ``name`` unless ``P`` is square, symmetric, finite and PD."""
-    if P.dim() < 2 or P.shape[-1] != P.shape[-2]:
-        raise TorchtrackError(f"{name} must be square (*, n, n); got shape {tuple(P.shape)}")
-    if size is not None and P.shape[-1] != size:
-        raise TorchtrackError(f"{name} must be {size}x{size}; got {P.shape[-1]}x{P.shape[-1]}")
-    if not bool(torch.isfinite(P).all()):
-        raise TorchtrackError(f"{name} contains NaN or infinite entries")
-    scale = P.abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1e-300)
-    if not bool(((P - P.transpose(-1, -2)).abs() <= 1e-6 * scale).all()):
-        raise TorchtrackError(f"{name} is not symmetric")
-    cholesky(P, name)
-
-
-def check_vector(x: Tensor, name: str, size: int) -> None:
-    """Raise :class:`TorchtrackError` unless ``x`` has last dimension ``size``."""
-    if x.dim() < 1 or x.shape[-1] != size:
-        raise TorchtrackError(f"{name} must have shape (*, {size}); got {tuple(x.shape)}")

@@ -23,8 +23,6 @@ the elementwise work into a few loops; on failure it falls back to eager executi
 
 from __future__ import annotations
 
-import warnings
-
 import torch
 from torch import Tensor, nn
 
@@ -37,6 +35,7 @@ from torchtrack.filters.imm import (
     combine,
 )
 from torchtrack.filters.kalman import GaussianState
+from torchtrack.filters.kalman_lanes import Compiled
 from torchtrack.gaussian import cholesky_entries, gaussian_log_likelihood, solve_lower_entries
 from torchtrack.models.measurement import LinearPosition
 from torchtrack.models.motion import ModeControlInput
@@ -168,32 +167,7 @@ def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, transiti
     return log_prob, mean2, cov2, total, cm, cc
 
 
-_COMPILED: dict[str, object] = {}
-
-
-def compiled_step():
-    """:func:`step_packed` through ``torch.compile`` (cached per process).
-
-    Compilation happens at the first call; if it fails there (no compiler, unsupported platform), a
-    warning is issued and this and every later call run the eager :func:`step_packed`.
-    """
-    if "step" in _COMPILED:
-        return _COMPILED["step"]
-    compiled = torch.compile(step_packed, dynamic=False)
-
-    def step(*args):
-        if _COMPILED.get("failed"):
-            return step_packed(*args)
-        try:
-            return compiled(*args)
-        except Exception as exc:  # noqa: BLE001 - any backend failure means eager
-            warnings.warn(f"torch.compile of the IMM step failed ({type(exc).__name__}: {exc}); running eager",
-                          stacklevel=2)
-            _COMPILED["failed"] = True
-            return step_packed(*args)
-
-    _COMPILED["step"] = step
-    return step
+compiled_step = Compiled(step_packed, step_packed, "the IMM step", dynamic=False)
 
 
 class ConstantVelocityIMM(nn.Module):
@@ -278,7 +252,7 @@ class ConstantVelocityIMM(nn.Module):
         combined means ``(T, *, 4)`` and the total log-likelihood ``(*,)``.
         """
         P, q, u, R = self._params(init.mean)
-        step = compiled_step() if compile else step_packed
+        step = compiled_step if compile else step_packed
         batch = init.log_prob.shape[:-1]
         log_prob, m, c = pack(init)
         z = measurements.expand(measurements.shape[0], *batch, 2).reshape(measurements.shape[0], -1, 2)

@@ -322,8 +322,8 @@ class KalmanFilter(_GaussianFilter):
             means, covs, nis_list, oks = [], [], [], []
             total = torch.zeros(B, dtype=z.dtype, device=z.device)
             for k in range(T):
-                fn = lanes.step if predict_first or k > 0 else lanes.update_only
-                x, P, nis_k, ll_k, ok_k = fn(x, P, z[k], None if all_present else present[k], *mats)
+                x, P, nis_k, ll_k, ok_k = lanes.step(x, P, z[k], None if all_present else present[k], *mats,
+                                                     predict_first or k > 0)
                 if history or k == T - 1:
                     means.append(x)
                     covs.append(P)
@@ -354,12 +354,11 @@ class KalmanFilter(_GaussianFilter):
         nis = x.new_empty(slots, B)
         ok = torch.empty(T, B, dtype=torch.bool, device=x.device)
         total = x.new_zeros(B)
-        step = lanes.compiled_step()
         pattern = tuple(lanes.structure(M) for M in mats)
         for k in range(T):
             prev = (x, P) if k == 0 else (mean[(k - 1) % slots], cov[(k - 1) % slots])
-            step(*prev, z[k], None if present is None else present[k], *mats, mean[k % slots], cov[k % slots],
-                 nis[k % slots], total, ok[k], predict_first or k > 0, pattern)
+            lanes.compiled_step(*prev, z[k], None if present is None else present[k], *mats, mean[k % slots],
+                                cov[k % slots], nis[k % slots], total, ok[k], predict_first or k > 0, pattern)
         if not history:
             last = (T - 1) % slots
             mean, cov, nis = mean[last:last + 1], cov[last:last + 1], nis[last:last + 1]

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.kalman_lanes import Compiled
 from torchtrack.gaussian import cholesky_entries, gaussian_log_likelihood, solve_lower_entries
 
 
@@ -67,18 +68,7 @@ def _step(p, v, a, b, c, ll, z, dt: float, q11: float, q12: float, q22: float, r
     return (*s, ll + ll_k, nis_k)
 
 
-_compiled: dict = {}
-
-
-def _stepper(compile: bool):
-    if not compile:
-        return _step
-    if "step" not in _compiled:
-        try:
-            _compiled["step"] = torch.compile(_step, dynamic=False, fullgraph=True)
-        except Exception:  # noqa: BLE001 - compilation unavailable (no compiler): eager is correct, only slower
-            _compiled["step"] = _step
-    return _compiled["step"]
+compiled_step = Compiled(_step, _step, "the Kalman filter engine 'axes'", dynamic=False, fullgraph=True)
 
 
 def split_axes(mean: Tensor, cov: Tensor) -> AxisState:
@@ -114,7 +104,7 @@ def run(measurements: Tensor, mean: Tensor, cov: Tensor, dt: float, params: tupl
     batch = torch.broadcast_shapes(measurements.shape[1:], s.p.shape)
     state = [t.expand(batch).contiguous() for t in s]
     ll = torch.zeros(batch, dtype=measurements.dtype, device=measurements.device)
-    step = _stepper(compile)
+    step = compiled_step if compile else _step
     means, covs, nis_steps = [], [], []
     for k in range(measurements.shape[0]):
         if predict_first or k > 0:
