@@ -87,9 +87,6 @@ class LinearMotion(MotionModel):
         if self.Q.raw.shape[-1] != self.state_dim:
             raise TorchtrackError(f"Q must be {self.state_dim}x{self.state_dim} like F")
 
-    def _ref(self) -> Tensor:
-        return self.Q.raw
-
     def transition_matrix(self, dt) -> Tensor:
         as_dt(dt, self._ref())
         return self.F
@@ -108,9 +105,6 @@ class ConstantPosition(MotionModel):
         self.ndim = ndim
         self.state_dim = ndim
         self.q = Positive(q, "process noise q", requires_grad=learnable)
-
-    def _ref(self) -> Tensor:
-        return self.q.raw
 
     def transition_matrix(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
@@ -147,9 +141,6 @@ class ConstantVelocity(MotionModel):
         self.noise = noise
         self.q = Positive(q, "process noise q", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.q.raw
-
     def transition_matrix(self, dt) -> Tensor:
         return cv_transition(as_dt(dt, self._ref()), self.ndim)
 
@@ -180,9 +171,6 @@ class ConstantAcceleration(MotionModel):
         self.state_dim = 3 * ndim
         self.noise = noise
         self.q = Positive(q, "process noise q", requires_grad=learnable)
-
-    def _ref(self) -> Tensor:
-        return self.q.raw
 
     def transition_matrix(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
@@ -216,12 +204,10 @@ def _turn_block(w: Tensor, dt: Tensor) -> Tensor:
     return torch.stack([torch.stack(r, -1) for r in rows], -2)
 
 
-def _acceleration_gain(dt: Tensor) -> Tensor:
-    """``G`` mapping a 2-D acceleration into ``[x, y, vx, vy]``: ``[[dt²/2 I], [dt I]]``."""
-    zero = torch.zeros_like(dt)
-    h = dt**2 / 2
-    rows = [[h, zero], [zero, h], [dt, zero], [zero, dt]]
-    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+def acceleration_gain(dt: Tensor, ndim: int = 2) -> Tensor:
+    """``G = [[dt²/2 I], [dt I]] (*dt.shape, 2d, d)``, mapping a ``d``-axis acceleration into ``[p, v]``."""
+    eye = torch.eye(ndim, dtype=dt.dtype, device=dt.device)
+    return torch.cat([(dt**2 / 2)[..., None, None] * eye, dt[..., None, None] * eye], -2)
 
 
 class CoordinatedTurn(MotionModel):
@@ -234,15 +220,12 @@ class CoordinatedTurn(MotionModel):
         self.register_buffer("omega", torch.as_tensor(float(omega)))
         self.sigma_a = Positive(sigma_a, "acceleration noise sigma_a", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.sigma_a.raw
-
     def transition_matrix(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
         return _turn_block(self.omega.to(dt), dt)
 
     def process_noise(self, dt) -> Tensor:
-        G = _acceleration_gain(as_dt(dt, self._ref()))
+        G = acceleration_gain(as_dt(dt, self._ref()))
         return self.sigma_a() ** 2 * (G @ G.transpose(-1, -2))
 
 
@@ -260,9 +243,6 @@ class CoordinatedTurnRate(MotionModel):
         self.sigma_a = Positive(sigma_a, "acceleration noise sigma_a", requires_grad=learnable)
         self.sigma_omega = Positive(sigma_omega, "turn-rate noise sigma_omega", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.sigma_a.raw
-
     def transition(self, x: Tensor, dt) -> Tensor:
         dt = as_dt(dt, x)
         A = _turn_block(x[..., 4], dt)
@@ -276,7 +256,7 @@ class CoordinatedTurnRate(MotionModel):
 
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
-        G = _acceleration_gain(dt)
+        G = acceleration_gain(dt)
         Qk = self.sigma_a() ** 2 * (G @ G.transpose(-1, -2))
         Q = torch.zeros(*dt.shape, 5, 5, dtype=Qk.dtype, device=Qk.device)
         Q[..., :4, :4] = Qk
@@ -304,23 +284,12 @@ class ModeControlInput(MotionModel):
         sig = torch.as_tensor(sigma, dtype=u.dtype).expand(self.num_modes).clone()
         self.sigma = Positive(sig, "mode process noise sigma", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.sigma.raw
-
     def transition_matrix(self, dt) -> Tensor:
         return cv_transition(as_dt(dt, self._ref()), self.ndim)
 
     def gain(self, dt) -> Tensor:
         """``G (*dt.shape, 2d, d)``."""
-        dt = as_dt(dt, self._ref())
-        eye = torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
-        return torch.cat([(dt**2 / 2)[..., None, None] * eye, dt[..., None, None] * eye], -2)
-
-    def control_offset(self, mode: Tensor, dt) -> Tensor:
-        """``G u(m)``, shape ``(*mode.shape, 2d)`` (broadcast with ``dt``)."""
-        G = self.gain(dt)
-        u = self.controls[mode]
-        return (G @ u.unsqueeze(-1)).squeeze(-1)
+        return acceleration_gain(as_dt(dt, self._ref()), self.ndim)
 
     def process_noise(self, dt, mode: Tensor | None = None) -> Tensor:
         """``σ(m)² G Gᵀ``; without ``mode`` one matrix per mode, shape ``(M, *dt.shape, 2d, 2d)``."""
@@ -332,7 +301,8 @@ class ModeControlInput(MotionModel):
         return sig2[mode][..., None, None] * GGt
 
     def transition(self, x: Tensor, dt, mode: Tensor | None = None) -> Tensor:
+        """``F x`` plus, with ``mode``, the control offset ``G u(m)`` (``mode`` broadcast with ``dt``)."""
         out = super().transition(x, dt)
         if mode is not None:
-            out = out + self.control_offset(mode, dt)
+            out = out + (self.gain(dt) @ self.controls[mode].unsqueeze(-1)).squeeze(-1)
         return out
