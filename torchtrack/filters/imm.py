@@ -72,11 +72,7 @@ def check_transition(P: Tensor, num_models: int, name: str = "mode transition ma
     if P.dim() != 2 or P.shape != (num_models, num_models):
         raise TorchtrackError(f"{name} must have shape ({num_models}, {num_models}) for {num_models} models; "
                               f"got {tuple(P.shape)}")
-    if not bool(torch.isfinite(P).all()) or bool((P < 0).any()):
-        raise TorchtrackError(f"{name} must have finite non-negative entries; got {P.tolist()}")
-    sums = P.sum(-1)
-    if not bool(((sums - 1).abs() <= atol).all()):
-        raise TorchtrackError(f"rows of {name} must sum to 1; got row sums {sums.tolist()}")
+    check_probabilities(P, f"rows of {name}", atol)
 
 
 class TransitionMatrix(nn.Module):
@@ -127,8 +123,7 @@ def mix(state: IMMState, log_transition: Tensor) -> IMMState:
 
 def combine(state: IMMState) -> GaussianState:
     """Combined estimate: moment match of the model-conditioned Gaussians (``(*, n)``, ``(*, n, n)``)."""
-    mean, cov = moment_match(state.log_prob, state.mean, state.cov)
-    return GaussianState(mean, cov)
+    return GaussianState(*moment_match(state.log_prob, state.mean, state.cov))
 
 
 class ModeMatched(MotionModel):
@@ -160,7 +155,53 @@ class ModeMatched(MotionModel):
         return self.base.process_noise(dt, torch.tensor(self.mode, device=self.base.sigma.raw.device))
 
 
-class InteractingMultipleModel(nn.Module):
+class MultipleModelFilter(nn.Module):
+    """What the IMMs share on :class:`IMMState` (the initial state, its check, the combined estimate and
+    :meth:`run`); subclasses give ``state_dim``, ``num_models``, ``predict`` and ``update``."""
+
+    state_dim: int
+    num_models: int
+
+    def initial_state(self, mean: Tensor, cov: Tensor, mode_prob: Tensor | None = None) -> IMMState:
+        """Every model starts at ``mean (*, n)``, ``cov (*, n, n)``; ``mode_prob (*, M)`` (uniform if None)."""
+        M = self.num_models
+        if mean.shape[-1] != self.state_dim or cov.shape[-2:] != (self.state_dim, self.state_dim):
+            raise TorchtrackError(f"IMM initial state must be (*, {self.state_dim}) and (*, {self.state_dim}, "
+                                  f"{self.state_dim}); got {tuple(mean.shape)} and {tuple(cov.shape)}")
+        mode_prob = probabilities_or_uniform(mode_prob, M, "mode probabilities", mean)
+        batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], mode_prob.shape[:-1])
+        mean = mean.unsqueeze(-2).expand(*batch, M, self.state_dim)
+        cov = cov.unsqueeze(-3).expand(*batch, M, self.state_dim, self.state_dim)
+        return IMMState(torch.log(mode_prob).expand(*batch, M), mean, cov)
+
+    def _check(self, state: IMMState) -> None:
+        M, n = self.num_models, self.state_dim
+        if state.log_prob.shape[-1] != M or state.mean.shape[-2:] != (M, n) or state.cov.shape[-3:] != (M, n, n):
+            raise TorchtrackError(f"IMM state must be log_prob (*, {M}), mean (*, {M}, {n}), cov (*, {M}, {n}, "
+                                  f"{n}); got {tuple(state.log_prob.shape)}, {tuple(state.mean.shape)}, "
+                                  f"{tuple(state.cov.shape)}")
+
+    def combine(self, state: IMMState) -> GaussianState:
+        return combine(state)
+
+    def run(self, measurements: Tensor, init: IMMState, dt=1.0, mask: Tensor | None = None,
+            predict_first: bool = True) -> IMMResult:
+        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` False = missing) from ``init``."""
+        if measurements.dim() < 2:
+            raise TorchtrackError(f"IMM: measurements must have shape (T, *, m); got {tuple(measurements.shape)}")
+        state = init
+        steps = []
+        total = 0.0
+        for k in range(measurements.shape[0]):
+            if predict_first or k > 0:
+                state = self.predict(state, dt)
+            state, info = self.update(state, measurements[k], None if mask is None else mask[k])
+            steps.append((*combine(state), state.log_prob.exp(), state.mean))
+            total = total + info.log_likelihood
+        return IMMResult(*(torch.stack(t) for t in zip(*steps)), total)
+
+
+class InteractingMultipleModel(MultipleModelFilter):
     """IMM over ``filters`` (one model-matched Gaussian filter per mode) and a transition matrix.
 
     ``transition``: a ``(M, M)`` row-stochastic tensor (zeros allowed, fixed) or a
@@ -195,25 +236,6 @@ class InteractingMultipleModel(nn.Module):
     def num_models(self) -> int:
         return len(self.filters)
 
-    def initial_state(self, mean: Tensor, cov: Tensor, mode_prob: Tensor | None = None) -> IMMState:
-        """Every model starts at ``mean (*, n)``, ``cov (*, n, n)``; ``mode_prob (*, M)`` (uniform if None)."""
-        M = self.num_models
-        if mean.shape[-1] != self.state_dim or cov.shape[-2:] != (self.state_dim, self.state_dim):
-            raise TorchtrackError(f"IMM initial state must be (*, {self.state_dim}) and (*, {self.state_dim}, "
-                                  f"{self.state_dim}); got {tuple(mean.shape)} and {tuple(cov.shape)}")
-        mode_prob = probabilities_or_uniform(mode_prob, M, "mode probabilities", mean)
-        batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], mode_prob.shape[:-1])
-        mean = mean.unsqueeze(-2).expand(*batch, M, self.state_dim)
-        cov = cov.unsqueeze(-3).expand(*batch, M, self.state_dim, self.state_dim)
-        return IMMState(torch.log(mode_prob).expand(*batch, M), mean, cov)
-
-    def _check(self, state: IMMState) -> None:
-        M, n = self.num_models, self.state_dim
-        if state.log_prob.shape[-1] != M or state.mean.shape[-2:] != (M, n) or state.cov.shape[-3:] != (M, n, n):
-            raise TorchtrackError(f"IMM state must be log_prob (*, {M}), mean (*, {M}, {n}), cov (*, {M}, {n}, "
-                                  f"{n}); got {tuple(state.log_prob.shape)}, {tuple(state.mean.shape)}, "
-                                  f"{tuple(state.cov.shape)}")
-
     def predict(self, state: IMMState, dt=1.0) -> IMMState:
         """Interaction + model-matched prediction; returns predicted mode log-probabilities ``log c_j``."""
         self._check(state)
@@ -246,27 +268,8 @@ class InteractingMultipleModel(nn.Module):
                           for j, f in enumerate(self.filters)))
         return state.log_prob, torch.stack(zs, -2), torch.stack(Ss, -3)
 
-    def combine(self, state: IMMState) -> GaussianState:
-        return combine(state)
-
-    def run(self, measurements: Tensor, init: IMMState, dt=1.0, mask: Tensor | None = None,
-            predict_first: bool = True) -> IMMResult:
-        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` False = missing) from ``init``."""
-        if measurements.dim() < 2:
-            raise TorchtrackError(f"IMM: measurements must have shape (T, *, m); got {tuple(measurements.shape)}")
-        state = init
-        steps = []
-        total = 0.0
-        for k in range(measurements.shape[0]):
-            if predict_first or k > 0:
-                state = self.predict(state, dt)
-            state, info = self.update(state, measurements[k], None if mask is None else mask[k])
-            steps.append((*combine(state), state.log_prob.exp(), state.mean))
-            total = total + info.log_likelihood
-        return IMMResult(*(torch.stack(t) for t in zip(*steps)), total)
-
-
 __all__ = [
-    "IMMResult", "IMMState", "IMMUpdateInfo", "InteractingMultipleModel", "ModeMatched", "TransitionMatrix",
+    "IMMResult", "IMMState", "IMMUpdateInfo", "InteractingMultipleModel", "ModeMatched", "MultipleModelFilter",
+    "TransitionMatrix",
     "check_probabilities", "check_transition", "combine", "mix",
 ]

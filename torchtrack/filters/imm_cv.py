@@ -24,17 +24,17 @@ the elementwise work into a few loops; on failure it falls back to eager executi
 from __future__ import annotations
 
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm import (
     IMMState,
     IMMUpdateInfo,
     InteractingMultipleModel,
+    MultipleModelFilter,
     TransitionMatrix,
-    combine,
 )
-from torchtrack.filters.kalman import GaussianState
+from torchtrack.filters.kalman import presence
 from torchtrack.filters.kalman_lanes import Compiled
 from torchtrack.gaussian import cholesky_entries, gaussian_log_likelihood, solve_lower_entries
 from torchtrack.models.measurement import LinearPosition
@@ -170,7 +170,7 @@ def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, transiti
 compiled_step = Compiled(step_packed, step_packed, "the IMM step", dynamic=False)
 
 
-class ConstantVelocityIMM(nn.Module):
+class ConstantVelocityIMM(MultipleModelFilter):
     """Fast IMM for ``[x, y, vx, vy]`` with the modes of a :class:`ModeControlInput` and position measurements.
 
     Same interface as :class:`InteractingMultipleModel` (``initial_state``, ``predict``, ``update``,
@@ -200,9 +200,6 @@ class ConstantVelocityIMM(nn.Module):
         T = self.transition.learned if self.transition.learned is not None else self.transition.fixed
         return InteractingMultipleModel.from_mode_control(self.motion, self.measurement, T)
 
-    def initial_state(self, mean: Tensor, cov: Tensor, mode_prob: Tensor | None = None) -> IMMState:
-        return self.general().initial_state(mean, cov, mode_prob)
-
     def _params(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         q = (self.motion.sigma() ** 2).to(like)
         u = self.motion.controls.to(like).transpose(0, 1)
@@ -220,16 +217,11 @@ class ConstantVelocityIMM(nn.Module):
         if z.shape[-1] != 2:
             raise TorchtrackError(f"ConstantVelocityIMM: z must have shape (*, 2); got {tuple(z.shape)}")
         batch = state.log_prob.shape[:-1]
-        present = ~torch.isnan(z).any(-1)
-        if mask is not None:
-            present = present & mask.to(torch.bool)
-        present = present.expand(batch)
-        z = torch.where(present.unsqueeze(-1), z, torch.zeros_like(z)).expand(*batch, 2)
-        _, _, _, R = self._params(state.mean)
-        log_prob, m, c = pack(state)
-        zp = z.reshape(-1, 2).transpose(0, 1)
-        pres = present.reshape(-1)
-        log_prob, m2, c2, total, ll, nis, ok = update_packed(log_prob, m, c, zp, R, pres)
+        present, z = presence(z, mask)
+        present, z = present.expand(batch), z.expand(*batch, 2)
+        R = self._params(state.mean)[3]
+        log_prob, m2, c2, total, ll, nis, ok = update_packed(*pack(state), z.reshape(-1, 2).transpose(0, 1), R,
+                                                             present.reshape(-1))
         if check and not bool(ok.all()):
             raise TorchtrackError("ConstantVelocityIMM: innovation covariance S is not positive definite")
         M = self.num_models
@@ -241,9 +233,6 @@ class ConstantVelocityIMM(nn.Module):
         """``log c (*, M)``, ``ẑ_j (*, M, 2)``, ``S_j (*, M, 2, 2)`` of a predicted state (eq. 30)."""
         R = self.measurement.noise_cov().to(state.cov)
         return state.log_prob, state.mean[..., :2], state.cov[..., :2, :2] + R
-
-    def combine(self, state: IMMState) -> GaussianState:
-        return combine(state)
 
     def run_packed(self, measurements: Tensor, init: IMMState, dt: float = 1.0, compile: bool = False):
         """Fast loop over ``measurements (T, *, 2)`` (all present) in the packed batch-last layout.
@@ -265,10 +254,6 @@ class ConstantVelocityIMM(nn.Module):
             total = total + ll
         means = torch.stack(means).permute(0, 2, 1).reshape(z.shape[0], *batch, 4)
         return (log_prob, m, c), means, total.reshape(batch)
-
-    def run(self, measurements: Tensor, init: IMMState, dt=1.0, mask: Tensor | None = None,
-            predict_first: bool = True):
-        return InteractingMultipleModel.run(self, measurements, init, dt, mask, predict_first)
 
 
 __all__ = [

@@ -68,7 +68,7 @@ def _check_state(state: GaussianState, n: int, who: str) -> None:
         raise TorchtrackError(f"{who}: state cov must have shape (*, {n}, {n}); got {tuple(state.cov.shape)}")
 
 
-def _presence(z: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+def presence(z: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
     """Presence mask ``(*,)`` and ``z`` with missing rows zero-filled (so NaN never propagates)."""
     present = ~torch.isnan(z).any(-1)
     if mask is not None:
@@ -114,7 +114,7 @@ class _GaussianFilter(nn.Module):
         if z.shape[-1] != m:
             raise TorchtrackError(f"{self.name}: measurement z must have shape (*, {m}); got {tuple(z.shape)}")
         _check_state(state, self.state_dim, self.name)
-        present, z = _presence(z, mask)
+        present, z = presence(z, mask)
         z_hat, S, C = self._moments(state)
         gain = kalman_gain(S, C, f"{self.name}: innovation covariance S", check=check)
         nu = self.measurement.residual(z, z_hat)
@@ -208,7 +208,7 @@ class KalmanFilter(_GaussianFilter):
         if z.shape[-1] != m:
             raise TorchtrackError(f"{self.name}: measurement z must have shape (*, {m}); got {tuple(z.shape)}")
         _check_state(state, n, self.name)
-        present, z = _presence(z, mask)
+        present, z = presence(z, mask)
         batch = torch.broadcast_shapes(state.mean.shape[:-1], state.cov.shape[:-2], z.shape[:-1], present.shape)
         B = math.prod(batch)
         u = lanes.update(state.mean.expand(*batch, n).reshape(B, n).transpose(0, 1),
