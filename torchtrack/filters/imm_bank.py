@@ -82,10 +82,8 @@ class ClassConditionedIMM(nn.Module):
         """Each class IMM predicts; class probabilities are unchanged (the class is static)."""
         return BankState(state.log_class_prob, tuple(imm.predict(s, dt) for imm, s in zip(self.imms, state.classes)))
 
-    def _report_log_prob(self, z_class: Tensor | None, like: Tensor) -> Tensor | None:
-        """``log C[c, ĉ]`` for reports ``ĉ (*,)`` → ``(*, C)`` (None without a report)."""
-        if z_class is None:
-            return None
+    def _report_log_prob(self, z_class: Tensor, like: Tensor) -> Tensor:
+        """``log C[c, ĉ]`` for reports ``ĉ (*,)`` → ``(*, C)``."""
         if self.confusion is None:
             raise TorchtrackError("a class report needs the bank's confusion matrix")
         z_class = z_class.long()
@@ -96,20 +94,15 @@ class ClassConditionedIMM(nn.Module):
     def update(self, state: BankState, z: Tensor, mask: Tensor | None = None,
                z_class: Tensor | None = None) -> tuple[BankState, BankUpdateInfo]:
         """Update every class IMM with ``z (*, m)`` and the class probabilities (with report ``z_class (*,)``)."""
-        new, lls = [], []
-        present = None
-        for imm, s in zip(self.imms, state.classes):
-            s2, info = imm.update(s, z, mask)
-            new.append(s2)
-            lls.append(info.log_likelihood)
-            present = info.present
-        ll = torch.stack(lls, -1)                                   # (*, C)
+        new, infos = zip(*(imm.update(s, z, mask) for imm, s in zip(self.imms, state.classes)))
+        ll = torch.stack([info.log_likelihood for info in infos], -1)   # (*, C)
         joint = state.log_class_prob + ll
-        rep = self._report_log_prob(z_class, joint)
-        if rep is not None:
+        present = infos[-1].present
+        if z_class is not None:
+            rep = self._report_log_prob(z_class, joint)
             joint = joint + torch.where(present.unsqueeze(-1), rep, torch.zeros_like(rep))
         total = torch.logsumexp(joint, -1)
-        return BankState(joint - total.unsqueeze(-1), tuple(new)), BankUpdateInfo(total, ll, present)
+        return BankState(joint - total.unsqueeze(-1), new), BankUpdateInfo(total, ll, present)
 
     def class_mixtures(self, state: BankState) -> tuple[Tensor, Tensor, Tensor]:
         """Per-class measurement mixtures of a predicted state (eq. 30), padded to a common model count.
@@ -156,11 +149,8 @@ class ClassConditionedIMM(nn.Module):
         C, K = log_w.shape[-2:]
         comp = comp.unflatten(-2, (C, K))                              # (*, C, K, P)
         in_class = torch.logsumexp(log_w.unsqueeze(-1) + comp, -2)     # (*, C, P): log p(z | c)
-        rep = torch.log(self.confusion.to(z)) if self.confusion is not None else None
-        if rep is None:
-            raise TorchtrackError("joint_log_density needs the bank's confusion matrix")
         # log Σ_c P(c) C[c, ĉ] p(z | c), with ĉ the report of each point
-        w = state.log_class_prob.unsqueeze(-1) + rep.transpose(0, 1)[z_class.long()].movedim(-1, -2)  # (*, C, P)
+        w = state.log_class_prob.unsqueeze(-1) + self._report_log_prob(z_class, z).movedim(-1, -2)   # (*, C, P)
         return torch.logsumexp(w + in_class, -2)
 
     def sample_measurements(self, state: BankState, num: int,

@@ -71,10 +71,7 @@ def normalize(log_weight: Tensor, log_likelihood: Tensor) -> tuple[Tensor, Tenso
     A row whose weights are all ``-inf`` (degenerate: no particle explains the data) is reset to
     uniform weights and its ``log_likelihood`` becomes ``-inf``: estimates stay finite, never NaN.
     """
-    lse = torch.logsumexp(log_weight, -1, keepdim=True)
-    dead = torch.isneginf(lse)
-    uniform = torch.full_like(log_weight, -math.log(log_weight.shape[-1]))
-    w = torch.where(dead, uniform, log_weight - torch.where(dead, torch.zeros_like(lse), lse))
+    w, lse = resampling.normalized_log_weights(log_weight)
     return w, log_likelihood + lse.squeeze(-1)
 
 

@@ -37,8 +37,9 @@ from torchtrack.errors import TorchtrackError
 RESAMPLERS = ("multinomial", "stratified", "systematic", "residual")
 
 
-def normalized_weights(log_weight: Tensor) -> Tensor:
-    """``softmax(log_weight, -1)``; a row whose weights are all ``-inf`` (degenerate) becomes uniform.
+def normalized_log_weights(log_weight: Tensor) -> tuple[Tensor, Tensor]:
+    """``log_softmax(log_weight, -1)`` and the ``logsumexp (*B, 1)`` taken out; a row whose weights are
+    all ``-inf`` (degenerate) becomes uniform.
 
     This is the documented recovery from weight degeneracy: the particles are kept with equal
     weights rather than turning into NaN; the likelihood estimate of that row is ``-inf``.
@@ -46,7 +47,12 @@ def normalized_weights(log_weight: Tensor) -> Tensor:
     lse = torch.logsumexp(log_weight, -1, keepdim=True)
     dead = torch.isneginf(lse)
     uniform = torch.full_like(log_weight, -math.log(log_weight.shape[-1]))
-    return torch.exp(torch.where(dead, uniform, log_weight - torch.where(dead, 0.0, lse)))
+    return torch.where(dead, uniform, log_weight - torch.where(dead, 0.0, lse)), lse
+
+
+def normalized_weights(log_weight: Tensor) -> Tensor:
+    """``softmax(log_weight, -1)``, uniform for a degenerate row (:func:`normalized_log_weights`)."""
+    return torch.exp(normalized_log_weights(log_weight)[0])
 
 
 def _inverse_cdf(w: Tensor, u: Tensor) -> Tensor:
