@@ -119,14 +119,11 @@ class _GaussianFilter(nn.Module):
         gain = kalman_gain(S, C, f"{self.name}: innovation covariance S", check=check)
         nu = self.measurement.residual(z, z_hat)
         mean = state.mean + (gain.gain @ nu.unsqueeze(-1)).squeeze(-1)
-        cov = self._posterior_cov(state, gain)
         nis, loglik = innovation_likelihood(gain.chol, nu)
         keep = present.unsqueeze(-1)
-        mean = torch.where(keep, mean, state.mean)
-        cov = torch.where(keep.unsqueeze(-1), cov, state.cov)
-        zero = torch.zeros_like(nis)
-        info = UpdateInfo(nu, S, torch.where(present, nis, zero), torch.where(present, loglik, zero), present)
-        return GaussianState(mean, cov), info
+        post = GaussianState(torch.where(keep, mean, state.mean),
+                             torch.where(keep.unsqueeze(-1), self._posterior_cov(state, gain), state.cov))
+        return post, UpdateInfo(nu, S, torch.where(present, nis, 0.0), torch.where(present, loglik, 0.0), present)
 
     def _posterior_cov(self, state: GaussianState, gain: KalmanGain) -> Tensor:
         return posterior_cov(state.cov, gain)
@@ -149,7 +146,7 @@ class _GaussianFilter(nn.Module):
             raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, m); got "
                                   f"{tuple(measurements.shape)}")
         state = init
-        means, covs, nis = [], [], []
+        steps = []
         total = 0.0
         T = measurements.shape[0]
         for k in range(T):
@@ -157,11 +154,9 @@ class _GaussianFilter(nn.Module):
                 state = self.predict(state, dt)
             state, info = self.update(state, measurements[k], None if mask is None else mask[k])
             if history or k == T - 1:
-                means.append(state.mean)
-                covs.append(state.cov)
-                nis.append(info.nis)
+                steps.append((state.mean, state.cov, info.nis))
             total = total + info.log_likelihood
-        return FilterResult(torch.stack(means), torch.stack(covs), torch.stack(nis), total)
+        return FilterResult(*(torch.stack(t) for t in zip(*steps)), total)
 
 
 class KalmanFilter(_GaussianFilter):
@@ -178,10 +173,8 @@ class KalmanFilter(_GaussianFilter):
     def predict(self, state: GaussianState, dt=1.0) -> GaussianState:
         _check_state(state, self.state_dim, self.name)
         F = self.motion.transition_matrix(dt)
-        Q = self.motion.process_noise(dt)
-        mean = matmul(F, state.mean.unsqueeze(-1)).squeeze(-1)
-        cov = symmetrize(matmul(F, state.cov) @ F.transpose(-1, -2) + Q)
-        return GaussianState(mean, cov)
+        return GaussianState(matmul(F, state.mean.unsqueeze(-1)).squeeze(-1),
+                             symmetrize(matmul(F, state.cov) @ F.transpose(-1, -2) + self.motion.process_noise(dt)))
 
     def _moments(self, state):
         H = self.measurement.matrix()
@@ -306,31 +299,26 @@ class KalmanFilter(_GaussianFilter):
         B = math.prod(batch)
         x = init.mean.expand(*batch, n).reshape(B, n).transpose(0, 1).contiguous()
         P = init.cov.expand(*batch, n, n).reshape(B, n, n).permute(1, 2, 0).contiguous()
-        z = measurements.expand(T, *batch, m).reshape(T, B, m)
-        present = ~torch.isnan(z).any(-1)
-        if mask is not None:
-            present = present & mask.expand(T, *batch).reshape(T, B).to(torch.bool)
+        present, z = presence(measurements, mask)
+        present = present.expand(T, *batch).reshape(T, B)
         all_present = bool(present.all())
-        if not all_present:
-            z = torch.where(present.unsqueeze(-1), z, 0.0)
-        z = z.transpose(1, 2).contiguous()                                              # (T, m, B)
+        z = z.expand(T, *batch, m).reshape(T, B, m).transpose(1, 2).contiguous()       # (T, m, B)
         needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x, P, z, *mats))
         if compile and not needs_grad:
             mean, cov, nis, total, ok = self._run_compiled(x, P, z, None if all_present else present, mats,
                                                            predict_first, history)
         else:
-            means, covs, nis_list, oks = [], [], [], []
+            steps, oks = [], []
             total = torch.zeros(B, dtype=z.dtype, device=z.device)
             for k in range(T):
                 x, P, nis_k, ll_k, ok_k = lanes.step(x, P, z[k], None if all_present else present[k], *mats,
                                                      predict_first or k > 0)
                 if history or k == T - 1:
-                    means.append(x)
-                    covs.append(P)
-                    nis_list.append(nis_k)
+                    steps.append((x, P, nis_k))
                 oks.append(ok_k)
                 total = total + ll_k
-            mean, cov, nis, ok = torch.stack(means), torch.stack(covs), torch.stack(nis_list), torch.stack(oks)
+            mean, cov, nis = (torch.stack(t) for t in zip(*steps))
+            ok = torch.stack(oks)
         failed = ~ok                                                 # (T, B); the one host sync
         if bool(failed.any()):
             k = int(failed.any(-1).nonzero()[0])
@@ -373,9 +361,8 @@ class ExtendedKalmanFilter(_GaussianFilter):
     def predict(self, state: GaussianState, dt=1.0) -> GaussianState:
         _check_state(state, self.state_dim, self.name)
         F = self.motion.jacobian(state.mean, dt)
-        Q = self.motion.process_noise(dt)
-        mean = self.motion.transition(state.mean, dt)
-        return GaussianState(mean, symmetrize(F @ state.cov @ F.transpose(-1, -2) + Q))
+        return GaussianState(self.motion.transition(state.mean, dt),
+                             symmetrize(F @ state.cov @ F.transpose(-1, -2) + self.motion.process_noise(dt)))
 
     def _moments(self, state):
         C, S = innovation_cov(state.cov, self.measurement.jacobian(state.mean), self.measurement.noise_cov())

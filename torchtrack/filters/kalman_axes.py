@@ -105,7 +105,7 @@ def run(measurements: Tensor, mean: Tensor, cov: Tensor, dt: float, params: tupl
     state = [t.expand(batch).contiguous() for t in s]
     ll = torch.zeros(batch, dtype=measurements.dtype, device=measurements.device)
     step = compiled_step if compile else _step
-    means, covs, nis_steps = [], [], []
+    steps = []
     for k in range(measurements.shape[0]):
         if predict_first or k > 0:
             *state, ll, nis = step(*state, ll, measurements[k], dt, q11, q12, q22, r)
@@ -113,8 +113,6 @@ def run(measurements: Tensor, mean: Tensor, cov: Tensor, dt: float, params: tupl
             post, nis, ll_k = update(AxisState(*state), measurements[k], r)
             state, ll = list(post), ll + ll_k
         if history or k == measurements.shape[0] - 1:
-            m, P = merge_axes(AxisState(*state))
-            means.append(m)
-            covs.append(P)
-            nis_steps.append(nis.sum(-1))
-    return torch.stack(means), torch.stack(covs), torch.stack(nis_steps), ll.sum(-1)
+            steps.append((*merge_axes(AxisState(*state)), nis.sum(-1)))
+    mean, cov, nis = (torch.stack(t) for t in zip(*steps))
+    return mean, cov, nis, ll.sum(-1)
