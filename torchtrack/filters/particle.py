@@ -161,13 +161,9 @@ class ParticleFilter(nn.Module):
                  where: Tensor | None = None) -> ParticleState:
         """Resample the runs selected by ``where (*B,)`` (all if ``None``); see the module docstring."""
         x, log_w = state.particles, state.log_weight
-        if self.soft_alpha is None:
-            ancestors = self.resample_fn(log_w.detach(), generator)
-            new_w = resampling.resampled_log_weight(log_w, ancestors)
-        else:
-            log_q = resampling.soft_proposal(log_w, self.soft_alpha)
-            ancestors = self.resample_fn(log_q, generator)
-            new_w = resampling.resampled_log_weight(log_w, ancestors, log_q)
+        log_q = None if self.soft_alpha is None else resampling.soft_proposal(log_w, self.soft_alpha)
+        ancestors = self.resample_fn(log_w.detach() if log_q is None else log_q, generator)
+        new_w = resampling.resampled_log_weight(log_w, ancestors, log_q)
         new_x = x.gather(-2, ancestors.unsqueeze(-1).expand(*ancestors.shape, x.shape[-1]))
         if self.jitter:
             _, cov = weighted_moments(x.detach(), log_w.detach())

@@ -17,6 +17,7 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.models.autodiff import batched_jacobian
 from torchtrack.params import Covariance, Positive
 
 
@@ -36,11 +37,15 @@ def _kron_eye(block: Tensor, d: int) -> Tensor:
     return out.reshape(*block.shape[:-2], k * d, k * d)
 
 
+def _matrix(rows: list[list[Tensor]]) -> Tensor:
+    """The matrix ``(*, k, l)`` whose entries are the tensors ``rows[i][j]`` of shape ``*``."""
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
 def cv_transition(dt: Tensor, ndim: int) -> Tensor:
     """``[[1, dt], [0, 1]] ⊗ I_d``, shape ``(*dt.shape, 2d, 2d)``."""
     one = torch.ones_like(dt)
-    block = torch.stack([torch.stack([one, dt], -1), torch.stack([0 * dt, one], -1)], -2)
-    return _kron_eye(block, ndim)
+    return _kron_eye(_matrix([[one, dt], [0 * dt, one]]), ndim)
 
 
 class MotionModel(nn.Module):
@@ -51,7 +56,9 @@ class MotionModel(nn.Module):
     is_linear: bool = True
 
     def _ref(self) -> Tensor:
-        return next(self.parameters())
+        """The unconstrained value of the first noise parameter (a plain tensor while being tuned): the
+        model's dtype and device."""
+        return next(m.raw for m in self.modules() if hasattr(m, "raw"))
 
     def transition_matrix(self, dt) -> Tensor:
         """``F(dt)``, shape ``(*dt.shape, n, n)``."""
@@ -67,8 +74,10 @@ class MotionModel(nn.Module):
         return (F @ x.unsqueeze(-1)).squeeze(-1)
 
     def jacobian(self, x: Tensor, dt) -> Tensor:
-        """``∂f/∂x`` at ``x``, shape ``(*, n, n)``; linear models return ``F`` (broadcast)."""
-        return self.transition_matrix(dt)
+        """``∂f/∂x`` at ``x``, shape ``(*, n, n)``: ``F`` (broadcast) for linear models, else by autograd."""
+        if self.is_linear:
+            return self.transition_matrix(dt)
+        return batched_jacobian(lambda s: self.transition(s, dt), x)
 
 
 class LinearMotion(MotionModel):
@@ -146,13 +155,11 @@ class ConstantVelocity(MotionModel):
 
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
-        q = self.q()
         if self.noise == "cwna":
             rows = [[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]
         else:
             rows = [[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]]
-        block = torch.stack([torch.stack(r, -1) for r in rows], -2)
-        return _kron_eye(q * block, self.ndim)
+        return _kron_eye(self.q() * _matrix(rows), self.ndim)
 
 
 class ConstantAcceleration(MotionModel):
@@ -175,16 +182,13 @@ class ConstantAcceleration(MotionModel):
     def transition_matrix(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
         one, zero = torch.ones_like(dt), torch.zeros_like(dt)
-        rows = [[one, dt, dt**2 / 2], [zero, one, dt], [zero, zero, one]]
-        block = torch.stack([torch.stack(r, -1) for r in rows], -2)
-        return _kron_eye(block, self.ndim)
+        return _kron_eye(_matrix([[one, dt, dt**2 / 2], [zero, one, dt], [zero, zero, one]]), self.ndim)
 
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
         if self.noise == "cwnj":
-            rows = [[dt**5 / 20, dt**4 / 8, dt**3 / 6], [dt**4 / 8, dt**3 / 3, dt**2 / 2],
-                    [dt**3 / 6, dt**2 / 2, dt]]
-            block = torch.stack([torch.stack(r, -1) for r in rows], -2)
+            block = _matrix([[dt**5 / 20, dt**4 / 8, dt**3 / 6], [dt**4 / 8, dt**3 / 3, dt**2 / 2],
+                             [dt**3 / 6, dt**2 / 2, dt]])
         else:
             g = torch.stack([dt**2 / 2, dt, torch.ones_like(dt)], -1)
             block = g.unsqueeze(-1) * g.unsqueeze(-2)
@@ -200,8 +204,7 @@ def _turn_block(w: Tensor, dt: Tensor) -> Tensor:
     c = torch.where(small, w * dt**2 / 2, (1 - torch.cos(wt)) / w_safe)
     cos, sin = torch.cos(wt), torch.sin(wt)
     one, zero = torch.ones_like(wt), torch.zeros_like(wt)
-    rows = [[one, zero, s, -c], [zero, one, c, s], [zero, zero, cos, -sin], [zero, zero, sin, cos]]
-    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+    return _matrix([[one, zero, s, -c], [zero, one, c, s], [zero, zero, cos, -sin], [zero, zero, sin, cos]])
 
 
 def acceleration_gain(dt: Tensor, ndim: int = 2) -> Tensor:
@@ -249,19 +252,11 @@ class CoordinatedTurnRate(MotionModel):
         kin = (A @ x[..., :4].unsqueeze(-1)).squeeze(-1)
         return torch.cat([kin, x[..., 4:5]], -1)
 
-    def jacobian(self, x: Tensor, dt) -> Tensor:
-        from torchtrack.models.autodiff import batched_jacobian
-
-        return batched_jacobian(lambda s: self.transition(s, dt), x)
-
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
         G = acceleration_gain(dt)
-        Qk = self.sigma_a() ** 2 * (G @ G.transpose(-1, -2))
-        Q = torch.zeros(*dt.shape, 5, 5, dtype=Qk.dtype, device=Qk.device)
-        Q[..., :4, :4] = Qk
-        Q[..., 4, 4] = (self.sigma_omega() * dt) ** 2
-        return Q
+        Q = nn.functional.pad(self.sigma_a() ** 2 * (G @ G.transpose(-1, -2)), (0, 1, 0, 1))
+        return Q + nn.functional.pad(((self.sigma_omega() * dt) ** 2)[..., None, None], (4, 0, 4, 0))
 
 
 class ModeControlInput(MotionModel):
