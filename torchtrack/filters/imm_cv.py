@@ -92,13 +92,11 @@ def mix_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, transition: Tensor) 
 
 def predict_packed(mean: Tensor, cov: Tensor, dt: float, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Model-matched prediction; ``q (M,)`` = σ_j², ``u (2, M)`` control accelerations."""
-    px, py, vx, vy = mean.unbind(0)
     Axx, Axy, Ayy, Bxx, Bxy, Byx, Byy, Cxx, Cxy, Cyy = cov.unbind(0)
     h = 0.5 * dt * dt
-    ux, uy = u[0].unsqueeze(-1), u[1].unsqueeze(-1)
-    q = q.unsqueeze(-1)
+    u, q = u.unsqueeze(-1), q.unsqueeze(-1)
     q11, q12, q22 = q * (h * h), q * (h * dt), q * (dt * dt)
-    mean = torch.stack([px + dt * vx + h * ux, py + dt * vy + h * uy, vx + dt * ux, vy + dt * uy])
+    mean = torch.cat([mean[:2] + dt * mean[2:] + h * u, mean[2:] + dt * u])
     dt2 = dt * dt
     cov = torch.stack([
         Axx + 2 * dt * Bxx + dt2 * Cxx + q11,
@@ -244,8 +242,7 @@ class ConstantVelocityIMM(MultipleModelFilter):
         step = compiled_step if compile else step_packed
         batch = init.log_prob.shape[:-1]
         log_prob, m, c = pack(init)
-        z = measurements.expand(measurements.shape[0], *batch, 2).reshape(measurements.shape[0], -1, 2)
-        z = z.permute(0, 2, 1).contiguous()                  # (T, 2, B)
+        z = measurements.expand(-1, *batch, 2).reshape(measurements.shape[0], -1, 2).permute(0, 2, 1).contiguous()
         means = []
         total = 0.0
         for k in range(z.shape[0]):

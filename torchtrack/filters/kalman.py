@@ -267,20 +267,16 @@ class KalmanFilter(_GaussianFilter):
         """
         if engine not in ("auto", "batch", "lanes", "axes"):
             raise TorchtrackError(f"{self.name}: engine must be auto, batch, lanes or axes; got {engine!r}")
-        if measurements.dim() < 2:
-            raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, m); got "
-                                  f"{tuple(measurements.shape)}")
         n, m = self.state_dim, self.measurement.meas_dim
-        _check_state(init, n, self.name)
-        if measurements.shape[-1] != m:
+        if measurements.dim() < 2 or measurements.shape[-1] != m:
             raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, {m}); got "
                                   f"{tuple(measurements.shape)}")
+        _check_state(init, n, self.name)
         if engine == "axes":
             z = measurements if mask is None else torch.where(mask.to(torch.bool).unsqueeze(-1), measurements,
                                                               float("nan"))
-            mean, cov, nis, total = kalman_axes.run(z, init.mean, init.cov, float(dt), self._axes_parameters(dt),
-                                                    predict_first, compile, history)
-            return FilterResult(mean, cov, nis, total)
+            return FilterResult(*kalman_axes.run(z, init.mean, init.cov, float(dt), self._axes_parameters(dt),
+                                                 predict_first, compile, history))
         mats = None if engine == "batch" else self._shared_matrices(dt)
         if mats is None:
             if engine == "lanes":
