@@ -114,15 +114,11 @@ class ClassConditionedIMM(nn.Module):
         K = max(p[0].shape[-1] for p in parts)
         lw, zh, S = [], [], []
         for log_w, z_hat, cov in parts:
-            pad = K - log_w.shape[-1]
-            if pad:
-                log_w = torch.cat([log_w, torch.full((*log_w.shape[:-1], pad), -torch.inf, dtype=log_w.dtype,
-                                                     device=log_w.device)], -1)
-                z_hat = torch.cat([z_hat, z_hat[..., :1, :].expand(*z_hat.shape[:-2], pad, z_hat.shape[-1])], -2)
-                cov = torch.cat([cov, cov[..., :1, :, :].expand(*cov.shape[:-3], pad, *cov.shape[-2:])], -3)
-            lw.append(log_w)
-            zh.append(z_hat)
-            S.append(cov)
+            k = log_w.shape[-1]
+            models = torch.tensor([*range(k), *[0] * (K - k)], device=log_w.device)   # padding repeats model 0
+            lw.append(nn.functional.pad(log_w, (0, K - k), value=-torch.inf))
+            zh.append(z_hat.index_select(-2, models))
+            S.append(cov.index_select(-3, models))
         return torch.stack(lw, -2), torch.stack(zh, -3), torch.stack(S, -4)
 
     def measurement_mixture(self, state: BankState, z_class: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
@@ -157,19 +153,15 @@ class ClassConditionedIMM(nn.Module):
                             generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
         """``num`` draws of ``(z, ĉ)`` from the joint predictive density per track: ``(*, num, m)``, ``(*, num)``."""
         parts = [self.measurement_mixture(state, c) for c in range(self.num_classes)]
-        w = torch.cat([p[0] for p in parts], -1)
-        mu = torch.cat([p[1] for p in parts], -2)
-        S = torch.cat([p[2] for p in parts], -3)
+        w, mu, S = (torch.cat(p, dim) for p, dim in zip(zip(*parts), (-1, -2, -3)))
         z, comp = sample_mixture(w, mu, S, num, generator, return_component=True)
         return z, torch.div(comp, parts[0][0].shape[-1], rounding_mode="floor")
 
     def combine(self, state: BankState) -> GaussianState:
         """Moment match over classes × models: ``(*, n)``, ``(*, n, n)``."""
         w = torch.cat([state.log_class_prob[..., c:c + 1] + s.log_prob for c, s in enumerate(state.classes)], -1)
-        mean = torch.cat([s.mean for s in state.classes], -2)
-        cov = torch.cat([s.cov for s in state.classes], -3)
-        m, P = moment_match(w, mean, cov)
-        return GaussianState(m, P)
+        return GaussianState(*moment_match(w, torch.cat([s.mean for s in state.classes], -2),
+                                           torch.cat([s.cov for s in state.classes], -3)))
 
 
 __all__ = ["BankState", "BankUpdateInfo", "ClassConditionedIMM"]

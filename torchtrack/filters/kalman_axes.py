@@ -76,11 +76,11 @@ def split_axes(mean: Tensor, cov: Tensor) -> AxisState:
     d = mean.shape[-1] // 2
     idx = torch.arange(d, device=cov.device)
     a, b, c = cov[..., idx, idx], cov[..., idx, idx + d], cov[..., idx + d, idx + d]
-    rebuilt = merge_axes(AxisState(mean[..., :d], mean[..., d:], a, b, c))[1]
+    s = AxisState(mean[..., :d], mean[..., d:], a, b, c)
+    rebuilt = merge_axes(s)[1]
     if not torch.allclose(rebuilt, cov.expand_as(rebuilt)):
         raise TorchtrackError("Kalman filter engine 'axes': the initial covariance must have no cross-axis terms")
-    shape = mean.shape[:-1] + (d,)
-    return AxisState(*(t.expand(shape).contiguous() for t in (mean[..., :d], mean[..., d:], a, b, c)))
+    return s
 
 
 def merge_axes(s: AxisState) -> tuple[Tensor, Tensor]:
@@ -101,7 +101,7 @@ def run(measurements: Tensor, mean: Tensor, cov: Tensor, dt: float, params: tupl
     the last step only). ``compile`` uses ``torch.compile`` where available."""
     q11, q12, q22, r = params
     s = split_axes(mean, cov)
-    batch = torch.broadcast_shapes(measurements.shape[1:], s.p.shape)
+    batch = torch.broadcast_shapes(measurements.shape[1:], *(t.shape for t in s))
     state = [t.expand(batch).contiguous() for t in s]
     ll = torch.zeros(batch, dtype=measurements.dtype, device=measurements.device)
     step = compiled_step if compile else _step
