@@ -101,19 +101,14 @@ class Covariance(nn.Module):
         L, info = torch.linalg.cholesky_ex(t)
         if bool((info != 0).any()):
             raise TorchtrackError(f"{name} must be positive definite")
-        n = t.shape[-1]
-        raw = L.clone()
-        idx = torch.arange(n)
-        raw[..., idx, idx] = inverse_softplus(torch.diagonal(L, dim1=-2, dim2=-1))
+        raw = torch.tril(L, -1) + torch.diag_embed(inverse_softplus(torch.diagonal(L, dim1=-2, dim2=-1)))
         self.name = name
         self.raw = nn.Parameter(raw, requires_grad=requires_grad)
 
     def cholesky(self) -> Tensor:
         """The lower factor ``L``."""
-        n = self.raw.shape[-1]
-        strict = torch.tril(self.raw, diagonal=-1)
         diag = nn.functional.softplus(torch.diagonal(self.raw, dim1=-2, dim2=-1))
-        return strict + torch.diag_embed(diag) if n else strict
+        return torch.tril(self.raw, diagonal=-1) + torch.diag_embed(diag)
 
     def forward(self) -> Tensor:
         L = self.cholesky()

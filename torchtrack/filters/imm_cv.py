@@ -165,7 +165,7 @@ def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, transiti
     return log_prob, mean2, cov2, total, cm, cc
 
 
-compiled_step = Compiled(step_packed, step_packed, "the IMM step", dynamic=False)
+compiled_step = Compiled(step_packed, "the IMM step", dynamic=False)
 
 
 class ConstantVelocityIMM(MultipleModelFilter):

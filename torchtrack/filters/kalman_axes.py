@@ -68,7 +68,7 @@ def _step(p, v, a, b, c, ll, z, dt: float, q11: float, q12: float, q22: float, r
     return (*s, ll + ll_k, nis_k)
 
 
-compiled_step = Compiled(_step, _step, "the Kalman filter engine 'axes'", dynamic=False, fullgraph=True)
+compiled_step = Compiled(_step, "the Kalman filter engine 'axes'", dynamic=False, fullgraph=True)
 
 
 def split_axes(mean: Tensor, cov: Tensor) -> AxisState:

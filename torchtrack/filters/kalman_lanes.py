@@ -184,26 +184,14 @@ def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tenso
     ok_out.copy_(ok)
 
 
-def _block_into(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
-                R: Tensor, x_out: Tensor, P_out: Tensor, nis_out: Tensor, loglik_acc: Tensor, ok_out: Tensor,
-                predict_first: bool = True, pattern=None) -> None:
-    """:func:`fused_step`'s contract computed eagerly with the GEMM formulation (the fallback)."""
-    mean, cov, nis, loglik, ok = step(x, P, z, present, F, Q, H, R, predict_first)
-    x_out.copy_(mean)
-    P_out.copy_(cov)
-    nis_out.copy_(nis)
-    loglik_acc.add_(loglik)
-    ok_out.copy_(ok)
-
-
 class Compiled:
     """``torch.compile(fn, **options)``, made at the first call; where compiling or running it fails (no
-    C compiler, unsupported platform) a warning naming ``what`` is issued and ``eager`` (same results,
-    only slower) runs from then on. ``dynamic_args``: arguments whose last dimension (the lanes) is
+    C compiler, unsupported platform) a warning naming ``what`` is issued and ``fn`` runs eagerly (same
+    results, only slower) from then on. ``dynamic_args``: arguments whose last dimension (the lanes) is
     marked dynamic, so that one kernel serves every track count."""
 
-    def __init__(self, fn, eager, what: str, dynamic_args: tuple[int, ...] = (), **options):
-        self.fn, self.eager, self.what, self.dynamic_args, self.options = fn, eager, what, dynamic_args, options
+    def __init__(self, fn, what: str, dynamic_args: tuple[int, ...] = (), **options):
+        self.fn, self.what, self.dynamic_args, self.options = fn, what, dynamic_args, options
         self.compiled = None
         self.failed = False
 
@@ -219,11 +207,11 @@ class Compiled:
             except Exception as err:  # noqa: BLE001 - any backend failure means: run eagerly
                 warnings.warn(f"torch.compile failed for {self.what} ({err}); running eagerly", stacklevel=2)
                 self.failed = True
-        return self.eager(*args)
+        return self.fn(*args)
 
 
 # one fused loop: a large fusion group, stacked outputs stored by that loop, and few intermediates
 # spilled to memory (inlining everything makes lowering blow up); shapes specialise per model
-compiled_step = Compiled(fused_step, _block_into, "the Kalman filter", dynamic_args=(0, 1, 2, 3, 8, 9, 10, 11, 12),
+compiled_step = Compiled(fused_step, "the Kalman filter", dynamic_args=(0, 1, 2, 3, 8, 9, 10, 11, 12),
                          fullgraph=True, options={"max_fusion_size": 4096, "max_pointwise_cat_inputs": 1,
                                                   "realize_opcount_threshold": 60, "realize_reads_threshold": 8})
