@@ -30,7 +30,6 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm import (
     IMMState,
     IMMUpdateInfo,
-    InteractingMultipleModel,
     MultipleModelFilter,
     TransitionMatrix,
 )
@@ -192,11 +191,6 @@ class ConstantVelocityIMM(MultipleModelFilter):
     @property
     def num_models(self) -> int:
         return self.motion.num_modes
-
-    def general(self) -> InteractingMultipleModel:
-        """The equivalent general IMM (shares parameters); used to test this fast path."""
-        T = self.transition.learned if self.transition.learned is not None else self.transition.fixed
-        return InteractingMultipleModel.from_mode_control(self.motion, self.measurement, T)
 
     def _params(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         q = (self.motion.sigma() ** 2).to(like)

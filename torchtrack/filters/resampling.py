@@ -34,8 +34,6 @@ from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
 
-RESAMPLERS = ("multinomial", "stratified", "systematic", "residual")
-
 
 def normalized_log_weights(log_weight: Tensor) -> tuple[Tensor, Tensor]:
     """``log_softmax(log_weight, -1)`` and the ``logsumexp (*B, 1)`` taken out; a row whose weights are
@@ -120,17 +118,16 @@ def residual(log_weight: Tensor, generator: torch.Generator | None = None) -> Te
     return torch.where(slots < n_det, det, draws.gather(-1, pos))
 
 
-_RESAMPLERS: dict[str, Callable[..., Tensor]] = {
+RESAMPLERS: dict[str, Callable[[Tensor, torch.Generator | None], Tensor]] = {
     "multinomial": multinomial, "stratified": stratified, "systematic": systematic, "residual": residual,
 }
 
 
 def get_resampler(name: str) -> Callable[[Tensor, torch.Generator | None], Tensor]:
     """The resampler called ``name`` (one of :data:`RESAMPLERS`)."""
-    try:
-        return _RESAMPLERS[name]
-    except KeyError:
-        raise TorchtrackError(f"resampler must be one of {', '.join(RESAMPLERS)}; got {name!r}") from None
+    if name not in RESAMPLERS:
+        raise TorchtrackError(f"resampler must be one of {', '.join(RESAMPLERS)}; got {name!r}")
+    return RESAMPLERS[name]
 
 
 def offspring_counts(ancestors: Tensor, num_particles: int) -> Tensor:
