@@ -330,8 +330,7 @@ def kalman_update(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor,
     ``ẑ = H x⁻``, or ``z_pred`` for an EKF. Shapes: ``mean (*, n)``, ``cov (*, n, n)``, ``z (*, m)``,
     ``H (*, m, n)``, ``R (*, m, m)``; all batch dimensions broadcast.
     """
-    z_hat = z_pred if z_pred is not None else matmul(H, mean.unsqueeze(-1)).squeeze(-1)
-    nu = z - z_hat
+    nu = z - (z_pred if z_pred is not None else matmul(H, mean.unsqueeze(-1)).squeeze(-1))
     C, S = innovation_cov(cov, H, R)
     g = kalman_gain(S, C, check=check)
     new_mean = mean + (g.gain @ nu.unsqueeze(-1)).squeeze(-1)
@@ -364,6 +363,6 @@ def sample(mean: Tensor, cov: Tensor, generator: torch.Generator | None = None,
     """Draw ``x ~ N(μ, Σ)`` with shape ``(*sample_shape, *batch, n)``, reproducible via ``generator``."""
     L = cholesky(cov, "covariance")
     batch = torch.broadcast_shapes(mean.shape[:-1], L.shape[:-2])
-    n = mean.shape[-1]
-    eps = torch.randn((*sample_shape, *batch, n, 1), generator=generator, dtype=mean.dtype, device=mean.device)
+    eps = torch.randn((*sample_shape, *batch, mean.shape[-1], 1), generator=generator, dtype=mean.dtype,
+                      device=mean.device)
     return mean + (L @ eps).squeeze(-1)

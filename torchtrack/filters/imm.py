@@ -170,9 +170,9 @@ class MultipleModelFilter(nn.Module):
                                   f"{self.state_dim}); got {tuple(mean.shape)} and {tuple(cov.shape)}")
         mode_prob = probabilities_or_uniform(mode_prob, M, "mode probabilities", mean)
         batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], mode_prob.shape[:-1])
-        mean = mean.unsqueeze(-2).expand(*batch, M, self.state_dim)
-        cov = cov.unsqueeze(-3).expand(*batch, M, self.state_dim, self.state_dim)
-        return IMMState(torch.log(mode_prob).expand(*batch, M), mean, cov)
+        n = self.state_dim
+        return IMMState(torch.log(mode_prob).expand(*batch, M), mean.unsqueeze(-2).expand(*batch, M, n),
+                        cov.unsqueeze(-3).expand(*batch, M, n, n))
 
     def _check(self, state: IMMState) -> None:
         M, n = self.num_models, self.state_dim

@@ -333,9 +333,7 @@ class KalmanFilter(_GaussianFilter):
         two slots are used in turn and the last is returned."""
         (n, B), T = x.shape, z.shape[0]
         slots = T if history else 2
-        mean = x.new_empty(slots, n, B)
-        cov = P.new_empty(slots, n, n, B)
-        nis = x.new_empty(slots, B)
+        mean, cov, nis = x.new_empty(slots, n, B), P.new_empty(slots, n, n, B), x.new_empty(slots, B)
         ok = torch.empty(T, B, dtype=torch.bool, device=x.device)
         total = x.new_zeros(B)
         pattern = tuple(lanes.structure(M) for M in mats)

@@ -134,10 +134,10 @@ def _plus(v: Tensor, M: Tensor, code: Pattern | None, i: int, k: int) -> Tensor:
 def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
                R: Tensor, x_out: Tensor, P_out: Tensor, nis_out: Tensor, loglik_acc: Tensor, ok_out: Tensor,
                predict_first: bool = True, pattern: tuple[Pattern, Pattern, Pattern, Pattern] | None = None) -> None:
-    """:func:`step` written entry by entry: every
-    quantity is one ``(B,)`` lane vector, so ``torch.compile`` emits a single loop over the lanes with
-    all ``n × n`` arithmetic in registers. Writes ``x⁺ → x_out (n, B)``, ``P⁺ → P_out (n, n, B)``,
-    ``nis → nis_out (B,)``, ``ok → ok_out (B,)`` and adds log ℓ to ``loglik_acc (B,)`` (no autograd).
+    """:func:`step` written entry by entry: every quantity is one ``(B,)`` lane vector, so
+    ``torch.compile`` emits a single loop over the lanes with all ``n × n`` arithmetic in registers.
+    Writes ``x⁺ → x_out (n, B)``, ``P⁺ → P_out (n, n, B)``, ``nis → nis_out (B,)``, ``ok → ok_out (B,)``
+    and adds log ℓ to ``loglik_acc (B,)`` (no autograd).
 
     Same equations as :func:`predict` / :func:`update`; covariances are formed on and above the
     diagonal and mirrored (exactly symmetric) instead of averaged with their transpose. ``pattern``
@@ -169,8 +169,7 @@ def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tenso
     up = {(i, j): AP[i][j] - _dot([E[i][r] * K[j][r] for r in range(m)], X[0])
           for i in range(n) for j in range(i, n)}
     cov = [[up[min(i, j), max(i, j)] for j in range(n)] for i in range(n)]
-    white = solve_lower_entries(L, nu)
-    nis = _dot([w * w for w in white], X[0])
+    nis = _dot([w * w for w in solve_lower_entries(L, nu)], X[0])
     loglik = -0.5 * (nis + m * LOG_2PI) - _dot([torch.log(L[r][r]) for r in range(m)], X[0])
     if present is not None:
         mean = [torch.where(present, a, b) for a, b in zip(mean, X)]

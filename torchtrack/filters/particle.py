@@ -204,12 +204,10 @@ class ParticleFilter(nn.Module):
         for each of the ``T`` measurements at times ``dt, 2dt, …``). Moments are taken from the
         weighted particles before resampling."""
         state = self.init(mean, cov, generator)
-        means, covs, esss = [], [], []
+        steps = []
         for z in z_seq:
             state = self.weight(self.predict(state, dt, generator), z)
-            mu, P = weighted_moments(state.particles, state.log_weight)
+            moments = weighted_moments(state.particles, state.log_weight)
             state, ess, _ = self.maybe_resample(state, generator)
-            means.append(mu)
-            covs.append(P)
-            esss.append(ess)
-        return ParticleRunResult(torch.stack(means), torch.stack(covs), torch.stack(esss), state.log_likelihood)
+            steps.append((*moments, ess))
+        return ParticleRunResult(*(torch.stack(t) for t in zip(*steps)), state.log_likelihood)

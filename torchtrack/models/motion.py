@@ -117,13 +117,11 @@ class ConstantPosition(MotionModel):
 
     def transition_matrix(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
-        eye = torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
-        return eye.expand(*dt.shape, self.ndim, self.ndim)
+        return torch.eye(self.ndim, dtype=dt.dtype, device=dt.device).expand(*dt.shape, self.ndim, self.ndim)
 
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
-        eye = torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
-        return (self.q() * dt)[..., None, None] * eye
+        return (self.q() * dt)[..., None, None] * torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
 
 
 class ConstantVelocity(MotionModel):
