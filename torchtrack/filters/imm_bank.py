@@ -57,14 +57,12 @@ class ClassConditionedIMM(nn.Module):
         self.imms = nn.ModuleList(imms)
         self.state_dim = n[0]
         C = len(imms)
-        if confusion is not None:
-            conf = torch.as_tensor(confusion, dtype=torch.get_default_dtype())
+        conf = None if confusion is None else torch.as_tensor(confusion, dtype=torch.get_default_dtype())
+        if conf is not None:
             if conf.shape != (C, C):
                 raise TorchtrackError(f"confusion matrix must be ({C}, {C}); got {tuple(conf.shape)}")
             check_probabilities(conf, "rows of the confusion matrix")
-            self.register_buffer("confusion", conf)
-        else:
-            self.confusion = None
+        self.register_buffer("confusion", conf)
 
     @property
     def num_classes(self) -> int:

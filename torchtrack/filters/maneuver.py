@@ -39,11 +39,8 @@ class ManeuverResult(NamedTuple):
 
 def two_point_init(z_prev: Tensor, z: Tensor, R: Tensor, dt: float) -> GaussianState:
     """Two-point differencing initialisation from ``z_prev, z (*, m)`` and ``R (m, m)``."""
-    mean = torch.cat([z, (z - z_prev) / dt], -1)
-    top = torch.cat([R, R / dt], -1)
-    bottom = torch.cat([R / dt, 2 * R / dt**2], -1)
-    cov = torch.cat([top, bottom], -2).expand(*z.shape[:-1], 2 * R.shape[-1], 2 * R.shape[-1])
-    return GaussianState(mean, cov)
+    cov = torch.cat([torch.cat([R, R / dt], -1), torch.cat([R / dt, 2 * R / dt**2], -1)], -2)
+    return GaussianState(torch.cat([z, (z - z_prev) / dt], -1), cov.expand(*z.shape[:-1], *cov.shape))
 
 
 class ManeuverDetectingKalmanFilter(nn.Module):
