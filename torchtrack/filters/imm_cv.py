@@ -41,8 +41,7 @@ from torchtrack.models.motion import ModeControlInput
 
 # (row, col) of the 10 packed covariance entries in the 4×4 matrix over [x, y, vx, vy]
 _IDX = [(0, 0), (0, 1), (1, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3)]
-_ROW = [i for i, _ in _IDX]
-_COL = [j for _, j in _IDX]
+_ROW, _COL = map(list, zip(*_IDX))
 
 
 def pack(state: IMMState) -> tuple[Tensor, Tensor, Tensor]:
@@ -147,8 +146,7 @@ def combine_packed(log_prob: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor,
     w = log_prob.exp()
     m = (mean * w).sum(1)
     d = mean - m.unsqueeze(1)
-    c = ((cov + d[_ROW] * d[_COL]) * w).sum(1)
-    return m, c
+    return m, ((cov + d[_ROW] * d[_COL]) * w).sum(1)
 
 
 def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, transition: Tensor, q: Tensor, u: Tensor,

@@ -110,11 +110,7 @@ class _GaussianFilter(nn.Module):
         cross-covariance ``C`` and ``S``; covariance ``P⁺ = P⁻ − W Wᵀ`` (``= P⁻ − K S Kᵀ``, equal to
         the Joseph form for the optimal gain; for the linear filter the Joseph form itself is used).
         """
-        m = self.measurement.meas_dim
-        if z.shape[-1] != m:
-            raise TorchtrackError(f"{self.name}: measurement z must have shape (*, {m}); got {tuple(z.shape)}")
-        _check_state(state, self.state_dim, self.name)
-        present, z = presence(z, mask)
+        present, z = self._presence(state, z, mask)
         z_hat, S, C = self._moments(state)
         gain = kalman_gain(S, C, f"{self.name}: innovation covariance S", check=check)
         nu = self.measurement.residual(z, z_hat)
@@ -124,6 +120,14 @@ class _GaussianFilter(nn.Module):
         post = GaussianState(torch.where(keep, mean, state.mean),
                              torch.where(keep.unsqueeze(-1), self._posterior_cov(state, gain), state.cov))
         return post, UpdateInfo(nu, S, torch.where(present, nis, 0.0), torch.where(present, loglik, 0.0), present)
+
+    def _presence(self, state: GaussianState, z: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+        """The argument checks of :meth:`update`, then :func:`presence`."""
+        m = self.measurement.meas_dim
+        if z.shape[-1] != m:
+            raise TorchtrackError(f"{self.name}: measurement z must have shape (*, {m}); got {tuple(z.shape)}")
+        _check_state(state, self.state_dim, self.name)
+        return presence(z, mask)
 
     def _posterior_cov(self, state: GaussianState, gain: KalmanGain) -> Tensor:
         return posterior_cov(state.cov, gain)
@@ -198,10 +202,7 @@ class KalmanFilter(_GaussianFilter):
         if not (self._small() and H.dim() == 2 and R.dim() == 2):
             return super().update(state, z, mask, check)
         n, m = self.state_dim, self.measurement.meas_dim
-        if z.shape[-1] != m:
-            raise TorchtrackError(f"{self.name}: measurement z must have shape (*, {m}); got {tuple(z.shape)}")
-        _check_state(state, n, self.name)
-        present, z = presence(z, mask)
+        present, z = self._presence(state, z, mask)
         batch = torch.broadcast_shapes(state.mean.shape[:-1], state.cov.shape[:-2], z.shape[:-1], present.shape)
         B = math.prod(batch)
         u = lanes.update(state.mean.expand(*batch, n).reshape(B, n).transpose(0, 1),
