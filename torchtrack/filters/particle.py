@@ -100,6 +100,12 @@ def noise_factor(Q: Tensor, what: str) -> Tensor:
     return L
 
 
+def correlated_noise(L: Tensor, shape: tuple[int, ...], generator: torch.Generator | None, like: Tensor) -> Tensor:
+    """``L ε`` for ``ε ~ N(0, I)`` of ``shape (*B, N, n)``, ``L (*B, n, n)`` shared by the ``N`` rows."""
+    eps = torch.randn((*shape, 1), generator=generator, dtype=like.dtype, device=like.device)
+    return (L.unsqueeze(-3) @ eps).squeeze(-1)
+
+
 class ParticleFilter(nn.Module):
     """Bootstrap particle filter for any motion and measurement model.
 
@@ -137,9 +143,7 @@ class ParticleFilter(nn.Module):
         """Particles drawn from ``N(mean, cov)``; ``mean (*B, n)``, ``cov (*B, n, n)``."""
         L = noise_factor(cov, "initial covariance")
         batch = torch.broadcast_shapes(mean.shape[:-1], L.shape[:-2])
-        eps = torch.randn((*batch, self.num_particles, mean.shape[-1], 1), generator=generator,
-                          dtype=mean.dtype, device=mean.device)
-        x = mean.unsqueeze(-2) + (L.unsqueeze(-3) @ eps).squeeze(-1)
+        x = mean.unsqueeze(-2) + correlated_noise(L, (*batch, self.num_particles, mean.shape[-1]), generator, mean)
         log_w = torch.full(x.shape[:-1], -math.log(self.num_particles), dtype=x.dtype, device=x.device)
         return ParticleState(x, log_w, torch.zeros(batch, dtype=x.dtype, device=x.device))
 
@@ -147,8 +151,7 @@ class ParticleFilter(nn.Module):
         """Bootstrap proposal: propagate every particle through the motion model with process noise."""
         x = state.particles
         L = noise_factor(self.motion.process_noise(dt), "process noise Q").to(x.dtype)
-        eps = torch.randn((*x.shape, 1), generator=generator, dtype=x.dtype, device=x.device)
-        x = self.motion.transition(x, dt) + (L.unsqueeze(-3) @ eps).squeeze(-1)
+        x = self.motion.transition(x, dt) + correlated_noise(L, x.shape, generator, x)
         return state._replace(particles=x)
 
     def log_likelihood(self, particles: Tensor, z: Tensor) -> Tensor:
@@ -168,8 +171,7 @@ class ParticleFilter(nn.Module):
         if self.jitter:
             _, cov = weighted_moments(x.detach(), log_w.detach())
             L = noise_factor(cov, "particle covariance for jitter")
-            eps = torch.randn((*new_x.shape, 1), generator=generator, dtype=x.dtype, device=x.device)
-            new_x = new_x + self.jitter * (L.unsqueeze(-3) @ eps).squeeze(-1)
+            new_x = new_x + self.jitter * correlated_noise(L, new_x.shape, generator, x)
         new_w, ll = normalize(new_w, state.log_likelihood)
         if where is None:
             return ParticleState(new_x, new_w, ll)
