@@ -22,7 +22,8 @@ from torch import Tensor, nn
 from torchtrack.errors import TorchtrackError
 
 
-def _as_tensor(value, name: str) -> Tensor:
+def as_float_tensor(value, name: str) -> Tensor:
+    """``value`` as a tensor (floating point; integers become the default dtype), which must be finite."""
     t = torch.as_tensor(value)
     if not t.is_floating_point():
         t = t.to(torch.get_default_dtype())
@@ -49,7 +50,7 @@ class Positive(_Constrained):
     """A positive tensor ``softplus(θ) + floor``; initial ``value`` must be > ``floor``."""
 
     def __init__(self, value, name: str = "value", floor: float = 0.0, requires_grad: bool = True):
-        t = _as_tensor(value, name)
+        t = as_float_tensor(value, name)
         if not bool((t > floor).all()):
             raise TorchtrackError(f"{name} must be > {floor}; got {value!r}")
         super().__init__(inverse_softplus(t - floor), name, requires_grad)
@@ -63,7 +64,7 @@ class Probability(_Constrained):
     """A probability ``sigmoid(θ)`` in (0, 1); ``value`` must lie strictly inside."""
 
     def __init__(self, value, name: str = "probability", requires_grad: bool = True):
-        t = _as_tensor(value, name)
+        t = as_float_tensor(value, name)
         if not bool(((t > 0) & (t < 1)).all()):
             raise TorchtrackError(f"{name} must lie strictly between 0 and 1; got {value!r}")
         super().__init__(torch.logit(t), name, requires_grad)
@@ -76,7 +77,7 @@ class RowStochastic(_Constrained):
     """A row-stochastic matrix ``softmax(Θ, -1)``; ``value (*, K, K)`` with positive rows summing to 1."""
 
     def __init__(self, value, name: str = "transition matrix", requires_grad: bool = True, atol: float = 1e-6):
-        t = _as_tensor(value, name)
+        t = as_float_tensor(value, name)
         if t.dim() < 2 or t.shape[-1] != t.shape[-2]:
             raise TorchtrackError(f"{name} must be square (*, K, K); got shape {tuple(t.shape)}")
         if not bool((t > 0).all()):
@@ -95,7 +96,7 @@ class Covariance(_Constrained):
     """A full covariance ``L Lᵀ`` with ``L`` lower triangular and ``diag(L) = softplus(·)``."""
 
     def __init__(self, value, name: str = "covariance", requires_grad: bool = True):
-        t = _as_tensor(value, name)
+        t = as_float_tensor(value, name)
         if t.dim() < 2 or t.shape[-1] != t.shape[-2]:
             raise TorchtrackError(f"{name} must be square (*, n, n); got shape {tuple(t.shape)}")
         if not bool(torch.allclose(t, t.transpose(-1, -2), atol=1e-9, rtol=1e-6)):

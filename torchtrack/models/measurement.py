@@ -13,7 +13,7 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.models.autodiff import batched_jacobian
-from torchtrack.params import Covariance, Positive
+from torchtrack.params import Covariance, Positive, as_float_tensor
 
 
 class MeasurementModel(nn.Module):
@@ -50,8 +50,7 @@ class LinearMeasurement(MeasurementModel):
 
     def __init__(self, H, R, learnable: bool = True):
         super().__init__()
-        H = torch.as_tensor(H)
-        H = H if H.is_floating_point() else H.to(torch.get_default_dtype())
+        H = as_float_tensor(H, "H")
         if H.dim() != 2:
             raise TorchtrackError(f"H must have shape (m, n); got {tuple(H.shape)}")
         self.meas_dim, self.state_dim = H.shape

@@ -18,7 +18,7 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.models.autodiff import batched_jacobian
-from torchtrack.params import Covariance, Positive
+from torchtrack.params import Covariance, Positive, as_float_tensor
 
 
 def as_dt(dt, like: Tensor) -> Tensor:
@@ -86,8 +86,7 @@ class LinearMotion(MotionModel):
 
     def __init__(self, F, Q, learnable: bool = True):
         super().__init__()
-        F = torch.as_tensor(F)
-        F = F if F.is_floating_point() else F.to(torch.get_default_dtype())
+        F = as_float_tensor(F, "F")
         if F.dim() != 2 or F.shape[0] != F.shape[1]:
             raise TorchtrackError(f"F must be square (n, n); got shape {tuple(F.shape)}")
         self.state_dim = F.shape[0]
