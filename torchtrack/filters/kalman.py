@@ -296,10 +296,14 @@ class KalmanFilter(_GaussianFilter):
         B = math.prod(batch)
         x = init.mean.expand(*batch, n).reshape(B, n).transpose(0, 1).contiguous()
         P = init.cov.expand(*batch, n, n).reshape(B, n, n).permute(1, 2, 0).contiguous()
-        present, z = presence(measurements, mask)
-        present = present.expand(T, *batch).reshape(T, B)
+        z = measurements.expand(T, *batch, m).reshape(T, B, m)
+        present = ~torch.isnan(z).any(-1)
+        if mask is not None:
+            present = present & mask.expand(T, *batch).reshape(T, B).to(torch.bool)
         all_present = bool(present.all())
-        z = z.expand(T, *batch, m).reshape(T, B, m).transpose(1, 2).contiguous()       # (T, m, B)
+        if not all_present:                                      # zero-filled only where needed (one pass less)
+            z = torch.where(present.unsqueeze(-1), z, 0.0)
+        z = z.transpose(1, 2).contiguous()                                              # (T, m, B)
         needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x, P, z, *mats))
         if compile and not needs_grad:
             mean, cov, nis, total, ok = self._run_compiled(x, P, z, None if all_present else present, mats,
