@@ -89,7 +89,7 @@ def _paper_models():
 def test_fast_cv_path_equals_general_path():
     motion, meas, Tm = _paper_models()
     fast = ConstantVelocityIMM(motion, meas, Tm)
-    general = fast.general()
+    general = InteractingMultipleModel.from_mode_control(motion, meas, Tm)
     g = torch.Generator().manual_seed(3)
     z = _measurements(30).unsqueeze(1) + 20 * torch.randn(30, 5, 2, generator=g, dtype=torch.float64)
     z[7, 2] = float("nan")
@@ -161,7 +161,8 @@ def test_compiled_step_falls_back_to_eager(monkeypatch):
             raise RuntimeError("no compiler here")
         return call
 
-    monkeypatch.setattr(imm_cv, "_COMPILED", {})
+    monkeypatch.setattr(imm_cv.compiled_step, "compiled", None)
+    monkeypatch.setattr(imm_cv.compiled_step, "failed", False)
     monkeypatch.setattr(torch, "compile", broken)
     motion, meas, Tm = _paper_models()
     fast = ConstantVelocityIMM(motion, meas, Tm)

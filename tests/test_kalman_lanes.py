@@ -66,7 +66,7 @@ def test_entrywise_step_equals_the_gemm_step(predict_first, model):
     present = torch.rand(B, generator=gen) > 0.3
     with torch.no_grad():
         for pres, pattern in [(p, q) for p in (None, present) for q in patterns]:
-            want = (lanes.step if predict_first else lanes.update_only)(x, P, z, pres, *mats)
+            want = lanes.step(x, P, z, pres, *mats, predict_first)
             out = (torch.empty_like(x), torch.empty_like(P), torch.empty(B, dtype=F64), torch.ones(B, dtype=F64),
                    torch.empty(B, dtype=torch.bool))
             lanes.fused_step(x, P, z, pres, *mats, *out, predict_first, pattern)
@@ -78,7 +78,7 @@ def test_entrywise_step_equals_the_gemm_step(predict_first, model):
 def test_compiled_run_plumbing_matches_eager(monkeypatch):
     """``run(compile=True)`` through the history-writing loop (the compiled function swapped for the
     same Python function run eagerly, so the test does not pay for compilation)."""
-    monkeypatch.setattr(lanes, "compiled_step", lambda: lanes.fused_step)
+    monkeypatch.setattr(lanes, "compiled_step", lanes.fused_step)
     gen = torch.Generator().manual_seed(5)
     kf = _random_model(gen)
     z = _sequence(gen, 5, (4,), kf.measurement.meas_dim)
@@ -140,7 +140,8 @@ def test_compile_failure_falls_back_to_eager(monkeypatch):
         return call
 
     monkeypatch.setattr(torch, "compile", broken)
-    monkeypatch.setattr(lanes, "_compiled", [])
+    monkeypatch.setattr(lanes.compiled_step, "compiled", None)
+    monkeypatch.setattr(lanes.compiled_step, "failed", False)
     kf = KalmanFilter(ConstantVelocity(2, q=0.1), LinearPosition(2, sigma=1.0)).double()
     z = torch.randn(4, 3, 2, generator=torch.Generator().manual_seed(9), dtype=F64)
     init = GaussianState(torch.zeros(3, 4, dtype=F64), torch.eye(4, dtype=F64))

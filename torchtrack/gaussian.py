@@ -330,8 +330,7 @@ def kalman_update(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor,
     ``ẑ = H x⁻``, or ``z_pred`` for an EKF. Shapes: ``mean (*, n)``, ``cov (*, n, n)``, ``z (*, m)``,
     ``H (*, m, n)``, ``R (*, m, m)``; all batch dimensions broadcast.
     """
-    z_hat = z_pred if z_pred is not None else matmul(H, mean.unsqueeze(-1)).squeeze(-1)
-    nu = z - z_hat
+    nu = z - (z_pred if z_pred is not None else matmul(H, mean.unsqueeze(-1)).squeeze(-1))
     C, S = innovation_cov(cov, H, R)
     g = kalman_gain(S, C, check=check)
     new_mean = mean + (g.gain @ nu.unsqueeze(-1)).squeeze(-1)
@@ -364,26 +363,6 @@ def sample(mean: Tensor, cov: Tensor, generator: torch.Generator | None = None,
     """Draw ``x ~ N(μ, Σ)`` with shape ``(*sample_shape, *batch, n)``, reproducible via ``generator``."""
     L = cholesky(cov, "covariance")
     batch = torch.broadcast_shapes(mean.shape[:-1], L.shape[:-2])
-    n = mean.shape[-1]
-    eps = torch.randn((*sample_shape, *batch, n, 1), generator=generator, dtype=mean.dtype, device=mean.device)
+    eps = torch.randn((*sample_shape, *batch, mean.shape[-1], 1), generator=generator, dtype=mean.dtype,
+                      device=mean.device)
     return mean + (L @ eps).squeeze(-1)
-
-
-def check_covariance(P: Tensor, name: str, size: int | None = None) -> None:
-    """Raise :class:`TorchtrackError` naming ``name`` unless ``P`` is square, symmetric, finite and PD."""
-    if P.dim() < 2 or P.shape[-1] != P.shape[-2]:
-        raise TorchtrackError(f"{name} must be square (*, n, n); got shape {tuple(P.shape)}")
-    if size is not None and P.shape[-1] != size:
-        raise TorchtrackError(f"{name} must be {size}x{size}; got {P.shape[-1]}x{P.shape[-1]}")
-    if not bool(torch.isfinite(P).all()):
-        raise TorchtrackError(f"{name} contains NaN or infinite entries")
-    scale = P.abs().amax(dim=(-1, -2), keepdim=True).clamp_min(1e-300)
-    if not bool(((P - P.transpose(-1, -2)).abs() <= 1e-6 * scale).all()):
-        raise TorchtrackError(f"{name} is not symmetric")
-    cholesky(P, name)
-
-
-def check_vector(x: Tensor, name: str, size: int) -> None:
-    """Raise :class:`TorchtrackError` unless ``x`` has last dimension ``size``."""
-    if x.dim() < 1 or x.shape[-1] != size:
-        raise TorchtrackError(f"{name} must have shape (*, {size}); got {tuple(x.shape)}")

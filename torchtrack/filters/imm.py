@@ -33,7 +33,7 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.kalman import ExtendedKalmanFilter, GaussianState
-from torchtrack.gaussian import moment_match, symmetrize
+from torchtrack.gaussian import moment_match
 from torchtrack.models.measurement import MeasurementModel
 from torchtrack.models.motion import ModeControlInput, MotionModel
 from torchtrack.params import RowStochastic
@@ -72,11 +72,7 @@ def check_transition(P: Tensor, num_models: int, name: str = "mode transition ma
     if P.dim() != 2 or P.shape != (num_models, num_models):
         raise TorchtrackError(f"{name} must have shape ({num_models}, {num_models}) for {num_models} models; "
                               f"got {tuple(P.shape)}")
-    if not bool(torch.isfinite(P).all()) or bool((P < 0).any()):
-        raise TorchtrackError(f"{name} must have finite non-negative entries; got {P.tolist()}")
-    sums = P.sum(-1)
-    if not bool(((sums - 1).abs() <= atol).all()):
-        raise TorchtrackError(f"rows of {name} must sum to 1; got row sums {sums.tolist()}")
+    check_probabilities(P, f"rows of {name}", atol)
 
 
 class TransitionMatrix(nn.Module):
@@ -84,21 +80,13 @@ class TransitionMatrix(nn.Module):
 
     def __init__(self, value, num_models: int, name: str = "mode transition matrix"):
         super().__init__()
-        if isinstance(value, RowStochastic):
-            check_transition(value().detach(), num_models, name)
-            self.learned = value
-        else:
-            t = torch.as_tensor(value, dtype=torch.get_default_dtype())
-            check_transition(t, num_models, name)
-            self.learned = None
-            self.register_buffer("fixed", t)
+        self.learned = value if isinstance(value, RowStochastic) else None
+        if self.learned is None:
+            self.register_buffer("fixed", torch.as_tensor(value, dtype=torch.get_default_dtype()))
+        check_transition(self().detach(), num_models, name)
 
     def forward(self) -> Tensor:
         return self.learned() if self.learned is not None else self.fixed
-
-    def log(self, like: Tensor) -> Tensor:
-        """``log p_ij`` on ``like``'s dtype/device (``-inf`` for impossible transitions)."""
-        return torch.log(self().to(like))
 
 
 def check_probabilities(p: Tensor, name: str, atol: float = 1e-5) -> None:
@@ -128,20 +116,14 @@ def mix(state: IMMState, log_transition: Tensor) -> IMMState:
 
     ``log_transition (M, M)``; returns ``IMMState(log c (*, M), x⁰ (*, M, n), P⁰ (*, M, n, n))``.
     """
-    a = state.log_prob.unsqueeze(-1) + log_transition            # (*, i, j): log μ_i p_ij
-    log_c = torch.logsumexp(a, dim=-2)                            # (*, j)
-    w = torch.exp(a - log_c.unsqueeze(-2))                        # μ_{i|j}
-    mean0 = torch.einsum("...ij,...in->...jn", w, state.mean)
-    d = state.mean.unsqueeze(-2) - mean0.unsqueeze(-3)            # (*, i, j, n)
-    spread = state.cov.unsqueeze(-3) + d.unsqueeze(-1) * d.unsqueeze(-2)
-    cov0 = (w[..., None, None] * spread).sum(-4)
-    return IMMState(log_c, mean0, symmetrize(cov0))
+    a = state.log_prob.unsqueeze(-1) + log_transition            # (*, i, j): log μ_i p_ij; softmax over i: μ_{i|j}
+    mean0, cov0 = moment_match(a, state.mean.unsqueeze(-2), state.cov.unsqueeze(-3), dim=-2)
+    return IMMState(torch.logsumexp(a, dim=-2), mean0, cov0)
 
 
 def combine(state: IMMState) -> GaussianState:
     """Combined estimate: moment match of the model-conditioned Gaussians (``(*, n)``, ``(*, n, n)``)."""
-    mean, cov = moment_match(state.log_prob, state.mean, state.cov)
-    return GaussianState(mean, cov)
+    return GaussianState(*moment_match(state.log_prob, state.mean, state.cov))
 
 
 class ModeMatched(MotionModel):
@@ -162,12 +144,6 @@ class ModeMatched(MotionModel):
         self.mode = mode
         self.state_dim = motion.state_dim
 
-    def _ref(self) -> Tensor:
-        return self.base.sigma.raw
-
-    def transition_matrix(self, dt) -> Tensor:
-        return self.base.transition_matrix(dt)
-
     def transition(self, x: Tensor, dt) -> Tensor:
         mode = torch.tensor(self.mode, device=x.device)
         return self.base.transition(x, dt, mode).to(x.dtype)
@@ -179,7 +155,53 @@ class ModeMatched(MotionModel):
         return self.base.process_noise(dt, torch.tensor(self.mode, device=self.base.sigma.raw.device))
 
 
-class InteractingMultipleModel(nn.Module):
+class MultipleModelFilter(nn.Module):
+    """What the IMMs share on :class:`IMMState` (the initial state, its check, the combined estimate and
+    :meth:`run`); subclasses give ``state_dim``, ``num_models``, ``predict`` and ``update``."""
+
+    state_dim: int
+    num_models: int
+
+    def initial_state(self, mean: Tensor, cov: Tensor, mode_prob: Tensor | None = None) -> IMMState:
+        """Every model starts at ``mean (*, n)``, ``cov (*, n, n)``; ``mode_prob (*, M)`` (uniform if None)."""
+        M = self.num_models
+        if mean.shape[-1] != self.state_dim or cov.shape[-2:] != (self.state_dim, self.state_dim):
+            raise TorchtrackError(f"IMM initial state must be (*, {self.state_dim}) and (*, {self.state_dim}, "
+                                  f"{self.state_dim}); got {tuple(mean.shape)} and {tuple(cov.shape)}")
+        mode_prob = probabilities_or_uniform(mode_prob, M, "mode probabilities", mean)
+        batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], mode_prob.shape[:-1])
+        n = self.state_dim
+        return IMMState(torch.log(mode_prob).expand(*batch, M), mean.unsqueeze(-2).expand(*batch, M, n),
+                        cov.unsqueeze(-3).expand(*batch, M, n, n))
+
+    def _check(self, state: IMMState) -> None:
+        M, n = self.num_models, self.state_dim
+        if state.log_prob.shape[-1] != M or state.mean.shape[-2:] != (M, n) or state.cov.shape[-3:] != (M, n, n):
+            raise TorchtrackError(f"IMM state must be log_prob (*, {M}), mean (*, {M}, {n}), cov (*, {M}, {n}, "
+                                  f"{n}); got {tuple(state.log_prob.shape)}, {tuple(state.mean.shape)}, "
+                                  f"{tuple(state.cov.shape)}")
+
+    def combine(self, state: IMMState) -> GaussianState:
+        return combine(state)
+
+    def run(self, measurements: Tensor, init: IMMState, dt=1.0, mask: Tensor | None = None,
+            predict_first: bool = True) -> IMMResult:
+        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` False = missing) from ``init``."""
+        if measurements.dim() < 2:
+            raise TorchtrackError(f"IMM: measurements must have shape (T, *, m); got {tuple(measurements.shape)}")
+        state = init
+        steps = []
+        total = 0.0
+        for k in range(measurements.shape[0]):
+            if predict_first or k > 0:
+                state = self.predict(state, dt)
+            state, info = self.update(state, measurements[k], None if mask is None else mask[k])
+            steps.append((*combine(state), state.log_prob.exp(), state.mean))
+            total = total + info.log_likelihood
+        return IMMResult(*(torch.stack(t) for t in zip(*steps)), total)
+
+
+class InteractingMultipleModel(MultipleModelFilter):
     """IMM over ``filters`` (one model-matched Gaussian filter per mode) and a transition matrix.
 
     ``transition``: a ``(M, M)`` row-stochastic tensor (zeros allowed, fixed) or a
@@ -214,55 +236,27 @@ class InteractingMultipleModel(nn.Module):
     def num_models(self) -> int:
         return len(self.filters)
 
-    def initial_state(self, mean: Tensor, cov: Tensor, mode_prob: Tensor | None = None) -> IMMState:
-        """Every model starts at ``mean (*, n)``, ``cov (*, n, n)``; ``mode_prob (*, M)`` (uniform if None)."""
-        M = self.num_models
-        if mean.shape[-1] != self.state_dim or cov.shape[-2:] != (self.state_dim, self.state_dim):
-            raise TorchtrackError(f"IMM initial state must be (*, {self.state_dim}) and (*, {self.state_dim}, "
-                                  f"{self.state_dim}); got {tuple(mean.shape)} and {tuple(cov.shape)}")
-        mode_prob = probabilities_or_uniform(mode_prob, M, "mode probabilities", mean)
-        batch = torch.broadcast_shapes(mean.shape[:-1], cov.shape[:-2], mode_prob.shape[:-1])
-        mean = mean.unsqueeze(-2).expand(*batch, M, self.state_dim)
-        cov = cov.unsqueeze(-3).expand(*batch, M, self.state_dim, self.state_dim)
-        return IMMState(torch.log(mode_prob).expand(*batch, M), mean, cov)
-
-    def _check(self, state: IMMState) -> None:
-        M, n = self.num_models, self.state_dim
-        if state.log_prob.shape[-1] != M or state.mean.shape[-2:] != (M, n) or state.cov.shape[-3:] != (M, n, n):
-            raise TorchtrackError(f"IMM state must be log_prob (*, {M}), mean (*, {M}, {n}), cov (*, {M}, {n}, "
-                                  f"{n}); got {tuple(state.log_prob.shape)}, {tuple(state.mean.shape)}, "
-                                  f"{tuple(state.cov.shape)}")
-
     def predict(self, state: IMMState, dt=1.0) -> IMMState:
         """Interaction + model-matched prediction; returns predicted mode log-probabilities ``log c_j``."""
         self._check(state)
-        mixed = mix(state, self.transition.log(state.mean))
-        means, covs = [], []
-        for j, f in enumerate(self.filters):
-            s = f.predict(GaussianState(mixed.mean[..., j, :], mixed.cov[..., j, :, :]), dt)
-            means.append(s.mean)
-            covs.append(s.cov)
-        return IMMState(mixed.log_prob, torch.stack(means, -2), torch.stack(covs, -3))
+        mixed = mix(state, torch.log(self.transition().to(state.mean)))
+        preds = [f.predict(GaussianState(mixed.mean[..., j, :], mixed.cov[..., j, :, :]), dt)
+                 for j, f in enumerate(self.filters)]
+        return IMMState(mixed.log_prob, torch.stack([s.mean for s in preds], -2),
+                        torch.stack([s.cov for s in preds], -3))
 
     def update(self, state: IMMState, z: Tensor, mask: Tensor | None = None,
                check: bool = True) -> tuple[IMMState, IMMUpdateInfo]:
         """Model-matched updates with ``z (*, m)`` and the mode-probability update."""
         self._check(state)
-        means, covs, lls, nis = [], [], [], []
-        present = None
-        for j, f in enumerate(self.filters):
-            s, info = f.update(GaussianState(state.mean[..., j, :], state.cov[..., j, :, :]), z, mask, check)
-            means.append(s.mean)
-            covs.append(s.cov)
-            lls.append(info.log_likelihood)
-            nis.append(info.nis)
-            present = info.present
-        ll = torch.stack(lls, -1)
+        posts, infos = zip(*(f.update(GaussianState(state.mean[..., j, :], state.cov[..., j, :, :]), z, mask, check)
+                             for j, f in enumerate(self.filters)))
+        ll = torch.stack([i.log_likelihood for i in infos], -1)
         joint = state.log_prob + ll
         total = torch.logsumexp(joint, -1)
-        log_prob = joint - total.unsqueeze(-1)
-        new = IMMState(log_prob, torch.stack(means, -2), torch.stack(covs, -3))
-        return new, IMMUpdateInfo(total, ll, torch.stack(nis, -1), present)
+        new = IMMState(joint - total.unsqueeze(-1), torch.stack([s.mean for s in posts], -2),
+                       torch.stack([s.cov for s in posts], -3))
+        return new, IMMUpdateInfo(total, ll, torch.stack([i.nis for i in infos], -1), infos[-1].present)
 
     def predicted_measurement(self, state: IMMState) -> tuple[Tensor, Tensor, Tensor]:
         """Mixture measurement prediction of a *predicted* state (eq. 29–30).
@@ -270,39 +264,12 @@ class InteractingMultipleModel(nn.Module):
         Returns ``log weight (*, M)`` (= ``log c_j``), ``ẑ_j (*, M, m)`` and ``S_j (*, M, m, m)``.
         """
         self._check(state)
-        zs, Ss = [], []
-        for j, f in enumerate(self.filters):
-            z_hat, S, _ = f._moments(GaussianState(state.mean[..., j, :], state.cov[..., j, :, :]))
-            zs.append(z_hat)
-            Ss.append(S)
+        zs, Ss, _ = zip(*(f._moments(GaussianState(state.mean[..., j, :], state.cov[..., j, :, :]))
+                          for j, f in enumerate(self.filters)))
         return state.log_prob, torch.stack(zs, -2), torch.stack(Ss, -3)
 
-    def combine(self, state: IMMState) -> GaussianState:
-        return combine(state)
-
-    def run(self, measurements: Tensor, init: IMMState, dt=1.0, mask: Tensor | None = None,
-            predict_first: bool = True) -> IMMResult:
-        """Filter ``measurements (T, *, m)`` (NaN rows or ``mask (T, *)`` False = missing) from ``init``."""
-        if measurements.dim() < 2:
-            raise TorchtrackError(f"IMM: measurements must have shape (T, *, m); got {tuple(measurements.shape)}")
-        state = init
-        out = {"mean": [], "cov": [], "mode": [], "model": []}
-        total = 0.0
-        for k in range(measurements.shape[0]):
-            if predict_first or k > 0:
-                state = self.predict(state, dt)
-            state, info = self.update(state, measurements[k], None if mask is None else mask[k])
-            est = combine(state)
-            out["mean"].append(est.mean)
-            out["cov"].append(est.cov)
-            out["mode"].append(state.log_prob.exp())
-            out["model"].append(state.mean)
-            total = total + info.log_likelihood
-        return IMMResult(torch.stack(out["mean"]), torch.stack(out["cov"]), torch.stack(out["mode"]),
-                         torch.stack(out["model"]), total)
-
-
 __all__ = [
-    "IMMResult", "IMMState", "IMMUpdateInfo", "InteractingMultipleModel", "ModeMatched", "TransitionMatrix",
+    "IMMResult", "IMMState", "IMMUpdateInfo", "InteractingMultipleModel", "ModeMatched", "MultipleModelFilter",
+    "TransitionMatrix",
     "check_probabilities", "check_transition", "combine", "mix",
 ]

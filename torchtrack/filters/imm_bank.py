@@ -57,14 +57,12 @@ class ClassConditionedIMM(nn.Module):
         self.imms = nn.ModuleList(imms)
         self.state_dim = n[0]
         C = len(imms)
-        if confusion is not None:
-            conf = torch.as_tensor(confusion, dtype=torch.get_default_dtype())
+        conf = None if confusion is None else torch.as_tensor(confusion, dtype=torch.get_default_dtype())
+        if conf is not None:
             if conf.shape != (C, C):
                 raise TorchtrackError(f"confusion matrix must be ({C}, {C}); got {tuple(conf.shape)}")
             check_probabilities(conf, "rows of the confusion matrix")
-            self.register_buffer("confusion", conf)
-        else:
-            self.confusion = None
+        self.register_buffer("confusion", conf)
 
     @property
     def num_classes(self) -> int:
@@ -82,10 +80,8 @@ class ClassConditionedIMM(nn.Module):
         """Each class IMM predicts; class probabilities are unchanged (the class is static)."""
         return BankState(state.log_class_prob, tuple(imm.predict(s, dt) for imm, s in zip(self.imms, state.classes)))
 
-    def _report_log_prob(self, z_class: Tensor | None, like: Tensor) -> Tensor | None:
-        """``log C[c, ĉ]`` for reports ``ĉ (*,)`` → ``(*, C)`` (None without a report)."""
-        if z_class is None:
-            return None
+    def _report_log_prob(self, z_class: Tensor, like: Tensor) -> Tensor:
+        """``log C[c, ĉ]`` for reports ``ĉ (*,)`` → ``(*, C)``."""
         if self.confusion is None:
             raise TorchtrackError("a class report needs the bank's confusion matrix")
         z_class = z_class.long()
@@ -96,20 +92,15 @@ class ClassConditionedIMM(nn.Module):
     def update(self, state: BankState, z: Tensor, mask: Tensor | None = None,
                z_class: Tensor | None = None) -> tuple[BankState, BankUpdateInfo]:
         """Update every class IMM with ``z (*, m)`` and the class probabilities (with report ``z_class (*,)``)."""
-        new, lls = [], []
-        present = None
-        for imm, s in zip(self.imms, state.classes):
-            s2, info = imm.update(s, z, mask)
-            new.append(s2)
-            lls.append(info.log_likelihood)
-            present = info.present
-        ll = torch.stack(lls, -1)                                   # (*, C)
+        new, infos = zip(*(imm.update(s, z, mask) for imm, s in zip(self.imms, state.classes)))
+        ll = torch.stack([info.log_likelihood for info in infos], -1)   # (*, C)
         joint = state.log_class_prob + ll
-        rep = self._report_log_prob(z_class, joint)
-        if rep is not None:
+        present = infos[-1].present
+        if z_class is not None:
+            rep = self._report_log_prob(z_class, joint)
             joint = joint + torch.where(present.unsqueeze(-1), rep, torch.zeros_like(rep))
         total = torch.logsumexp(joint, -1)
-        return BankState(joint - total.unsqueeze(-1), tuple(new)), BankUpdateInfo(total, ll, present)
+        return BankState(joint - total.unsqueeze(-1), new), BankUpdateInfo(total, ll, present)
 
     def class_mixtures(self, state: BankState) -> tuple[Tensor, Tensor, Tensor]:
         """Per-class measurement mixtures of a predicted state (eq. 30), padded to a common model count.
@@ -121,15 +112,11 @@ class ClassConditionedIMM(nn.Module):
         K = max(p[0].shape[-1] for p in parts)
         lw, zh, S = [], [], []
         for log_w, z_hat, cov in parts:
-            pad = K - log_w.shape[-1]
-            if pad:
-                log_w = torch.cat([log_w, torch.full((*log_w.shape[:-1], pad), -torch.inf, dtype=log_w.dtype,
-                                                     device=log_w.device)], -1)
-                z_hat = torch.cat([z_hat, z_hat[..., :1, :].expand(*z_hat.shape[:-2], pad, z_hat.shape[-1])], -2)
-                cov = torch.cat([cov, cov[..., :1, :, :].expand(*cov.shape[:-3], pad, *cov.shape[-2:])], -3)
-            lw.append(log_w)
-            zh.append(z_hat)
-            S.append(cov)
+            k = log_w.shape[-1]
+            models = torch.tensor([*range(k), *[0] * (K - k)], device=log_w.device)   # padding repeats model 0
+            lw.append(nn.functional.pad(log_w, (0, K - k), value=-torch.inf))
+            zh.append(z_hat.index_select(-2, models))
+            S.append(cov.index_select(-3, models))
         return torch.stack(lw, -2), torch.stack(zh, -3), torch.stack(S, -4)
 
     def measurement_mixture(self, state: BankState, z_class: Tensor | None = None) -> tuple[Tensor, Tensor, Tensor]:
@@ -156,30 +143,23 @@ class ClassConditionedIMM(nn.Module):
         C, K = log_w.shape[-2:]
         comp = comp.unflatten(-2, (C, K))                              # (*, C, K, P)
         in_class = torch.logsumexp(log_w.unsqueeze(-1) + comp, -2)     # (*, C, P): log p(z | c)
-        rep = torch.log(self.confusion.to(z)) if self.confusion is not None else None
-        if rep is None:
-            raise TorchtrackError("joint_log_density needs the bank's confusion matrix")
         # log Σ_c P(c) C[c, ĉ] p(z | c), with ĉ the report of each point
-        w = state.log_class_prob.unsqueeze(-1) + rep.transpose(0, 1)[z_class.long()].movedim(-1, -2)  # (*, C, P)
+        w = state.log_class_prob.unsqueeze(-1) + self._report_log_prob(z_class, z).movedim(-1, -2)   # (*, C, P)
         return torch.logsumexp(w + in_class, -2)
 
     def sample_measurements(self, state: BankState, num: int,
                             generator: torch.Generator | None = None) -> tuple[Tensor, Tensor]:
         """``num`` draws of ``(z, ĉ)`` from the joint predictive density per track: ``(*, num, m)``, ``(*, num)``."""
         parts = [self.measurement_mixture(state, c) for c in range(self.num_classes)]
-        w = torch.cat([p[0] for p in parts], -1)
-        mu = torch.cat([p[1] for p in parts], -2)
-        S = torch.cat([p[2] for p in parts], -3)
+        w, mu, S = (torch.cat(p, dim) for p, dim in zip(zip(*parts), (-1, -2, -3)))
         z, comp = sample_mixture(w, mu, S, num, generator, return_component=True)
         return z, torch.div(comp, parts[0][0].shape[-1], rounding_mode="floor")
 
     def combine(self, state: BankState) -> GaussianState:
         """Moment match over classes × models: ``(*, n)``, ``(*, n, n)``."""
         w = torch.cat([state.log_class_prob[..., c:c + 1] + s.log_prob for c, s in enumerate(state.classes)], -1)
-        mean = torch.cat([s.mean for s in state.classes], -2)
-        cov = torch.cat([s.cov for s in state.classes], -3)
-        m, P = moment_match(w, mean, cov)
-        return GaussianState(m, P)
+        return GaussianState(*moment_match(w, torch.cat([s.mean for s in state.classes], -2),
+                                           torch.cat([s.cov for s in state.classes], -3)))
 
 
 __all__ = ["BankState", "BankUpdateInfo", "ClassConditionedIMM"]

@@ -23,28 +23,25 @@ the elementwise work into a few loops; on failure it falls back to eager executi
 
 from __future__ import annotations
 
-import warnings
-
 import torch
-from torch import Tensor, nn
+from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm import (
     IMMState,
     IMMUpdateInfo,
-    InteractingMultipleModel,
+    MultipleModelFilter,
     TransitionMatrix,
-    combine,
 )
-from torchtrack.filters.kalman import GaussianState
+from torchtrack.filters.kalman import presence
+from torchtrack.filters.kalman_lanes import Compiled
 from torchtrack.gaussian import cholesky_entries, gaussian_log_likelihood, solve_lower_entries
 from torchtrack.models.measurement import LinearPosition
 from torchtrack.models.motion import ModeControlInput
 
 # (row, col) of the 10 packed covariance entries in the 4×4 matrix over [x, y, vx, vy]
 _IDX = [(0, 0), (0, 1), (1, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 2), (2, 3), (3, 3)]
-_ROW = [i for i, _ in _IDX]
-_COL = [j for _, j in _IDX]
+_ROW, _COL = map(list, zip(*_IDX))
 
 
 def pack(state: IMMState) -> tuple[Tensor, Tensor, Tensor]:
@@ -93,13 +90,11 @@ def mix_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, transition: Tensor) 
 
 def predict_packed(mean: Tensor, cov: Tensor, dt: float, q: Tensor, u: Tensor) -> tuple[Tensor, Tensor]:
     """Model-matched prediction; ``q (M,)`` = σ_j², ``u (2, M)`` control accelerations."""
-    px, py, vx, vy = mean.unbind(0)
     Axx, Axy, Ayy, Bxx, Bxy, Byx, Byy, Cxx, Cxy, Cyy = cov.unbind(0)
     h = 0.5 * dt * dt
-    ux, uy = u[0].unsqueeze(-1), u[1].unsqueeze(-1)
-    q = q.unsqueeze(-1)
+    u, q = u.unsqueeze(-1), q.unsqueeze(-1)
     q11, q12, q22 = q * (h * h), q * (h * dt), q * (dt * dt)
-    mean = torch.stack([px + dt * vx + h * ux, py + dt * vy + h * uy, vx + dt * ux, vy + dt * uy])
+    mean = torch.cat([mean[:2] + dt * mean[2:] + h * u, mean[2:] + dt * u])
     dt2 = dt * dt
     cov = torch.stack([
         Axx + 2 * dt * Bxx + dt2 * Cxx + q11,
@@ -151,8 +146,7 @@ def combine_packed(log_prob: Tensor, mean: Tensor, cov: Tensor) -> tuple[Tensor,
     w = log_prob.exp()
     m = (mean * w).sum(1)
     d = mean - m.unsqueeze(1)
-    c = ((cov + d[_ROW] * d[_COL]) * w).sum(1)
-    return m, c
+    return m, ((cov + d[_ROW] * d[_COL]) * w).sum(1)
 
 
 def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, transition: Tensor, q: Tensor, u: Tensor,
@@ -168,35 +162,10 @@ def step_packed(log_prob: Tensor, mean: Tensor, cov: Tensor, z: Tensor, transiti
     return log_prob, mean2, cov2, total, cm, cc
 
 
-_COMPILED: dict[str, object] = {}
+compiled_step = Compiled(step_packed, "the IMM step", dynamic=False)
 
 
-def compiled_step():
-    """:func:`step_packed` through ``torch.compile`` (cached per process).
-
-    Compilation happens at the first call; if it fails there (no compiler, unsupported platform), a
-    warning is issued and this and every later call run the eager :func:`step_packed`.
-    """
-    if "step" in _COMPILED:
-        return _COMPILED["step"]
-    compiled = torch.compile(step_packed, dynamic=False)
-
-    def step(*args):
-        if _COMPILED.get("failed"):
-            return step_packed(*args)
-        try:
-            return compiled(*args)
-        except Exception as exc:  # noqa: BLE001 - any backend failure means eager
-            warnings.warn(f"torch.compile of the IMM step failed ({type(exc).__name__}: {exc}); running eager",
-                          stacklevel=2)
-            _COMPILED["failed"] = True
-            return step_packed(*args)
-
-    _COMPILED["step"] = step
-    return step
-
-
-class ConstantVelocityIMM(nn.Module):
+class ConstantVelocityIMM(MultipleModelFilter):
     """Fast IMM for ``[x, y, vx, vy]`` with the modes of a :class:`ModeControlInput` and position measurements.
 
     Same interface as :class:`InteractingMultipleModel` (``initial_state``, ``predict``, ``update``,
@@ -221,14 +190,6 @@ class ConstantVelocityIMM(nn.Module):
     def num_models(self) -> int:
         return self.motion.num_modes
 
-    def general(self) -> InteractingMultipleModel:
-        """The equivalent general IMM (shares parameters); used to test this fast path."""
-        T = self.transition.learned if self.transition.learned is not None else self.transition.fixed
-        return InteractingMultipleModel.from_mode_control(self.motion, self.measurement, T)
-
-    def initial_state(self, mean: Tensor, cov: Tensor, mode_prob: Tensor | None = None) -> IMMState:
-        return self.general().initial_state(mean, cov, mode_prob)
-
     def _params(self, like: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
         q = (self.motion.sigma() ** 2).to(like)
         u = self.motion.controls.to(like).transpose(0, 1)
@@ -246,16 +207,11 @@ class ConstantVelocityIMM(nn.Module):
         if z.shape[-1] != 2:
             raise TorchtrackError(f"ConstantVelocityIMM: z must have shape (*, 2); got {tuple(z.shape)}")
         batch = state.log_prob.shape[:-1]
-        present = ~torch.isnan(z).any(-1)
-        if mask is not None:
-            present = present & mask.to(torch.bool)
-        present = present.expand(batch)
-        z = torch.where(present.unsqueeze(-1), z, torch.zeros_like(z)).expand(*batch, 2)
-        _, _, _, R = self._params(state.mean)
-        log_prob, m, c = pack(state)
-        zp = z.reshape(-1, 2).transpose(0, 1)
-        pres = present.reshape(-1)
-        log_prob, m2, c2, total, ll, nis, ok = update_packed(log_prob, m, c, zp, R, pres)
+        present, z = presence(z, mask)
+        present, z = present.expand(batch), z.expand(*batch, 2)
+        R = self._params(state.mean)[3]
+        log_prob, m2, c2, total, ll, nis, ok = update_packed(*pack(state), z.reshape(-1, 2).transpose(0, 1), R,
+                                                             present.reshape(-1))
         if check and not bool(ok.all()):
             raise TorchtrackError("ConstantVelocityIMM: innovation covariance S is not positive definite")
         M = self.num_models
@@ -268,9 +224,6 @@ class ConstantVelocityIMM(nn.Module):
         R = self.measurement.noise_cov().to(state.cov)
         return state.log_prob, state.mean[..., :2], state.cov[..., :2, :2] + R
 
-    def combine(self, state: IMMState) -> GaussianState:
-        return combine(state)
-
     def run_packed(self, measurements: Tensor, init: IMMState, dt: float = 1.0, compile: bool = False):
         """Fast loop over ``measurements (T, *, 2)`` (all present) in the packed batch-last layout.
 
@@ -278,11 +231,10 @@ class ConstantVelocityIMM(nn.Module):
         combined means ``(T, *, 4)`` and the total log-likelihood ``(*,)``.
         """
         P, q, u, R = self._params(init.mean)
-        step = compiled_step() if compile else step_packed
+        step = compiled_step if compile else step_packed
         batch = init.log_prob.shape[:-1]
         log_prob, m, c = pack(init)
-        z = measurements.expand(measurements.shape[0], *batch, 2).reshape(measurements.shape[0], -1, 2)
-        z = z.permute(0, 2, 1).contiguous()                  # (T, 2, B)
+        z = measurements.expand(-1, *batch, 2).reshape(measurements.shape[0], -1, 2).permute(0, 2, 1).contiguous()
         means = []
         total = 0.0
         for k in range(z.shape[0]):
@@ -291,10 +243,6 @@ class ConstantVelocityIMM(nn.Module):
             total = total + ll
         means = torch.stack(means).permute(0, 2, 1).reshape(z.shape[0], *batch, 4)
         return (log_prob, m, c), means, total.reshape(batch)
-
-    def run(self, measurements: Tensor, init: IMMState, dt=1.0, mask: Tensor | None = None,
-            predict_first: bool = True):
-        return InteractingMultipleModel.run(self, measurements, init, dt, mask, predict_first)
 
 
 __all__ = [

@@ -191,13 +191,11 @@ class MultipleModelParticleFilter(nn.Module):
         self.register_buffer("transition", P.clone())
         self.register_buffer("initial_mode", p0.clone())
         self.register_buffer("class_prior", pc)
-        if speed_envelopes is not None:
-            env = torch.as_tensor(speed_envelopes, dtype=torch.float64)
-            if env.shape != (C, 4) or not bool((env[:, 1] > env[:, 0]).all() and (env[:, 2:] > 0).all()):
-                raise TorchtrackError(f"speed_envelopes must be ({C}, 4) rows (v_lo < v_hi, g_lo > 0, g_hi > 0)")
-            self.register_buffer("speed_envelopes", env)
-        else:
-            self.speed_envelopes = None
+        env = None if speed_envelopes is None else torch.as_tensor(speed_envelopes, dtype=torch.float64)
+        if env is not None and (env.shape != (C, 4) or not bool((env[:, 1] > env[:, 0]).all())
+                                or not bool((env[:, 2:] > 0).all())):
+            raise TorchtrackError(f"speed_envelopes must be ({C}, 4) rows (v_lo < v_hi, g_lo > 0, g_hi > 0)")
+        self.register_buffer("speed_envelopes", env)
         if warmup < 0:
             raise TorchtrackError(f"warmup must be >= 0; got {warmup}")
         self.warmup = int(warmup)

@@ -68,7 +68,7 @@ def _check_state(state: GaussianState, n: int, who: str) -> None:
         raise TorchtrackError(f"{who}: state cov must have shape (*, {n}, {n}); got {tuple(state.cov.shape)}")
 
 
-def _presence(z: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+def presence(z: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
     """Presence mask ``(*,)`` and ``z`` with missing rows zero-filled (so NaN never propagates)."""
     present = ~torch.isnan(z).any(-1)
     if mask is not None:
@@ -110,23 +110,24 @@ class _GaussianFilter(nn.Module):
         cross-covariance ``C`` and ``S``; covariance ``P⁺ = P⁻ − W Wᵀ`` (``= P⁻ − K S Kᵀ``, equal to
         the Joseph form for the optimal gain; for the linear filter the Joseph form itself is used).
         """
-        m = self.measurement.meas_dim
-        if z.shape[-1] != m:
-            raise TorchtrackError(f"{self.name}: measurement z must have shape (*, {m}); got {tuple(z.shape)}")
-        _check_state(state, self.state_dim, self.name)
-        present, z = _presence(z, mask)
+        present, z = self._presence(state, z, mask)
         z_hat, S, C = self._moments(state)
         gain = kalman_gain(S, C, f"{self.name}: innovation covariance S", check=check)
         nu = self.measurement.residual(z, z_hat)
         mean = state.mean + (gain.gain @ nu.unsqueeze(-1)).squeeze(-1)
-        cov = self._posterior_cov(state, gain)
         nis, loglik = innovation_likelihood(gain.chol, nu)
         keep = present.unsqueeze(-1)
-        mean = torch.where(keep, mean, state.mean)
-        cov = torch.where(keep.unsqueeze(-1), cov, state.cov)
-        zero = torch.zeros_like(nis)
-        info = UpdateInfo(nu, S, torch.where(present, nis, zero), torch.where(present, loglik, zero), present)
-        return GaussianState(mean, cov), info
+        post = GaussianState(torch.where(keep, mean, state.mean),
+                             torch.where(keep.unsqueeze(-1), self._posterior_cov(state, gain), state.cov))
+        return post, UpdateInfo(nu, S, torch.where(present, nis, 0.0), torch.where(present, loglik, 0.0), present)
+
+    def _presence(self, state: GaussianState, z: Tensor, mask: Tensor | None) -> tuple[Tensor, Tensor]:
+        """The argument checks of :meth:`update`, then :func:`presence`."""
+        m = self.measurement.meas_dim
+        if z.shape[-1] != m:
+            raise TorchtrackError(f"{self.name}: measurement z must have shape (*, {m}); got {tuple(z.shape)}")
+        _check_state(state, self.state_dim, self.name)
+        return presence(z, mask)
 
     def _posterior_cov(self, state: GaussianState, gain: KalmanGain) -> Tensor:
         return posterior_cov(state.cov, gain)
@@ -149,7 +150,7 @@ class _GaussianFilter(nn.Module):
             raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, m); got "
                                   f"{tuple(measurements.shape)}")
         state = init
-        means, covs, nis = [], [], []
+        steps = []
         total = 0.0
         T = measurements.shape[0]
         for k in range(T):
@@ -157,11 +158,9 @@ class _GaussianFilter(nn.Module):
                 state = self.predict(state, dt)
             state, info = self.update(state, measurements[k], None if mask is None else mask[k])
             if history or k == T - 1:
-                means.append(state.mean)
-                covs.append(state.cov)
-                nis.append(info.nis)
+                steps.append((state.mean, state.cov, info.nis))
             total = total + info.log_likelihood
-        return FilterResult(torch.stack(means), torch.stack(covs), torch.stack(nis), total)
+        return FilterResult(*(torch.stack(t) for t in zip(*steps)), total)
 
 
 class KalmanFilter(_GaussianFilter):
@@ -178,10 +177,8 @@ class KalmanFilter(_GaussianFilter):
     def predict(self, state: GaussianState, dt=1.0) -> GaussianState:
         _check_state(state, self.state_dim, self.name)
         F = self.motion.transition_matrix(dt)
-        Q = self.motion.process_noise(dt)
-        mean = matmul(F, state.mean.unsqueeze(-1)).squeeze(-1)
-        cov = symmetrize(matmul(F, state.cov) @ F.transpose(-1, -2) + Q)
-        return GaussianState(mean, cov)
+        return GaussianState(matmul(F, state.mean.unsqueeze(-1)).squeeze(-1),
+                             symmetrize(matmul(F, state.cov) @ F.transpose(-1, -2) + self.motion.process_noise(dt)))
 
     def _moments(self, state):
         H = self.measurement.matrix()
@@ -205,10 +202,7 @@ class KalmanFilter(_GaussianFilter):
         if not (self._small() and H.dim() == 2 and R.dim() == 2):
             return super().update(state, z, mask, check)
         n, m = self.state_dim, self.measurement.meas_dim
-        if z.shape[-1] != m:
-            raise TorchtrackError(f"{self.name}: measurement z must have shape (*, {m}); got {tuple(z.shape)}")
-        _check_state(state, n, self.name)
-        present, z = _presence(z, mask)
+        present, z = self._presence(state, z, mask)
         batch = torch.broadcast_shapes(state.mean.shape[:-1], state.cov.shape[:-2], z.shape[:-1], present.shape)
         B = math.prod(batch)
         u = lanes.update(state.mean.expand(*batch, n).reshape(B, n).transpose(0, 1),
@@ -274,20 +268,16 @@ class KalmanFilter(_GaussianFilter):
         """
         if engine not in ("auto", "batch", "lanes", "axes"):
             raise TorchtrackError(f"{self.name}: engine must be auto, batch, lanes or axes; got {engine!r}")
-        if measurements.dim() < 2:
-            raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, m); got "
-                                  f"{tuple(measurements.shape)}")
         n, m = self.state_dim, self.measurement.meas_dim
-        _check_state(init, n, self.name)
-        if measurements.shape[-1] != m:
+        if measurements.dim() < 2 or measurements.shape[-1] != m:
             raise TorchtrackError(f"{self.name}: measurements must have shape (T, *, {m}); got "
                                   f"{tuple(measurements.shape)}")
+        _check_state(init, n, self.name)
         if engine == "axes":
             z = measurements if mask is None else torch.where(mask.to(torch.bool).unsqueeze(-1), measurements,
                                                               float("nan"))
-            mean, cov, nis, total = kalman_axes.run(z, init.mean, init.cov, float(dt), self._axes_parameters(dt),
-                                                    predict_first, compile, history)
-            return FilterResult(mean, cov, nis, total)
+            return FilterResult(*kalman_axes.run(z, init.mean, init.cov, float(dt), self._axes_parameters(dt),
+                                                 predict_first, compile, history))
         mats = None if engine == "batch" else self._shared_matrices(dt)
         if mats is None:
             if engine == "lanes":
@@ -311,7 +301,7 @@ class KalmanFilter(_GaussianFilter):
         if mask is not None:
             present = present & mask.expand(T, *batch).reshape(T, B).to(torch.bool)
         all_present = bool(present.all())
-        if not all_present:
+        if not all_present:                                      # zero-filled only where needed (one pass less)
             z = torch.where(present.unsqueeze(-1), z, 0.0)
         z = z.transpose(1, 2).contiguous()                                              # (T, m, B)
         needs_grad = torch.is_grad_enabled() and any(t.requires_grad for t in (x, P, z, *mats))
@@ -319,18 +309,17 @@ class KalmanFilter(_GaussianFilter):
             mean, cov, nis, total, ok = self._run_compiled(x, P, z, None if all_present else present, mats,
                                                            predict_first, history)
         else:
-            means, covs, nis_list, oks = [], [], [], []
+            steps, oks = [], []
             total = torch.zeros(B, dtype=z.dtype, device=z.device)
             for k in range(T):
-                fn = lanes.step if predict_first or k > 0 else lanes.update_only
-                x, P, nis_k, ll_k, ok_k = fn(x, P, z[k], None if all_present else present[k], *mats)
+                x, P, nis_k, ll_k, ok_k = lanes.step(x, P, z[k], None if all_present else present[k], *mats,
+                                                     predict_first or k > 0)
                 if history or k == T - 1:
-                    means.append(x)
-                    covs.append(P)
-                    nis_list.append(nis_k)
+                    steps.append((x, P, nis_k))
                 oks.append(ok_k)
                 total = total + ll_k
-            mean, cov, nis, ok = torch.stack(means), torch.stack(covs), torch.stack(nis_list), torch.stack(oks)
+            mean, cov, nis = (torch.stack(t) for t in zip(*steps))
+            ok = torch.stack(oks)
         failed = ~ok                                                 # (T, B); the one host sync
         if bool(failed.any()):
             k = int(failed.any(-1).nonzero()[0])
@@ -349,17 +338,14 @@ class KalmanFilter(_GaussianFilter):
         two slots are used in turn and the last is returned."""
         (n, B), T = x.shape, z.shape[0]
         slots = T if history else 2
-        mean = x.new_empty(slots, n, B)
-        cov = P.new_empty(slots, n, n, B)
-        nis = x.new_empty(slots, B)
+        mean, cov, nis = x.new_empty(slots, n, B), P.new_empty(slots, n, n, B), x.new_empty(slots, B)
         ok = torch.empty(T, B, dtype=torch.bool, device=x.device)
         total = x.new_zeros(B)
-        step = lanes.compiled_step()
         pattern = tuple(lanes.structure(M) for M in mats)
         for k in range(T):
             prev = (x, P) if k == 0 else (mean[(k - 1) % slots], cov[(k - 1) % slots])
-            step(*prev, z[k], None if present is None else present[k], *mats, mean[k % slots], cov[k % slots],
-                 nis[k % slots], total, ok[k], predict_first or k > 0, pattern)
+            lanes.compiled_step(*prev, z[k], None if present is None else present[k], *mats, mean[k % slots],
+                                cov[k % slots], nis[k % slots], total, ok[k], predict_first or k > 0, pattern)
         if not history:
             last = (T - 1) % slots
             mean, cov, nis = mean[last:last + 1], cov[last:last + 1], nis[last:last + 1]
@@ -374,9 +360,8 @@ class ExtendedKalmanFilter(_GaussianFilter):
     def predict(self, state: GaussianState, dt=1.0) -> GaussianState:
         _check_state(state, self.state_dim, self.name)
         F = self.motion.jacobian(state.mean, dt)
-        Q = self.motion.process_noise(dt)
-        mean = self.motion.transition(state.mean, dt)
-        return GaussianState(mean, symmetrize(F @ state.cov @ F.transpose(-1, -2) + Q))
+        return GaussianState(self.motion.transition(state.mean, dt),
+                             symmetrize(F @ state.cov @ F.transpose(-1, -2) + self.motion.process_noise(dt)))
 
     def _moments(self, state):
         C, S = innovation_cov(state.cov, self.measurement.jacobian(state.mean), self.measurement.noise_cov())

@@ -28,6 +28,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.kalman_lanes import Compiled
 from torchtrack.gaussian import cholesky_entries, gaussian_log_likelihood, solve_lower_entries
 
 
@@ -67,18 +68,7 @@ def _step(p, v, a, b, c, ll, z, dt: float, q11: float, q12: float, q22: float, r
     return (*s, ll + ll_k, nis_k)
 
 
-_compiled: dict = {}
-
-
-def _stepper(compile: bool):
-    if not compile:
-        return _step
-    if "step" not in _compiled:
-        try:
-            _compiled["step"] = torch.compile(_step, dynamic=False, fullgraph=True)
-        except Exception:  # noqa: BLE001 - compilation unavailable (no compiler): eager is correct, only slower
-            _compiled["step"] = _step
-    return _compiled["step"]
+compiled_step = Compiled(_step, "the Kalman filter engine 'axes'", dynamic=False, fullgraph=True)
 
 
 def split_axes(mean: Tensor, cov: Tensor) -> AxisState:
@@ -86,11 +76,11 @@ def split_axes(mean: Tensor, cov: Tensor) -> AxisState:
     d = mean.shape[-1] // 2
     idx = torch.arange(d, device=cov.device)
     a, b, c = cov[..., idx, idx], cov[..., idx, idx + d], cov[..., idx + d, idx + d]
-    rebuilt = merge_axes(AxisState(mean[..., :d], mean[..., d:], a, b, c))[1]
+    s = AxisState(mean[..., :d], mean[..., d:], a, b, c)
+    rebuilt = merge_axes(s)[1]
     if not torch.allclose(rebuilt, cov.expand_as(rebuilt)):
         raise TorchtrackError("Kalman filter engine 'axes': the initial covariance must have no cross-axis terms")
-    shape = mean.shape[:-1] + (d,)
-    return AxisState(*(t.expand(shape).contiguous() for t in (mean[..., :d], mean[..., d:], a, b, c)))
+    return s
 
 
 def merge_axes(s: AxisState) -> tuple[Tensor, Tensor]:
@@ -111,11 +101,11 @@ def run(measurements: Tensor, mean: Tensor, cov: Tensor, dt: float, params: tupl
     the last step only). ``compile`` uses ``torch.compile`` where available."""
     q11, q12, q22, r = params
     s = split_axes(mean, cov)
-    batch = torch.broadcast_shapes(measurements.shape[1:], s.p.shape)
+    batch = torch.broadcast_shapes(measurements.shape[1:], *(t.shape for t in s))
     state = [t.expand(batch).contiguous() for t in s]
     ll = torch.zeros(batch, dtype=measurements.dtype, device=measurements.device)
-    step = _stepper(compile)
-    means, covs, nis_steps = [], [], []
+    step = compiled_step if compile else _step
+    steps = []
     for k in range(measurements.shape[0]):
         if predict_first or k > 0:
             *state, ll, nis = step(*state, ll, measurements[k], dt, q11, q12, q22, r)
@@ -123,8 +113,6 @@ def run(measurements: Tensor, mean: Tensor, cov: Tensor, dt: float, params: tupl
             post, nis, ll_k = update(AxisState(*state), measurements[k], r)
             state, ll = list(post), ll + ll_k
         if history or k == measurements.shape[0] - 1:
-            m, P = merge_axes(AxisState(*state))
-            means.append(m)
-            covs.append(P)
-            nis_steps.append(nis.sum(-1))
-    return torch.stack(means), torch.stack(covs), torch.stack(nis_steps), ll.sum(-1)
+            steps.append((*merge_axes(AxisState(*state)), nis.sum(-1)))
+    mean, cov, nis = (torch.stack(t) for t in zip(*steps))
+    return mean, cov, nis, ll.sum(-1)

@@ -58,14 +58,9 @@ def _left(A: Tensor, X: Tensor) -> Tensor:
     return (A @ X.reshape(X.shape[0], -1)).reshape(A.shape[0], *X.shape[1:])
 
 
-def _right(X: Tensor, A: Tensor) -> Tensor:
-    """``[i, j, …] = Σ_l X[i, l, …] A[j, l]`` (``X Aᵀ`` per lane) for ``X (p, l, B)``, shared ``A``."""
-    return torch.matmul(A, X)
-
-
 def predict(x: Tensor, P: Tensor, F: Tensor, Q: Tensor) -> tuple[Tensor, Tensor]:
     """``x⁻ = F x``, ``P⁻ = F P Fᵀ + Q`` for ``x (n, B)``, ``P (n, n, B)``, ``F, Q (n, n)``."""
-    return _left(F, x), symmetrize(_right(_left(F, P), F) + Q.unsqueeze(-1), (0, 1))
+    return _left(F, x), symmetrize(F @ _left(F, P) + Q.unsqueeze(-1), (0, 1))   # F @ X: X Fᵀ per lane
 
 
 def update(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, H: Tensor, R: Tensor) -> LaneUpdate:
@@ -75,32 +70,25 @@ def update(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, H: Tensor, R
     through and NIS / log-likelihood are 0. ``z`` must be finite (zero-filled where missing).
     """
     m = H.shape[0]
-    C = _right(P, H)                                                # (n, m, B): (P Hᵀ)[i, r]
+    C = H @ P                                                       # (n, m, B): (P Hᵀ)[i, r]
     S = symmetrize(_left(H, C) + R.unsqueeze(-1), (0, 1))
     L, ok = cholesky_entries(S)
     nu = z - _left(H, x)                                            # (m, B)
     Ct = C.transpose(0, 1)                                          # (m, n, B): rows of Cᵀ = H P
     Kt = solve_upper_t_entries(L, solve_lower_entries(L, list(Ct.unbind(0))))     # rows of Kᵀ, each (n, B)
     nu_rows = list(nu.unbind(0))
-    mean = x
-    for r in range(m):
-        mean = mean + Kt[r] * nu_rows[r]
+    mean = _dot([x] + [Kt[r] * nu_rows[r] for r in range(m)], x)
     AP = P
     for r in range(m):
         AP = torch.addcmul(AP, Kt[r].unsqueeze(1), Ct[r].unsqueeze(0), value=-1)   # A P = P − K Cᵀ
-    D = _right(AP, H)                                               # (n, m, B): (A P Hᵀ)[i, r]
+    D = H @ AP                                                      # (n, m, B): (A P Hᵀ)[i, r]
     KRt = _left(R.transpose(0, 1), torch.stack(Kt))                 # (m, n, B): rows of (K R)ᵀ
     cov = AP
     for r in range(m):
         cov = torch.addcmul(cov, (D[:, r] - KRt[r]).unsqueeze(1), Kt[r].unsqueeze(0), value=-1)
     cov = symmetrize(cov, (0, 1))
-    white = solve_lower_entries(L, nu_rows)
-    nis = white[0] * white[0]
-    log_det = torch.log(L[0][0])
-    for r in range(1, m):
-        nis = nis + white[r] * white[r]
-        log_det = log_det + torch.log(L[r][r])
-    loglik = -0.5 * (nis + m * LOG_2PI) - log_det
+    nis = _dot([w * w for w in solve_lower_entries(L, nu_rows)], x)
+    loglik = -0.5 * (nis + m * LOG_2PI) - _dot([torch.log(L[r][r]) for r in range(m)], x)
     if present is not None:
         mean = torch.where(present, mean, x)
         cov = torch.where(present, cov, P)
@@ -110,16 +98,10 @@ def update(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, H: Tensor, R
 
 
 def step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
-         R: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Predict then update; returns ``(x⁺, P⁺, nis, log ℓ, ok)``."""
-    x, P = predict(x, P, F, Q)
-    u = update(x, P, z, present, H, R)
-    return u.mean, u.cov, u.nis, u.log_likelihood, u.ok
-
-
-def update_only(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
-                R: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """Update without a prediction (``F``, ``Q`` unused); same outputs as :func:`step`."""
+         R: Tensor, predict_first: bool = True) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Predict (unless not ``predict_first``) then update; returns ``(x⁺, P⁺, nis, log ℓ, ok)``."""
+    if predict_first:
+        x, P = predict(x, P, F, Q)
     u = update(x, P, z, present, H, R)
     return u.mean, u.cov, u.nis, u.log_likelihood, u.ok
 
@@ -135,12 +117,7 @@ def structure(M: Tensor) -> Pattern:
 def _dot(terms: list[Tensor | None], like: Tensor) -> Tensor:
     """Sum of the terms that are not structurally zero (``None``)."""
     kept = [t for t in terms if t is not None]
-    if not kept:
-        return torch.zeros_like(like)
-    out = kept[0]
-    for t in kept[1:]:
-        out = out + t
-    return out
+    return sum(kept[1:], kept[0]) if kept else torch.zeros_like(like)
 
 
 def _times(M: Tensor, code: Pattern | None, i: int, k: int, v: Tensor) -> Tensor | None:
@@ -157,10 +134,10 @@ def _plus(v: Tensor, M: Tensor, code: Pattern | None, i: int, k: int) -> Tensor:
 def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
                R: Tensor, x_out: Tensor, P_out: Tensor, nis_out: Tensor, loglik_acc: Tensor, ok_out: Tensor,
                predict_first: bool = True, pattern: tuple[Pattern, Pattern, Pattern, Pattern] | None = None) -> None:
-    """:func:`step` (or :func:`update_only` without ``predict_first``) written entry by entry: every
-    quantity is one ``(B,)`` lane vector, so ``torch.compile`` emits a single loop over the lanes with
-    all ``n × n`` arithmetic in registers. Writes ``x⁺ → x_out (n, B)``, ``P⁺ → P_out (n, n, B)``,
-    ``nis → nis_out (B,)``, ``ok → ok_out (B,)`` and adds log ℓ to ``loglik_acc (B,)`` (no autograd).
+    """:func:`step` written entry by entry: every quantity is one ``(B,)`` lane vector, so
+    ``torch.compile`` emits a single loop over the lanes with all ``n × n`` arithmetic in registers.
+    Writes ``x⁺ → x_out (n, B)``, ``P⁺ → P_out (n, n, B)``, ``nis → nis_out (B,)``, ``ok → ok_out (B,)``
+    and adds log ℓ to ``loglik_acc (B,)`` (no autograd).
 
     Same equations as :func:`predict` / :func:`update`; covariances are formed on and above the
     diagonal and mirrored (exactly symmetric) instead of averaged with their transpose. ``pattern``
@@ -192,8 +169,7 @@ def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tenso
     up = {(i, j): AP[i][j] - _dot([E[i][r] * K[j][r] for r in range(m)], X[0])
           for i in range(n) for j in range(i, n)}
     cov = [[up[min(i, j), max(i, j)] for j in range(n)] for i in range(n)]
-    white = solve_lower_entries(L, nu)
-    nis = _dot([w * w for w in white], X[0])
+    nis = _dot([w * w for w in solve_lower_entries(L, nu)], X[0])
     loglik = -0.5 * (nis + m * LOG_2PI) - _dot([torch.log(L[r][r]) for r in range(m)], X[0])
     if present is not None:
         mean = [torch.where(present, a, b) for a, b in zip(mean, X)]
@@ -207,56 +183,34 @@ def fused_step(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tenso
     ok_out.copy_(ok)
 
 
-def _block_into(x: Tensor, P: Tensor, z: Tensor, present: Tensor | None, F: Tensor, Q: Tensor, H: Tensor,
-                R: Tensor, x_out: Tensor, P_out: Tensor, nis_out: Tensor, loglik_acc: Tensor, ok_out: Tensor,
-                predict_first: bool = True, pattern=None) -> None:
-    """:func:`fused_step`'s contract computed eagerly with the GEMM formulation (the fallback)."""
-    mean, cov, nis, loglik, ok = (step if predict_first else update_only)(x, P, z, present, F, Q, H, R)
-    x_out.copy_(mean)
-    P_out.copy_(cov)
-    nis_out.copy_(nis)
-    loglik_acc.add_(loglik)
-    ok_out.copy_(ok)
+class Compiled:
+    """``torch.compile(fn, **options)``, made at the first call; where compiling or running it fails (no
+    C compiler, unsupported platform) a warning naming ``what`` is issued and ``fn`` runs eagerly (same
+    results, only slower) from then on. ``dynamic_args``: arguments whose last dimension (the lanes) is
+    marked dynamic, so that one kernel serves every track count."""
 
-
-_LANE_ARGS = (0, 1, 2, 3, 8, 9, 10, 11, 12)   # arguments of fused_step whose last dimension is the lanes
-
-
-class _Compiled:
-    """``torch.compile(fused_step)``, falling back to :func:`_block_into` for good if compilation is
-    unavailable or fails (eager gives the same result, only slower)."""
-
-    def __init__(self):
+    def __init__(self, fn, what: str, dynamic_args: tuple[int, ...] = (), **options):
+        self.fn, self.what, self.dynamic_args, self.options = fn, what, dynamic_args, options
         self.compiled = None
-        try:
-            # one fused loop: a large fusion group, stacked outputs stored by that loop, and few
-            # intermediates spilled to memory (inlining everything makes lowering blow up)
-            self.compiled = torch.compile(fused_step, fullgraph=True,
-                                          options={"max_fusion_size": 4096, "max_pointwise_cat_inputs": 1,
-                                                   "realize_opcount_threshold": 60,
-                                                   "realize_reads_threshold": 8})
-        except Exception as err:  # noqa: BLE001 - any backend failure means: run eagerly
-            warnings.warn(f"torch.compile unavailable for the Kalman filter ({err}); running eagerly", stacklevel=2)
+        self.failed = False
 
-    def __call__(self, *args) -> None:
-        if self.compiled is not None:
-            for i in _LANE_ARGS:   # one kernel for every track count (no recompilation per count)
+    def __call__(self, *args):
+        if not self.failed:
+            for i in self.dynamic_args:
                 if args[i] is not None:
                     torch._dynamo.maybe_mark_dynamic(args[i], args[i].dim() - 1)
             try:
+                if self.compiled is None:
+                    self.compiled = torch.compile(self.fn, **self.options)
                 return self.compiled(*args)
-            except Exception as err:  # noqa: BLE001 - e.g. no C++ compiler
-                warnings.warn(f"torch.compile failed for the Kalman filter ({err}); running eagerly", stacklevel=2)
-                self.compiled = None
-        return _block_into(*args)
+            except Exception as err:  # noqa: BLE001 - any backend failure means: run eagerly
+                warnings.warn(f"torch.compile failed for {self.what} ({err}); running eagerly", stacklevel=2)
+                self.failed = True
+        return self.fn(*args)
 
 
-_compiled: list[_Compiled] = []
-
-
-def compiled_step() -> _Compiled:
-    """The process-wide compiled :func:`fused_step` (created on first use; shapes specialise per model,
-    the lane count becomes dynamic after it first changes)."""
-    if not _compiled:
-        _compiled.append(_Compiled())
-    return _compiled[0]
+# one fused loop: a large fusion group, stacked outputs stored by that loop, and few intermediates
+# spilled to memory (inlining everything makes lowering blow up); shapes specialise per model
+compiled_step = Compiled(fused_step, "the Kalman filter", dynamic_args=(0, 1, 2, 3, 8, 9, 10, 11, 12),
+                         fullgraph=True, options={"max_fusion_size": 4096, "max_pointwise_cat_inputs": 1,
+                                                  "realize_opcount_threshold": 60, "realize_reads_threshold": 8})

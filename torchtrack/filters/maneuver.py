@@ -39,11 +39,8 @@ class ManeuverResult(NamedTuple):
 
 def two_point_init(z_prev: Tensor, z: Tensor, R: Tensor, dt: float) -> GaussianState:
     """Two-point differencing initialisation from ``z_prev, z (*, m)`` and ``R (m, m)``."""
-    mean = torch.cat([z, (z - z_prev) / dt], -1)
-    top = torch.cat([R, R / dt], -1)
-    bottom = torch.cat([R / dt, 2 * R / dt**2], -1)
-    cov = torch.cat([top, bottom], -2).expand(*z.shape[:-1], 2 * R.shape[-1], 2 * R.shape[-1])
-    return GaussianState(mean, cov)
+    cov = torch.cat([torch.cat([R, R / dt], -1), torch.cat([R / dt, 2 * R / dt**2], -1)], -2)
+    return GaussianState(torch.cat([z, (z - z_prev) / dt], -1), cov.expand(*z.shape[:-1], *cov.shape))
 
 
 class ManeuverDetectingKalmanFilter(nn.Module):
@@ -85,20 +82,15 @@ class ManeuverDetectingKalmanFilter(nn.Module):
         batch = measurements.shape[1:-1]
         zeros = torch.zeros(batch, dtype=measurements.dtype, device=measurements.device)
         no = torch.zeros(batch, dtype=torch.bool, device=measurements.device)
-        means, covs, d2s, dets = [state.mean, state.mean], [state.cov, state.cov], [zeros, zeros], [no, no]
+        steps = [(state.mean, state.cov, zeros, no)] * 2
         total = zeros
         for k in range(2, T):
-            pred = self.kf.predict(state, dt)
-            post, info = self.kf.update(pred, measurements[k])
+            state, info = self.kf.update(self.kf.predict(state, dt), measurements[k])
             total = total + info.log_likelihood
             detected = info.nis > self.threshold
             if self.reset:
                 fresh = two_point_init(measurements[k - 1], measurements[k], R, dt)
-                post = GaussianState(torch.where(detected.unsqueeze(-1), fresh.mean, post.mean),
-                                     torch.where(detected[..., None, None], fresh.cov, post.cov))
-            state = post
-            means.append(state.mean)
-            covs.append(state.cov)
-            d2s.append(info.nis)
-            dets.append(detected)
-        return ManeuverResult(torch.stack(means), torch.stack(covs), torch.stack(d2s), torch.stack(dets), total)
+                state = GaussianState(torch.where(detected.unsqueeze(-1), fresh.mean, state.mean),
+                                      torch.where(detected[..., None, None], fresh.cov, state.cov))
+            steps.append((state.mean, state.cov, info.nis, detected))
+        return ManeuverResult(*(torch.stack(t) for t in zip(*steps)), total)

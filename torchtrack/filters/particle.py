@@ -71,10 +71,7 @@ def normalize(log_weight: Tensor, log_likelihood: Tensor) -> tuple[Tensor, Tenso
     A row whose weights are all ``-inf`` (degenerate: no particle explains the data) is reset to
     uniform weights and its ``log_likelihood`` becomes ``-inf``: estimates stay finite, never NaN.
     """
-    lse = torch.logsumexp(log_weight, -1, keepdim=True)
-    dead = torch.isneginf(lse)
-    uniform = torch.full_like(log_weight, -math.log(log_weight.shape[-1]))
-    w = torch.where(dead, uniform, log_weight - torch.where(dead, torch.zeros_like(lse), lse))
+    w, lse = resampling.normalized_log_weights(log_weight)
     return w, log_likelihood + lse.squeeze(-1)
 
 
@@ -101,6 +98,12 @@ def noise_factor(Q: Tensor, what: str) -> Tensor:
     if bool((info != 0).any()):
         raise TorchtrackError(f"{what} is not positive semi-definite")
     return L
+
+
+def correlated_noise(L: Tensor, shape: tuple[int, ...], generator: torch.Generator | None, like: Tensor) -> Tensor:
+    """``L ε`` for ``ε ~ N(0, I)`` of ``shape (*B, N, n)``, ``L (*B, n, n)`` shared by the ``N`` rows."""
+    eps = torch.randn((*shape, 1), generator=generator, dtype=like.dtype, device=like.device)
+    return (L.unsqueeze(-3) @ eps).squeeze(-1)
 
 
 class ParticleFilter(nn.Module):
@@ -140,9 +143,7 @@ class ParticleFilter(nn.Module):
         """Particles drawn from ``N(mean, cov)``; ``mean (*B, n)``, ``cov (*B, n, n)``."""
         L = noise_factor(cov, "initial covariance")
         batch = torch.broadcast_shapes(mean.shape[:-1], L.shape[:-2])
-        eps = torch.randn((*batch, self.num_particles, mean.shape[-1], 1), generator=generator,
-                          dtype=mean.dtype, device=mean.device)
-        x = mean.unsqueeze(-2) + (L.unsqueeze(-3) @ eps).squeeze(-1)
+        x = mean.unsqueeze(-2) + correlated_noise(L, (*batch, self.num_particles, mean.shape[-1]), generator, mean)
         log_w = torch.full(x.shape[:-1], -math.log(self.num_particles), dtype=x.dtype, device=x.device)
         return ParticleState(x, log_w, torch.zeros(batch, dtype=x.dtype, device=x.device))
 
@@ -150,8 +151,7 @@ class ParticleFilter(nn.Module):
         """Bootstrap proposal: propagate every particle through the motion model with process noise."""
         x = state.particles
         L = noise_factor(self.motion.process_noise(dt), "process noise Q").to(x.dtype)
-        eps = torch.randn((*x.shape, 1), generator=generator, dtype=x.dtype, device=x.device)
-        x = self.motion.transition(x, dt) + (L.unsqueeze(-3) @ eps).squeeze(-1)
+        x = self.motion.transition(x, dt) + correlated_noise(L, x.shape, generator, x)
         return state._replace(particles=x)
 
     def log_likelihood(self, particles: Tensor, z: Tensor) -> Tensor:
@@ -164,19 +164,14 @@ class ParticleFilter(nn.Module):
                  where: Tensor | None = None) -> ParticleState:
         """Resample the runs selected by ``where (*B,)`` (all if ``None``); see the module docstring."""
         x, log_w = state.particles, state.log_weight
-        if self.soft_alpha is None:
-            ancestors = self.resample_fn(log_w.detach(), generator)
-            new_w = resampling.resampled_log_weight(log_w, ancestors)
-        else:
-            log_q = resampling.soft_proposal(log_w, self.soft_alpha)
-            ancestors = self.resample_fn(log_q, generator)
-            new_w = resampling.resampled_log_weight(log_w, ancestors, log_q)
+        log_q = None if self.soft_alpha is None else resampling.soft_proposal(log_w, self.soft_alpha)
+        ancestors = self.resample_fn(log_w.detach() if log_q is None else log_q, generator)
+        new_w = resampling.resampled_log_weight(log_w, ancestors, log_q)
         new_x = x.gather(-2, ancestors.unsqueeze(-1).expand(*ancestors.shape, x.shape[-1]))
         if self.jitter:
             _, cov = weighted_moments(x.detach(), log_w.detach())
             L = noise_factor(cov, "particle covariance for jitter")
-            eps = torch.randn((*new_x.shape, 1), generator=generator, dtype=x.dtype, device=x.device)
-            new_x = new_x + self.jitter * (L.unsqueeze(-3) @ eps).squeeze(-1)
+            new_x = new_x + self.jitter * correlated_noise(L, new_x.shape, generator, x)
         new_w, ll = normalize(new_w, state.log_likelihood)
         if where is None:
             return ParticleState(new_x, new_w, ll)
@@ -211,12 +206,10 @@ class ParticleFilter(nn.Module):
         for each of the ``T`` measurements at times ``dt, 2dt, …``). Moments are taken from the
         weighted particles before resampling."""
         state = self.init(mean, cov, generator)
-        means, covs, esss = [], [], []
+        steps = []
         for z in z_seq:
             state = self.weight(self.predict(state, dt, generator), z)
-            mu, P = weighted_moments(state.particles, state.log_weight)
+            moments = weighted_moments(state.particles, state.log_weight)
             state, ess, _ = self.maybe_resample(state, generator)
-            means.append(mu)
-            covs.append(P)
-            esss.append(ess)
-        return ParticleRunResult(torch.stack(means), torch.stack(covs), torch.stack(esss), state.log_likelihood)
+            steps.append((*moments, ess))
+        return ParticleRunResult(*(torch.stack(t) for t in zip(*steps)), state.log_likelihood)

@@ -34,11 +34,10 @@ from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
 
-RESAMPLERS = ("multinomial", "stratified", "systematic", "residual")
 
-
-def normalized_weights(log_weight: Tensor) -> Tensor:
-    """``softmax(log_weight, -1)``; a row whose weights are all ``-inf`` (degenerate) becomes uniform.
+def normalized_log_weights(log_weight: Tensor) -> tuple[Tensor, Tensor]:
+    """``log_softmax(log_weight, -1)`` and the ``logsumexp (*B, 1)`` taken out; a row whose weights are
+    all ``-inf`` (degenerate) becomes uniform.
 
     This is the documented recovery from weight degeneracy: the particles are kept with equal
     weights rather than turning into NaN; the likelihood estimate of that row is ``-inf``.
@@ -46,7 +45,12 @@ def normalized_weights(log_weight: Tensor) -> Tensor:
     lse = torch.logsumexp(log_weight, -1, keepdim=True)
     dead = torch.isneginf(lse)
     uniform = torch.full_like(log_weight, -math.log(log_weight.shape[-1]))
-    return torch.exp(torch.where(dead, uniform, log_weight - torch.where(dead, 0.0, lse)))
+    return torch.where(dead, uniform, log_weight - torch.where(dead, 0.0, lse)), lse
+
+
+def normalized_weights(log_weight: Tensor) -> Tensor:
+    """``softmax(log_weight, -1)``, uniform for a degenerate row (:func:`normalized_log_weights`)."""
+    return torch.exp(normalized_log_weights(log_weight)[0])
 
 
 def _inverse_cdf(w: Tensor, u: Tensor) -> Tensor:
@@ -114,17 +118,16 @@ def residual(log_weight: Tensor, generator: torch.Generator | None = None) -> Te
     return torch.where(slots < n_det, det, draws.gather(-1, pos))
 
 
-_RESAMPLERS: dict[str, Callable[..., Tensor]] = {
+RESAMPLERS: dict[str, Callable[[Tensor, torch.Generator | None], Tensor]] = {
     "multinomial": multinomial, "stratified": stratified, "systematic": systematic, "residual": residual,
 }
 
 
 def get_resampler(name: str) -> Callable[[Tensor, torch.Generator | None], Tensor]:
     """The resampler called ``name`` (one of :data:`RESAMPLERS`)."""
-    try:
-        return _RESAMPLERS[name]
-    except KeyError:
-        raise TorchtrackError(f"resampler must be one of {', '.join(RESAMPLERS)}; got {name!r}") from None
+    if name not in RESAMPLERS:
+        raise TorchtrackError(f"resampler must be one of {', '.join(RESAMPLERS)}; got {name!r}")
+    return RESAMPLERS[name]
 
 
 def offspring_counts(ancestors: Tensor, num_particles: int) -> Tensor:

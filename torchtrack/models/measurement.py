@@ -13,7 +13,7 @@ from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.models.autodiff import batched_jacobian
-from torchtrack.params import Covariance, Positive
+from torchtrack.params import Covariance, Positive, as_float_tensor
 
 
 class MeasurementModel(nn.Module):
@@ -50,8 +50,7 @@ class LinearMeasurement(MeasurementModel):
 
     def __init__(self, H, R, learnable: bool = True):
         super().__init__()
-        H = torch.as_tensor(H)
-        H = H if H.is_floating_point() else H.to(torch.get_default_dtype())
+        H = as_float_tensor(H, "H")
         if H.dim() != 2:
             raise TorchtrackError(f"H must have shape (m, n); got {tuple(H.shape)}")
         self.meas_dim, self.state_dim = H.shape
@@ -83,13 +82,10 @@ class LinearPosition(MeasurementModel):
 
     def matrix(self) -> Tensor:
         ref = self.sigma.raw
-        H = torch.zeros(self.meas_dim, self.state_dim, dtype=ref.dtype, device=ref.device)
-        H[:, : self.meas_dim] = torch.eye(self.meas_dim, dtype=ref.dtype, device=ref.device)
-        return H
+        return torch.eye(self.meas_dim, self.state_dim, dtype=ref.dtype, device=ref.device)
 
     def noise_cov(self) -> Tensor:
-        s2 = self.sigma() ** 2 * torch.ones(self.meas_dim, dtype=self.sigma.raw.dtype, device=self.sigma.raw.device)
-        return torch.diag_embed(s2)
+        return torch.diag_embed(self.sigma() ** 2 * self.sigma.raw.new_ones(self.meas_dim))
 
 
 def wrap_angle(a: Tensor) -> Tensor:
@@ -123,14 +119,9 @@ class RangeBearing(MeasurementModel):
 
     def jacobian(self, x: Tensor) -> Tensor:
         d = x[..., :2] - self.sensor_position.to(x)
-        r2 = (d**2).sum(-1).clamp_min(1e-12)
-        r = r2.sqrt()
-        J = torch.zeros(*x.shape[:-1], 2, self.state_dim, dtype=x.dtype, device=x.device)
-        J[..., 0, 0] = d[..., 0] / r
-        J[..., 0, 1] = d[..., 1] / r
-        J[..., 1, 0] = d[..., 1] / r2
-        J[..., 1, 1] = -d[..., 0] / r2
-        return J
+        r2 = (d**2).sum(-1, keepdim=True).clamp_min(1e-12)
+        J = torch.stack([d / r2.sqrt(), torch.stack([d[..., 1], -d[..., 0]], -1) / r2], -2)   # ∂(r, β)/∂(x, y)
+        return nn.functional.pad(J, (0, self.state_dim - 2))
 
     def residual(self, z: Tensor, z_hat: Tensor) -> Tensor:
         nu = z - z_hat
@@ -160,9 +151,7 @@ class RelativePosition(MeasurementModel):
 
     def _position_matrix(self, n: int) -> Tensor:
         ref = self.sigma.raw
-        H = torch.zeros(self.meas_dim, n, dtype=ref.dtype, device=ref.device)
-        H[:, : self.meas_dim] = torch.eye(self.meas_dim, dtype=ref.dtype, device=ref.device)
-        return H
+        return torch.eye(self.meas_dim, n, dtype=ref.dtype, device=ref.device)
 
     def target_matrix(self) -> Tensor:
         return self._position_matrix(self.target_dim)
@@ -181,7 +170,3 @@ class RelativePosition(MeasurementModel):
         """``R + H_s Σ_s H_sᵀ``; ``sensor_cov (*, n_s, n_s)`` → ``(*, m, m)``."""
         Hs = self.sensor_matrix()
         return self.noise_cov() + Hs @ sensor_cov @ Hs.transpose(-1, -2)
-
-    def measure_relative(self, target: Tensor, sensor: Tensor) -> Tensor:
-        """``H_t x_t − H_s x_s``."""
-        return target[..., : self.meas_dim] - sensor[..., : self.meas_dim]

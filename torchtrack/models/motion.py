@@ -17,7 +17,8 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.params import Covariance, Positive
+from torchtrack.models.autodiff import batched_jacobian
+from torchtrack.params import Covariance, Positive, as_float_tensor
 
 
 def as_dt(dt, like: Tensor) -> Tensor:
@@ -36,11 +37,15 @@ def _kron_eye(block: Tensor, d: int) -> Tensor:
     return out.reshape(*block.shape[:-2], k * d, k * d)
 
 
+def _matrix(rows: list[list[Tensor]]) -> Tensor:
+    """The matrix ``(*, k, l)`` whose entries are the tensors ``rows[i][j]`` of shape ``*``."""
+    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+
+
 def cv_transition(dt: Tensor, ndim: int) -> Tensor:
     """``[[1, dt], [0, 1]] ⊗ I_d``, shape ``(*dt.shape, 2d, 2d)``."""
     one = torch.ones_like(dt)
-    block = torch.stack([torch.stack([one, dt], -1), torch.stack([0 * dt, one], -1)], -2)
-    return _kron_eye(block, ndim)
+    return _kron_eye(_matrix([[one, dt], [0 * dt, one]]), ndim)
 
 
 class MotionModel(nn.Module):
@@ -51,7 +56,9 @@ class MotionModel(nn.Module):
     is_linear: bool = True
 
     def _ref(self) -> Tensor:
-        return next(self.parameters())
+        """The unconstrained value of the first noise parameter (a plain tensor while being tuned): the
+        model's dtype and device."""
+        return next(m.raw for m in self.modules() if hasattr(m, "raw"))
 
     def transition_matrix(self, dt) -> Tensor:
         """``F(dt)``, shape ``(*dt.shape, n, n)``."""
@@ -67,8 +74,10 @@ class MotionModel(nn.Module):
         return (F @ x.unsqueeze(-1)).squeeze(-1)
 
     def jacobian(self, x: Tensor, dt) -> Tensor:
-        """``∂f/∂x`` at ``x``, shape ``(*, n, n)``; linear models return ``F`` (broadcast)."""
-        return self.transition_matrix(dt)
+        """``∂f/∂x`` at ``x``, shape ``(*, n, n)``: ``F`` (broadcast) for linear models, else by autograd."""
+        if self.is_linear:
+            return self.transition_matrix(dt)
+        return batched_jacobian(lambda s: self.transition(s, dt), x)
 
 
 class LinearMotion(MotionModel):
@@ -77,8 +86,7 @@ class LinearMotion(MotionModel):
 
     def __init__(self, F, Q, learnable: bool = True):
         super().__init__()
-        F = torch.as_tensor(F)
-        F = F if F.is_floating_point() else F.to(torch.get_default_dtype())
+        F = as_float_tensor(F, "F")
         if F.dim() != 2 or F.shape[0] != F.shape[1]:
             raise TorchtrackError(f"F must be square (n, n); got shape {tuple(F.shape)}")
         self.state_dim = F.shape[0]
@@ -86,9 +94,6 @@ class LinearMotion(MotionModel):
         self.Q = Covariance(torch.as_tensor(Q, dtype=F.dtype), "process noise Q", requires_grad=learnable)
         if self.Q.raw.shape[-1] != self.state_dim:
             raise TorchtrackError(f"Q must be {self.state_dim}x{self.state_dim} like F")
-
-    def _ref(self) -> Tensor:
-        return self.Q.raw
 
     def transition_matrix(self, dt) -> Tensor:
         as_dt(dt, self._ref())
@@ -109,18 +114,13 @@ class ConstantPosition(MotionModel):
         self.state_dim = ndim
         self.q = Positive(q, "process noise q", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.q.raw
-
     def transition_matrix(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
-        eye = torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
-        return eye.expand(*dt.shape, self.ndim, self.ndim)
+        return torch.eye(self.ndim, dtype=dt.dtype, device=dt.device).expand(*dt.shape, self.ndim, self.ndim)
 
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
-        eye = torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
-        return (self.q() * dt)[..., None, None] * eye
+        return (self.q() * dt)[..., None, None] * torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
 
 
 class ConstantVelocity(MotionModel):
@@ -147,21 +147,16 @@ class ConstantVelocity(MotionModel):
         self.noise = noise
         self.q = Positive(q, "process noise q", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.q.raw
-
     def transition_matrix(self, dt) -> Tensor:
         return cv_transition(as_dt(dt, self._ref()), self.ndim)
 
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
-        q = self.q()
         if self.noise == "cwna":
             rows = [[dt**3 / 3, dt**2 / 2], [dt**2 / 2, dt]]
         else:
             rows = [[dt**4 / 4, dt**3 / 2], [dt**3 / 2, dt**2]]
-        block = torch.stack([torch.stack(r, -1) for r in rows], -2)
-        return _kron_eye(q * block, self.ndim)
+        return _kron_eye(self.q() * _matrix(rows), self.ndim)
 
 
 class ConstantAcceleration(MotionModel):
@@ -181,22 +176,16 @@ class ConstantAcceleration(MotionModel):
         self.noise = noise
         self.q = Positive(q, "process noise q", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.q.raw
-
     def transition_matrix(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
         one, zero = torch.ones_like(dt), torch.zeros_like(dt)
-        rows = [[one, dt, dt**2 / 2], [zero, one, dt], [zero, zero, one]]
-        block = torch.stack([torch.stack(r, -1) for r in rows], -2)
-        return _kron_eye(block, self.ndim)
+        return _kron_eye(_matrix([[one, dt, dt**2 / 2], [zero, one, dt], [zero, zero, one]]), self.ndim)
 
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
         if self.noise == "cwnj":
-            rows = [[dt**5 / 20, dt**4 / 8, dt**3 / 6], [dt**4 / 8, dt**3 / 3, dt**2 / 2],
-                    [dt**3 / 6, dt**2 / 2, dt]]
-            block = torch.stack([torch.stack(r, -1) for r in rows], -2)
+            block = _matrix([[dt**5 / 20, dt**4 / 8, dt**3 / 6], [dt**4 / 8, dt**3 / 3, dt**2 / 2],
+                             [dt**3 / 6, dt**2 / 2, dt]])
         else:
             g = torch.stack([dt**2 / 2, dt, torch.ones_like(dt)], -1)
             block = g.unsqueeze(-1) * g.unsqueeze(-2)
@@ -212,16 +201,13 @@ def _turn_block(w: Tensor, dt: Tensor) -> Tensor:
     c = torch.where(small, w * dt**2 / 2, (1 - torch.cos(wt)) / w_safe)
     cos, sin = torch.cos(wt), torch.sin(wt)
     one, zero = torch.ones_like(wt), torch.zeros_like(wt)
-    rows = [[one, zero, s, -c], [zero, one, c, s], [zero, zero, cos, -sin], [zero, zero, sin, cos]]
-    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+    return _matrix([[one, zero, s, -c], [zero, one, c, s], [zero, zero, cos, -sin], [zero, zero, sin, cos]])
 
 
-def _acceleration_gain(dt: Tensor) -> Tensor:
-    """``G`` mapping a 2-D acceleration into ``[x, y, vx, vy]``: ``[[dt²/2 I], [dt I]]``."""
-    zero = torch.zeros_like(dt)
-    h = dt**2 / 2
-    rows = [[h, zero], [zero, h], [dt, zero], [zero, dt]]
-    return torch.stack([torch.stack(r, -1) for r in rows], -2)
+def acceleration_gain(dt: Tensor, ndim: int = 2) -> Tensor:
+    """``G = [[dt²/2 I], [dt I]] (*dt.shape, 2d, d)``, mapping a ``d``-axis acceleration into ``[p, v]``."""
+    eye = torch.eye(ndim, dtype=dt.dtype, device=dt.device)
+    return torch.cat([(dt**2 / 2)[..., None, None] * eye, dt[..., None, None] * eye], -2)
 
 
 class CoordinatedTurn(MotionModel):
@@ -234,15 +220,12 @@ class CoordinatedTurn(MotionModel):
         self.register_buffer("omega", torch.as_tensor(float(omega)))
         self.sigma_a = Positive(sigma_a, "acceleration noise sigma_a", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.sigma_a.raw
-
     def transition_matrix(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
         return _turn_block(self.omega.to(dt), dt)
 
     def process_noise(self, dt) -> Tensor:
-        G = _acceleration_gain(as_dt(dt, self._ref()))
+        G = acceleration_gain(as_dt(dt, self._ref()))
         return self.sigma_a() ** 2 * (G @ G.transpose(-1, -2))
 
 
@@ -260,28 +243,17 @@ class CoordinatedTurnRate(MotionModel):
         self.sigma_a = Positive(sigma_a, "acceleration noise sigma_a", requires_grad=learnable)
         self.sigma_omega = Positive(sigma_omega, "turn-rate noise sigma_omega", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.sigma_a.raw
-
     def transition(self, x: Tensor, dt) -> Tensor:
         dt = as_dt(dt, x)
         A = _turn_block(x[..., 4], dt)
         kin = (A @ x[..., :4].unsqueeze(-1)).squeeze(-1)
         return torch.cat([kin, x[..., 4:5]], -1)
 
-    def jacobian(self, x: Tensor, dt) -> Tensor:
-        from torchtrack.models.autodiff import batched_jacobian
-
-        return batched_jacobian(lambda s: self.transition(s, dt), x)
-
     def process_noise(self, dt) -> Tensor:
         dt = as_dt(dt, self._ref())
-        G = _acceleration_gain(dt)
-        Qk = self.sigma_a() ** 2 * (G @ G.transpose(-1, -2))
-        Q = torch.zeros(*dt.shape, 5, 5, dtype=Qk.dtype, device=Qk.device)
-        Q[..., :4, :4] = Qk
-        Q[..., 4, 4] = (self.sigma_omega() * dt) ** 2
-        return Q
+        G = acceleration_gain(dt)
+        Q = nn.functional.pad(self.sigma_a() ** 2 * (G @ G.transpose(-1, -2)), (0, 1, 0, 1))
+        return Q + nn.functional.pad(((self.sigma_omega() * dt) ** 2)[..., None, None], (4, 0, 4, 0))
 
 
 class ModeControlInput(MotionModel):
@@ -304,23 +276,12 @@ class ModeControlInput(MotionModel):
         sig = torch.as_tensor(sigma, dtype=u.dtype).expand(self.num_modes).clone()
         self.sigma = Positive(sig, "mode process noise sigma", requires_grad=learnable)
 
-    def _ref(self) -> Tensor:
-        return self.sigma.raw
-
     def transition_matrix(self, dt) -> Tensor:
         return cv_transition(as_dt(dt, self._ref()), self.ndim)
 
     def gain(self, dt) -> Tensor:
         """``G (*dt.shape, 2d, d)``."""
-        dt = as_dt(dt, self._ref())
-        eye = torch.eye(self.ndim, dtype=dt.dtype, device=dt.device)
-        return torch.cat([(dt**2 / 2)[..., None, None] * eye, dt[..., None, None] * eye], -2)
-
-    def control_offset(self, mode: Tensor, dt) -> Tensor:
-        """``G u(m)``, shape ``(*mode.shape, 2d)`` (broadcast with ``dt``)."""
-        G = self.gain(dt)
-        u = self.controls[mode]
-        return (G @ u.unsqueeze(-1)).squeeze(-1)
+        return acceleration_gain(as_dt(dt, self._ref()), self.ndim)
 
     def process_noise(self, dt, mode: Tensor | None = None) -> Tensor:
         """``σ(m)² G Gᵀ``; without ``mode`` one matrix per mode, shape ``(M, *dt.shape, 2d, 2d)``."""
@@ -332,7 +293,8 @@ class ModeControlInput(MotionModel):
         return sig2[mode][..., None, None] * GGt
 
     def transition(self, x: Tensor, dt, mode: Tensor | None = None) -> Tensor:
+        """``F x`` plus, with ``mode``, the control offset ``G u(m)`` (``mode`` broadcast with ``dt``)."""
         out = super().transition(x, dt)
         if mode is not None:
-            out = out + self.control_offset(mode, dt)
+            out = out + (self.gain(dt) @ self.controls[mode].unsqueeze(-1)).squeeze(-1)
         return out
