@@ -145,16 +145,19 @@ def test_reads_motmetrics_sample_like_motmetrics():
 
 
 @pytest.mark.parametrize("fields", [6, 7, 9, 10])
-def test_plain_files_parsed_in_c_equal_the_line_reader(tmp_path, fields):
+def test_plain_files_parsed_in_c_equal_the_line_reader(tmp_path, fields, monkeypatch):
+    monkeypatch.setattr(mot, "_CHUNK_LINES", 64)  # several chunks, the last one short
     rng = np.random.default_rng(fields)
     rows = np.column_stack([rng.integers(0, 50, 200), np.arange(200) - 1, rng.uniform(-5, 500, (200, 2)),
                             rng.uniform(0, 9, (200, 2)), rng.uniform(0, 1, 200), rng.normal(0, 2, (200, 3))])
     path = tmp_path / "plain.txt"
     path.write_text("\n".join(",".join(f"{v:.6g}" for v in row[:fields]) for row in rows))  # no final newline
     fast, slow = mot._read_uniform(path), mot._read_lines(path)
-    assert fast is not None
-    for a, b in zip(fast, slow):
+    assert fast is not None and fast[-1] is None and np.array_equal(slow[-1], np.arange(1, 201))
+    for a, b in zip(fast[:-1], slow[:-1]):
         assert a.dtype == b.dtype and np.array_equal(a, b)
+    path.write_text(path.read_text() + "\n1,2,3,4,5,6,7,8")  # one line of another width, in the last chunk
+    assert mot._read_uniform(path) is None
 
 
 @pytest.mark.parametrize(("text", "ids"), [

@@ -26,6 +26,7 @@ same frame and the same (non-negative) id are an error too.
 
 from __future__ import annotations
 
+import itertools
 import os
 import re
 import warnings
@@ -182,37 +183,40 @@ def _integer(field: str, what: str, path: Path, lineno: int) -> int:
     return value
 
 
-def _read_uniform(path: Path) -> tuple[np.ndarray, ...] | None:
-    """The columns of a file whose every line holds the same number (6 to 10) of comma-separated numbers, all
-    valid, parsed in C (:func:`numpy.loadtxt`; about four times faster than :func:`_read_lines`, with a peak
-    of about twice the result's memory), as
-    ``(frame, id, x, y, w, h, conf, c8, c9, line numbers)``; None for anything else (comments, blank lines,
-    whitespace separators, a bad value, ids beyond 2**53): :func:`_read_lines` then reads it, naming any
-    bad line."""
+_CHUNK_LINES = 1024
+"""Lines parsed per :func:`numpy.loadtxt` call by :func:`_read_uniform`: the memory it needs beside the result."""
+
+
+def _read_uniform(path: Path) -> tuple[np.ndarray | None, ...] | None:
+    """The columns of a file whose every line holds the same number (6 to 10) of comma-separated valid numbers,
+    parsed in C (:func:`numpy.loadtxt`, :data:`_CHUNK_LINES` lines at a time into typed columns: about three
+    times faster than :func:`_read_lines`, in the same memory), as ``(frame, id, x, y, w, h, conf, c8, c9,
+    None)`` (line numbers are the positions + 1); None for anything else (comments, blank lines, whitespace
+    separators, a bad value, ids beyond 2**53): :func:`_read_lines` then reads it, naming any bad line."""
+    ints, floats, width = [array("q"), array("q")], [array("d") for _ in range(7)], None
+    defaults = np.array([1.0, -1.0, -1.0])  # conf, c8, c9 where the lines stop short
     try:
-        with open(path, "rb") as handle:
-            n_lines, last = 0, b""
-            for chunk in iter(lambda: handle.read(1 << 20), b""):
-                n_lines, last = n_lines + chunk.count(b"\n"), chunk[-1:]
-        n_lines += last not in (b"", b"\n")
-        if n_lines == 0:
-            return None
-        with warnings.catch_warnings():
+        with open(path, encoding="utf-8") as handle, warnings.catch_warnings():
             warnings.simplefilter("error")  # numpy warns (rather than fails) on some malformed input
-            table = np.loadtxt(path, delimiter=",", comments=None, ndmin=2, encoding="utf-8")
+            while lines := list(itertools.islice(handle, _CHUNK_LINES)):
+                table = np.loadtxt(lines, delimiter=",", comments=None, ndmin=2)
+                if table.shape[0] != len(lines) or width not in (None, table.shape[1]) or not 6 <= table.shape[1] <= 10:
+                    return None
+                width, ids = table.shape[1], table[:, :2]
+                if not (np.isfinite(table).all() and (np.abs(ids) < 2**53).all() and (ids == np.round(ids)).all()
+                        and (ids[:, 0] >= 0).all() and (ids[:, 1] >= -1).all() and (table[:, 4:6] >= 0).all()):
+                    return None
+                for column, k in zip(ints, range(2)):
+                    column.frombytes(table[:, k].astype(np.int64).tobytes())
+                for column, k in zip(floats, range(2, 9)):
+                    values = table[:, k] if k < width else np.full(len(lines), defaults[k - 6])
+                    column.frombytes(np.ascontiguousarray(values).tobytes())
     except (OSError, ValueError, UnicodeError, Warning):
         return None
-    if table.shape[0] != n_lines or not 6 <= table.shape[1] <= 10 or not np.isfinite(table).all():
+    if width is None:
         return None
-    columns = np.ascontiguousarray(table.T)  # one row per column: the result's arrays are views of it
-    del table
-    frame, ident = columns[0], columns[1]
-    exact = (np.abs(columns[:2]) < 2**53).all() and (columns[:2] == np.round(columns[:2])).all()
-    if not exact or (frame < 0).any() or (ident < -1).any() or (columns[4:6] < 0).any():
-        return None
-    defaults = (1.0, -1.0, -1.0)  # conf, c8, c9 where the lines stop short
-    rest = [columns[k] if k < columns.shape[0] else np.full(n_lines, defaults[k - 6]) for k in range(6, 9)]
-    return frame.astype(np.int64), ident.astype(np.int64), *columns[2:6], *rest, np.arange(1, n_lines + 1)
+    return (*(np.frombuffer(c, dtype=np.int64) for c in ints), *(np.frombuffer(c, dtype=np.float64) for c in floats),
+            None)
 
 
 def _read_lines(path: Path) -> tuple[np.ndarray, ...]:
@@ -277,8 +281,8 @@ def read_mot(path: str | os.PathLike) -> MOTData:
         dup = np.flatnonzero((np.diff(frame[order]) == 0) & (np.diff(ident[order]) == 0))
         if dup.size:
             first, second = sorted((order[dup[0]], order[dup[0] + 1]))
-            raise _bad(path, linenos[second],
-                       f"frame {frame[second]} id {ident[second]} already given on line {linenos[first]}")
+            at = (first + 1, second + 1) if linenos is None else (linenos[first], linenos[second])
+            raise _bad(path, at[1], f"frame {frame[second]} id {ident[second]} already given on line {at[0]}")
     has_velocity = bool(np.any(c8 != -1.0) or np.any(c9 != -1.0))
     return MOTData(frame, ident, x, y, w, h, conf, c8 if has_velocity else None, c9 if has_velocity else None)
 
