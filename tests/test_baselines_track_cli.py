@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -72,7 +71,7 @@ def test_track_errors(tmp_path, capsys):
     assert "unknown tracker section" in capsys.readouterr().err
 
 
-def test_gmphd_on_real_wpafb_trajectories_short(wpafb_data):
+def test_gmphd_on_real_wpafb_trajectories_short(wpafb_data, tmp_path):
     """40 frames of real moving vehicles, simulated detections at the benchmark's defaults."""
     from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
     from torchtrack.pipeline.detection_file import detection_file_config, track_detections
@@ -81,6 +80,5 @@ def test_gmphd_on_real_wpafb_trajectories_short(wpafb_data):
     truth = read_wpafb_csv(wpafb_data / "transformed_object_states.csv")
     truth = truth.select(moving_mask(truth) & (truth.frame <= 40))
     det = simulate_detections(truth, 0.9, 1.0, 30, (585, 496), 1.0, torch.Generator().manual_seed(0)).detections
-    out = Path(os.environ.get("TMPDIR", "/tmp")) / "tt_wpafb_short"
-    m = track_detections(det, "gmphd", detection_file_config(), out, truth)
+    m = track_detections(det, "gmphd", detection_file_config(), tmp_path / "out", truth)
     assert m["MOTA"] > 0.6 and m["cap_hits"] == 0
