@@ -90,22 +90,26 @@ class SORT:
         self.motion = ConstantVelocity(2, q=o.q, learnable=False).to(dtype)
         self.measurement = LinearPosition(2, sigma=o.sigma, learnable=False).to(dtype)
         self.dtype = dtype
-        with torch.no_grad():
-            self.H, self.R = self.measurement.matrix(), self.measurement.noise_cov()
         self.reset()
 
-    def reset(self) -> None:
-        self.mean = torch.empty(0, 4, dtype=self.dtype)
-        self.cov = torch.empty(0, 4, 4, dtype=self.dtype)
-        self.ids = torch.empty(0, dtype=torch.long)
-        self.streak = torch.empty(0, dtype=torch.long)
-        self.missed = torch.empty(0, dtype=torch.long)
+    def reset(self, device: torch.device | str = "cpu") -> None:
+        """Forget all tracks; the next ones live on ``device`` (a stream starts on its first detections')."""
+        self.device = torch.device(device)
+        self.motion.to(self.device)
+        with torch.no_grad():
+            self.H, self.R = self.measurement.to(self.device).matrix(), self.measurement.noise_cov()
+        self.mean = torch.empty(0, 4, dtype=self.dtype, device=self.device)
+        self.cov = torch.empty(0, 4, 4, dtype=self.dtype, device=self.device)
+        self.ids, self.streak, self.missed = (torch.empty(0, dtype=torch.long, device=self.device) for _ in range(3))
         self.next_id = 1
         self.frame_count = 0
         self._last_frame: int | None = None
 
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
         z = _as_points(positions, self.dtype)
+        if self._last_frame is None and z.device != self.device:
+            self.reset(z.device)
+        z = z.to(self.device)
         dt = frame_step(self._last_frame, frame)
         self._last_frame = frame
         self.frame_count += 1
@@ -114,35 +118,36 @@ class SORT:
             mean = self.mean @ F.T
             cov = symmetrize(F @ self.cov @ F.T + Q)
             T, M = mean.shape[0], z.shape[0]
-            ti_t = di_t = torch.zeros(0, dtype=torch.long)
+            ti_t = di_t = torch.zeros(0, dtype=torch.long)   # the assignment is solved on the host (scipy)
             if T and M and T * M <= DENSE_PAIRS:
                 dist = torch.cdist(mean[:, :2], z)
                 ti_t, di_t = hungarian(dist, dist <= self.options.max_distance)
             elif T and M:          # many tracks and detections: only the gated pairs, solved per component
-                i, j, d = gated_pairs(mean[:, :2].numpy(), z.numpy(), self.options.max_distance)
+                i, j, d = gated_pairs(mean[:, :2].cpu().numpy(), z.cpu().numpy(), self.options.max_distance)
                 ti, di, _ = by_component(T, M, i, j, d, _hungarian_block)
                 order = np.argsort(ti)
                 ti_t, di_t = torch.as_tensor(ti[order]), torch.as_tensor(di[order])
+            ti_t, di_t = ti_t.to(self.device), di_t.to(self.device)
             if ti_t.numel():
                 upd = kalman_update(mean[ti_t], cov[ti_t], z[di_t], self.H, self.R)
                 mean[ti_t], cov[ti_t] = upd.mean, upd.cov
-            hit = torch.zeros(T, dtype=torch.bool)
+            hit = torch.zeros(T, dtype=torch.bool, device=self.device)
             hit[ti_t] = True
             streak = torch.where(hit, self.streak + 1, torch.zeros_like(self.streak))
             missed = torch.where(hit, torch.zeros_like(self.missed), self.missed + 1)
-            new = torch.ones(M, dtype=torch.bool)
+            new = torch.ones(M, dtype=torch.bool, device=self.device)
             new[di_t] = False
             zn = z[new]
             B = zn.shape[0]
             b_mean = torch.cat([zn, torch.zeros_like(zn)], 1)
             b_cov = torch.diag(torch.tensor([self.options.sigma**2] * 2 + [self.options.sigma_vel**2] * 2,
-                                            dtype=self.dtype)).expand(B, 4, 4)
+                                            dtype=self.dtype, device=self.device)).expand(B, 4, 4)
             keep = missed <= self.options.max_age
             self.mean = torch.cat([mean[keep], b_mean])
             self.cov = torch.cat([cov[keep], b_cov])
-            self.ids = torch.cat([self.ids[keep], torch.arange(self.next_id, self.next_id + B)])
-            self.streak = torch.cat([streak[keep], torch.ones(B, dtype=torch.long)])
-            self.missed = torch.cat([missed[keep], torch.zeros(B, dtype=torch.long)])
+            self.ids = torch.cat([self.ids[keep], torch.arange(self.next_id, self.next_id + B, device=self.device)])
+            self.streak = torch.cat([streak[keep], torch.ones(B, dtype=torch.long, device=self.device)])
+            self.missed = torch.cat([missed[keep], torch.zeros(B, dtype=torch.long, device=self.device)])
             self.next_id += B
             hits = self.options.min_hits
             report = (self.missed == 0) & ((self.streak >= hits) | (self.frame_count <= hits))
@@ -157,7 +162,8 @@ class GreedyTracker:
     order), each take the nearest still-unmatched track of the previous frame within ``max_distance``
     and inherit its id; the others start new tracks. A track not matched for more than ``max_age``
     frames is forgotten (``max_age = 0``: CenterTrack's default, no memory). Every detection is
-    reported. Options: :class:`~torchtrack.filters.tracker_config.GreedyConfig`.
+    reported. Options: :class:`~torchtrack.filters.tracker_config.GreedyConfig`. The matching is a k-d tree search
+    on the host: detections on another device are copied there, the results returned on their device.
     """
 
     def __init__(self, options: GreedyConfig | None = None):
@@ -174,8 +180,9 @@ class GreedyTracker:
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
         frame_step(self._last_frame, frame)
         self._last_frame = frame
-        p = _as_points(positions, torch.float64).numpy()
-        back = p - (_as_points(velocities, torch.float64).numpy() if velocities is not None else 0.0)
+        positions = _as_points(positions, torch.float64)
+        p = positions.cpu().numpy()
+        back = p - (_as_points(velocities, torch.float64).cpu().numpy() if velocities is not None else 0.0)
         M, T = p.shape[0], self.pos.shape[0]
         ids = np.zeros(M, dtype=np.int64)
         taken = np.zeros(T, dtype=bool)
@@ -195,4 +202,4 @@ class GreedyTracker:
         self.pos = np.concatenate([p, self.pos[~taken][keep]])
         self.ids = np.concatenate([ids, self.ids[~taken][keep]])
         self.age = np.concatenate([np.zeros(M, dtype=np.int64), age[keep]])
-        return torch.from_numpy(ids), torch.from_numpy(p)
+        return torch.from_numpy(ids).to(positions.device), positions.clone()

@@ -69,7 +69,8 @@ def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_po
     by_dist = by_weight[torch.sort(dist[by_weight], stable=True).indices]
     o, first = _first_of_label(lab, by_dist)
     if min_separation > 0:
-        keeper = torch.cummax(torch.where(first, torch.arange(o.numel()), torch.zeros_like(o)), 0).values
+        position = torch.arange(o.numel(), device=o.device)
+        keeper = torch.cummax(torch.where(first, position, torch.zeros_like(o)), 0).values
         apart = (pos[o] - pos[o[keeper]]).norm(dim=-1) > min_separation
         losers = idx[o[~first & apart]]
     else:

@@ -121,6 +121,12 @@ class GMPHDTracker(nn.Module):
         return cls(options=tracker_config("gmphd", config))
 
     @property
+    def device(self) -> torch.device:
+        """Where the parameters and the streaming state live: moved by ``.to(device)``, and a stream starts on
+        the device of its first frame's detections."""
+        return next(self.parameters()).device
+
+    @property
     def tone_sigma(self) -> float | None:
         """``σ_t`` of the detections' grey levels (None: tones unused)."""
         return self.options.tone_sigma
@@ -128,11 +134,12 @@ class GMPHDTracker(nn.Module):
     # ------------------------------------------------------------------ functional core
     def initial(self) -> tuple[MixtureState, TrackerMemory]:
         """An empty mixture and empty memory."""
-        empty = torch.empty(0, dtype=torch.long)
-        e2 = torch.empty(0, 2, dtype=self.dtype)
-        return (empty_mixture(self.phd.state_dim, self.dtype),
-                TrackerMemory(1, empty, e2, e2, no_lost_labels(self.dtype), no_tentative_labels(),
-                              no_label_tones(self.dtype), no_existence(self.dtype)))
+        kw = {"dtype": self.dtype, "device": self.device}
+        empty = torch.empty(0, dtype=torch.long, device=kw["device"])
+        e2 = torch.empty(0, 2, **kw)
+        return (empty_mixture(self.phd.state_dim, **kw),
+                TrackerMemory(1, empty, e2, e2, no_lost_labels(**kw), no_tentative_labels(kw["device"]),
+                              no_label_tones(**kw), no_existence(**kw)))
 
     def advance(self, state: MixtureState, memory: TrackerMemory, z: Tensor, velocity: Tensor | None,
                 mats: Matrices, vmap: VelocityMap | None = None, dt: float = 1.0,
@@ -225,7 +232,7 @@ class GMPHDTracker(nn.Module):
         differentiable with respect to every parameter of ``phd`` and ``birth`` (the training loss of
         ``torchtrack tune``)."""
         state, memory = self.initial()
-        vmap = self.birth.new_velocity_map(self.dtype)
+        vmap = self.birth.new_velocity_map(self.dtype, self.device)
         if self.phd.state_dim != 4:
             raise TorchtrackError("GMPHDTracker needs a 2-D constant-velocity state [x, y, vx, vy]")
         mats = self.phd.matrices(dt)
@@ -237,18 +244,21 @@ class GMPHDTracker(nn.Module):
             res = self.advance(state, memory, z.to(self.dtype), v, mats, vmap, dt, consts)
             state, memory = res.state, res.memory
             out.append(res.log_likelihood)
-        return torch.stack(out) if out else torch.zeros(0, dtype=self.dtype)
+        return torch.stack(out) if out else torch.zeros(0, dtype=self.dtype, device=self.device)
 
     # ------------------------------------------------------------------ streaming interface
     def reset(self) -> None:
         """Forget all tracks (labels restart at 1)."""
         state, memory = self.initial()
-        self._stream = _Stream(state, memory, self.birth.new_velocity_map(self.dtype))
+        self._stream = _Stream(state, memory, self.birth.new_velocity_map(self.dtype, self.device),
+                               pending=torch.empty(0, 2, dtype=self.dtype, device=self.device))
 
     def take_stream(self, other: GMPHDTracker) -> None:
         """Continue ``other``'s stream with this tracker's options: its mixture, labels and their memory, last
         frame and pending labels, and its velocity map where both trackers keep one (the per-frame switch of
-        :class:`~torchtrack.filters.gmphd_input.InputAwareGMPHD`; both must have the same ``dtype``)."""
+        :class:`~torchtrack.filters.gmphd_input.InputAwareGMPHD`; both must have the same ``dtype``). This
+        tracker moves to ``other``'s device."""
+        self.to(other.device)
         mine, theirs = self._stream, other._stream
         mine.state, mine.memory, mine.last_frame, mine.pending = (theirs.state, theirs.memory, theirs.last_frame,
                                                                   theirs.pending)
@@ -275,10 +285,15 @@ class GMPHDTracker(nn.Module):
              tones: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Process frame ``frame`` with detections ``positions (K, 2)`` (and the detector's ``velocities
         (K, 2)`` in px/frame, or None; their grey levels ``tones (K,)``, or None). Returns the reported
-        ``ids (E,)`` and ``positions (E, 2)``."""
-        z = torch.as_tensor(positions, dtype=self.dtype).reshape(-1, 2)
-        v = None if velocities is None else torch.as_tensor(velocities, dtype=self.dtype).reshape(-1, 2)
-        t = None if tones is None else torch.as_tensor(tones, dtype=self.dtype).reshape(-1)
+        ``ids (E,)`` and ``positions (E, 2)`` on the tracker's device (that of the stream's first detections)."""
+        positions = torch.as_tensor(positions)
+        if self._stream.last_frame is None and positions.device != self.device:
+            self.to(positions.device)
+            self.reset()
+        kw = {"dtype": self.dtype, "device": self.device}
+        z = torch.as_tensor(positions, **kw).reshape(-1, 2)
+        v = None if velocities is None else torch.as_tensor(velocities, **kw).reshape(-1, 2)
+        t = None if tones is None else torch.as_tensor(tones, **kw).reshape(-1)
         s = self._stream
         dt = frame_step(s.last_frame, frame)
         with torch.inference_mode():
@@ -303,4 +318,4 @@ class _Stream:
     last_frame: int | None = None
     mats: dict[float, Matrices] = field(default_factory=dict)   # parameters are frozen while streaming
     birth_consts: BirthConstants | None = None
-    pending: Tensor = field(default_factory=lambda: torch.empty(0, 2))
+    pending: Tensor = field(default_factory=lambda: torch.empty(0, 2))   # reset() puts it on the device

@@ -42,12 +42,21 @@ class PMBTracker:
         self.reset()
 
     def reset(self) -> None:
-        self.state: PMBState = self.filter.init_state((), undetected_weight=0.0)
+        self.state: PMBState = self.filter.init_state((), undetected_weight=0.0, device=self.device)
         self._last_frame: int | None = None
+
+    @property
+    def device(self) -> torch.device:
+        """Where the filter and its state live: a stream starts on the device of its first frame's detections."""
+        return self.filter.birth_mean.device
 
     @torch.no_grad()
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        z = torch.as_tensor(positions, dtype=torch.float64).reshape(-1, 2)
+        positions = torch.as_tensor(positions)
+        if self._last_frame is None and positions.device != self.device:
+            self.filter.to(positions.device)
+            self.reset()
+        z = torch.as_tensor(positions, dtype=torch.float64, device=self.device).reshape(-1, 2)
         dt = frame_step(self._last_frame, frame)
         self._last_frame = frame
         self.state, _ = self.filter.step(self.state, z, dt=dt)
