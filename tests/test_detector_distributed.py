@@ -36,7 +36,9 @@ def test_torchrun_two_processes_match_single_process(tmp_path):
     }
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(cfg))
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "GLOO_SOCKET_IFNAME": "lo"}
+    # both runs on the CPU (a GPU machine would train the single process on its GPU, the ranks too where each has one)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1", "GLOO_SOCKET_IFNAME": "lo",
+           "CUDA_VISIBLE_DEVICES": ""}
     common = ["-m", "torchtrack", "train-detector", "--config", str(path), "--no-progress", "--seed", "3"]
     single = subprocess.run([sys.executable, *common, "--out", str(tmp_path / "one")], env=env, cwd=ROOT,
                             capture_output=True, text=True, timeout=300)

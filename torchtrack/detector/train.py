@@ -1,11 +1,14 @@
 """Training loop, single process or under ``torchrun`` with ``DistributedDataParallel``.
 
 ``torchrun --nproc_per_node N -m torchtrack train-detector --config configs/detector.yaml`` runs the
-same code: the process group comes from the environment (gloo on CPU, NCCL on GPU), each rank takes
+same code: the process group comes from the environment (NCCL on GPUs when every local rank has one of its
+own, gloo on CPUs otherwise), each rank takes
 ``batch / N`` items of every global batch through a ``DistributedSampler`` (same permutation on every
 rank), and since items are pure functions of their index and the loss is a mean of per-sample terms,
 the averaged gradient equals the single-process gradient of the global batch. Rank 0 writes the
-caches, the checkpoints (``last.pt`` every epoch, ``best.pt`` by validation F1) and the progress bar.
+caches, the checkpoints (``last.pt`` every epoch, ``best.pt`` by validation F1) and the progress bar. On a
+GPU the kernels are the deterministic ones (cuDNN's autotuned choices are not), so the same seed gives the same
+weights there too.
 """
 
 from __future__ import annotations
@@ -37,7 +40,7 @@ def _init_distributed() -> tuple[int, int, torch.device]:
     rank = int(os.environ.get("RANK", "0"))
     device = torch.device("cpu")
     if world > 1:
-        if torch.cuda.is_available():
+        if torch.cuda.device_count() >= int(os.environ.get("LOCAL_WORLD_SIZE", str(world))):
             device = torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
             torch.cuda.set_device(device)
         if not dist.is_initialized():
@@ -70,6 +73,9 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
     if t.batch % world:
         raise TorchtrackError(f"train.batch {t.batch} is not divisible by the number of processes {world}")
     torch.manual_seed(seed)
+    if device.type == "cuda":
+        torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
+        torch.use_deterministic_algorithms(True, warn_only=True)
     det = Detector(cfg)
     model = det.net.to(device)
     net = DistributedDataParallel(model) if world > 1 else model
