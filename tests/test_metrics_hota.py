@@ -179,3 +179,15 @@ def test_per_component_assignment_is_the_dense_optimum(seed):
     won = hota_module._assign(n, m, i, j, score)
     assert np.unique(i[won]).size == won.size and np.unique(j[won]).size == won.size  # one-to-one
     assert score[won].sum() == pytest.approx(dense[r, k].sum(), rel=1e-12)
+
+
+@pytest.mark.parametrize("iou", [False, True])
+def test_sweep_and_kd_tree_find_the_same_pairs(iou, monkeypatch):
+    gt, pred = random_tracks(3, frames=40, objects=30)
+    sweep = hota_module._pairs(gt, pred, 10.0, iou)
+    monkeypatch.setattr(hota_module, "_SWEEP_CANDIDATES", -(10**9))  # every search through the k-d tree
+    tree = hota_module._pairs(gt, pred, 10.0, iou)
+    assert sweep[0].size > 100
+    order_a, order_b = np.lexsort(sweep[1::-1]), np.lexsort(tree[1::-1])
+    for a, b in zip(sweep, tree):
+        np.testing.assert_array_equal(a[order_a], b[order_b])

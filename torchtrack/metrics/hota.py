@@ -71,21 +71,45 @@ def centre_similarity(a: np.ndarray, b: np.ndarray, threshold: float) -> np.ndar
     return np.maximum(0.0, 1.0 - np.linalg.norm(a - b, axis=-1) / threshold)
 
 
+_SWEEP_CANDIDATES = 32
+"""The sweep of :func:`_pairs` is used while it tests at most this many candidates per point (plus 2**20)."""
+
+
+def _candidates(frame_a: np.ndarray, xy_a: np.ndarray, frame_b: np.ndarray, xy_b: np.ndarray,
+                radius: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(i, j)``: every point pair of the same frame with ``|x_i - x_j| <= radius`` (a sweep along ``x``: one
+    sort and two binary searches); None when there would be more than :data:`_SWEEP_CANDIDATES` per point
+    (points lined up along ``y``), where a k-d tree does better."""
+    span = 2 * (np.abs(xy_a[:, 0]).max(initial=0) + np.abs(xy_b[:, 0]).max(initial=0) + radius) + 1
+    key_a, key_b = frame_a * span + xy_a[:, 0], frame_b * span + xy_b[:, 0]  # frames far apart along x
+    order = np.argsort(key_b, kind="stable")
+    lo = np.searchsorted(key_b[order], key_a - radius, "left")
+    count = np.searchsorted(key_b[order], key_a + radius, "right") - lo
+    if count.sum() > _SWEEP_CANDIDATES * (key_a.size + key_b.size) + (1 << 20):
+        return None
+    first = np.repeat(lo - np.cumsum(count) + count, count)
+    return np.repeat(np.arange(key_a.size), count), order[first + np.arange(count.sum())]
+
+
 def _pairs(gt: MOTData, pred: MOTData, threshold: float, iou: bool) -> tuple[np.ndarray, ...]:
     """``(i, j, S)``: every line ``i`` of ``gt`` and ``j`` of ``pred`` of the same frame with similarity
-    ``S > 0``, found in one k-d tree search over all frames (the frame number is a third
-    coordinate, scaled so that points of different frames are farther apart than any pair that can score)."""
+    ``S > 0``, among the candidates of a sweep along ``x`` (:func:`_candidates`) or, where that would test
+    too many, of one k-d tree search over all frames (the frame number a third coordinate, scaled so that
+    points of different frames are farther apart than any pair that can score)."""
     ca, cb = gt.centers(), pred.centers()
     if iou:  # overlapping boxes have centres closer than the sum of their half diagonals
         radius = 0.5 * (np.hypot(gt.w, gt.h).max(initial=0) + np.hypot(pred.w, pred.h).max(initial=0))
     else:
         radius = threshold
     radius = radius * (1 + 1e-9) + 1e-9
-    span = 2 * radius + 1.0
-    tree_a = cKDTree(np.column_stack([ca, gt.frame * span]), balanced_tree=False)
-    tree_b = cKDTree(np.column_stack([cb, pred.frame * span]), balanced_tree=False)
-    found = tree_a.sparse_distance_matrix(tree_b, radius, output_type="ndarray")
-    i, j = found["i"].astype(np.int64), found["j"].astype(np.int64)
+    found = _candidates(gt.frame, ca, pred.frame, cb, radius)
+    if found is None:
+        span = 2 * radius + 1.0
+        tree_a = cKDTree(np.column_stack([ca, gt.frame * span]), balanced_tree=False)
+        tree_b = cKDTree(np.column_stack([cb, pred.frame * span]), balanced_tree=False)
+        found = tree_a.sparse_distance_matrix(tree_b, radius, output_type="ndarray")
+        found = found["i"].astype(np.int64), found["j"].astype(np.int64)
+    i, j = found
     sim = box_iou(gt.boxes()[i], pred.boxes()[j]) if iou else centre_similarity(ca[i], cb[j], threshold)
     keep = sim > 0
     return i[keep], j[keep], sim[keep]
