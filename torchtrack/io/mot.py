@@ -106,8 +106,9 @@ class MOTData(NamedTuple):
 
 def empty_mot(with_velocity: bool = False) -> MOTData:
     """A MOTData with no objects."""
-    ints = (np.zeros(0, dtype=np.int64) for _ in range(2))
-    return MOTData(*ints, *(np.zeros(0, dtype=np.float64) for _ in range(7 if with_velocity else 5)))
+    frame_and_id = [np.zeros(0, dtype=np.int64) for _ in range(2)]
+    floats = [np.zeros(0, dtype=np.float64) for _ in range(7 if with_velocity else 5)]  # x y w h conf (vx vy)
+    return MOTData(*frame_and_id, *floats)
 
 
 def concat_mot(items: Sequence[MOTData]) -> MOTData:
