@@ -80,3 +80,18 @@ def test_lbp_marginals_on_cuda_equal_cpu():
         if isinstance(a, torch.Tensor):
             assert b.device.type == "cuda"
             torch.testing.assert_close(b.cpu(), a, rtol=1e-9, atol=1e-12)
+
+
+def test_track_command_on_cuda_writes_the_cpu_tracks(tmp_path):
+    from torchtrack.cli import main
+    from torchtrack.io.mot import from_points, read_mot, write_motdata
+
+    frames = scene(frames=15, targets=20, clutter=5)
+    f = np.concatenate([np.full(len(z), k) for k, z, _ in frames])
+    xy = np.concatenate([z.numpy() for _, z, _ in frames])
+    write_motdata(tmp_path / "det.txt", from_points(f, -np.ones(len(f), int), xy[:, 0], xy[:, 1]))
+    for device in ("cpu", "cuda"):
+        assert main(["track", "--detections", str(tmp_path / "det.txt"), "--device", device,
+                     "--out", str(tmp_path / device)]) == 0
+    cpu, gpu = read_mot(tmp_path / "cpu" / "tracks.txt"), read_mot(tmp_path / "cuda" / "tracks.txt")
+    assert np.array_equal(cpu.id, gpu.id) and np.allclose(cpu.x, gpu.x, atol=1e-3)

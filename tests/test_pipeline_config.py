@@ -3,6 +3,7 @@
 from pathlib import Path
 
 import pytest
+import torch
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
@@ -37,3 +38,12 @@ def test_unknown_keys_are_named(tmp_path):
         load_pipeline_config(bad)
     with pytest.raises(TorchtrackError, match="no such file"):
         load_pipeline_config(tmp_path / "missing.yaml")
+
+
+def test_device_is_checked_before_any_work():
+    assert PipelineConfig().device == "cpu"
+    with pytest.raises(TorchtrackError, match=r"PipelineConfig.device must be cpu, cuda or cuda:N; got 'gpu9'"):
+        PipelineConfig(device="gpu9")
+    if not torch.cuda.is_available():
+        with pytest.raises(TorchtrackError, match="no CUDA device"):
+            PipelineConfig(device="cuda")

@@ -67,9 +67,9 @@ def frame_inputs_given(args: argparse.Namespace) -> bool:
 
 def pipeline_config(args: argparse.Namespace, tracker_options: dict | None) -> PipelineConfig:
     """``--pipeline-config`` (default: the embedded settings) with ``--tracker``, ``--config``'s options for
-    it, ``--threads``, ``--weights`` and ``--no-video``."""
+    it, ``--threads``, ``--device``, ``--weights`` and ``--no-video``."""
     config = load_pipeline_config(args.pipeline_config)
-    changes = {"tracker": args.tracker, "threads": args.threads}
+    changes = {"tracker": args.tracker, "threads": args.threads, "device": args.device}
     if tracker_options:
         changes["tracker_options"] = tracker_options
     if args.weights:

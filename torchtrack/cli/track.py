@@ -70,6 +70,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "name or a config path")
     parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1: the per-frame "
                         "work is small, more threads only add overhead)")
+    parser.add_argument("--device", default="cpu", help="where the trackers run: cpu (default), cuda or cuda:N "
+                        "(the detections are moved there frame by frame)")
     add_force_option(parser)
     add_common_options(parser)
     add_frame_options(parser)
@@ -136,7 +138,7 @@ def _run(args: argparse.Namespace) -> int:
     if args.detections is None:
         raise TorchtrackError("give --detections DET (or --benchmark CONFIG)")
     base = load_pipeline_config(args.pipeline_config) if args.pipeline_config else None
-    config = detection_file_config(tracker_options, args.threshold, base)
+    config = detection_file_config(tracker_options, args.threshold, base).replace(device=args.device)
     with OutputFolder(args.out, OUTPUT, args.force, inputs=inputs(args)) as staging:
         det = read_mot(args.detections)
         gt = read_mot(args.gt) if args.gt is not None else None

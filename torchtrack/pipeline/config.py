@@ -7,6 +7,8 @@ import dataclasses
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import torch
+
 from torchtrack.config import Checked, from_mapping, option, read_mapping
 from torchtrack.filters.tracker_config import DEFAULTS, tracker_config
 from torchtrack.pipeline.registration import RegistrationConfig
@@ -59,6 +61,8 @@ class PipelineConfig(Checked):
     video, video_fps, trail, box, scale, draw_truth: the annotated video (``box=None`` draws dots).
     snapshots: frame numbers saved as PNG beside the video.
     dtype: the tracker's floating-point type.
+    device: where the trackers run (``cpu``, ``cuda``, ``cuda:N``): each frame's detections are put there and the
+    trackers follow them (:mod:`torchtrack.filters.multitarget`).
     threads: torch intra-op threads while the pipeline runs (default 1: the other core serves the
     concurrent frame decoding, registration and video encoding; on a loaded 2-core machine two torch
     threads made the detector 10–20 times slower, spinning against each other).
@@ -87,6 +91,7 @@ class PipelineConfig(Checked):
     draw_truth: bool = True
     snapshots: tuple[int, ...] = option((1,), ge=1)
     dtype: str = option("float64", one_of=("float32", "float64"))
+    device: str = "cpu"
     threads: int = option(1, ge=1)
 
     def __post_init__(self) -> None:
@@ -96,6 +101,12 @@ class PipelineConfig(Checked):
         super().__post_init__()
         if isinstance(self.output_lag, bool) or not isinstance(self.output_lag, int):
             raise self.refuse("output_lag", f"must be a whole number of frames; got {self.output_lag!r}")
+        try:
+            device = torch.device(self.device)
+        except (RuntimeError, TypeError):
+            raise self.refuse("device", f"must be cpu, cuda or cuda:N; got {self.device!r}") from None
+        if device.type == "cuda" and not torch.cuda.is_available():
+            raise self.refuse("device", f"is {self.device}, but torch sees no CUDA device here")
         if not isinstance(self.trackers, dict) or not all(isinstance(v, dict) for v in self.trackers.values()):
             raise self.refuse("trackers", "must map tracker names to option mappings")
 

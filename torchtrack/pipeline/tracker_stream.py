@@ -24,16 +24,19 @@ from torchtrack.pipeline.fixed_lag import FixedLagTracks, LaggedFrame
 from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy
 
 
-def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype) -> tuple[np.ndarray, np.ndarray, int]:
-    """One ``tracker.step`` on a frame's detections; returns ``ids (N,)``, reference ``positions (N, 2)``
+def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype,
+                     device: torch.device | str = "cpu") -> tuple[np.ndarray, np.ndarray, int]:
+    """One ``tracker.step`` on a frame's detections, given on ``device``; returns ``ids (N,)``, reference
+    ``positions (N, 2)``
     and how many estimates were dropped because their identity was already reported in this frame
     (the trackers' contract is unique identities per frame; a repeat is kept out of ``tracks.txt``, which
     must stay a valid MOTChallenge file, and counted in ``metrics.json``)."""
-    velocities = None if np.isnan(det.velocities).any() else torch.as_tensor(det.velocities, dtype=dtype)
+    kw = {"dtype": dtype, "device": device}
+    velocities = None if np.isnan(det.velocities).any() else torch.as_tensor(det.velocities, **kw)
     extra = {}
     if det.tones is not None and getattr(tracker, "tone_sigma", None) is not None:
-        extra["tones"] = torch.as_tensor(det.tones, dtype=dtype)
-    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, dtype=dtype), velocities, **extra)
+        extra["tones"] = torch.as_tensor(det.tones, **kw)
+    ids, positions = tracker.step(det.index, torch.as_tensor(det.positions, **kw), velocities, **extra)
     ids = as_numpy(ids, ()).astype(np.int64)
     positions = as_numpy(positions, (2,))
     keep = np.sort(np.unique(ids, return_index=True)[1])  # the first estimate of each identity
@@ -72,7 +75,7 @@ class TrackerStream:
     def step(self, det: FrameDetections) -> tuple[np.ndarray, np.ndarray, list[LaggedFrame]]:
         """One frame: the tracker's online ``ids (N,)``, ``positions (N, 2)`` and the frames final now."""
         given = self.tracker_input(det)
-        ids, positions, dropped = run_tracker_step(self.tracker, given, self.dtype)
+        ids, positions, dropped = run_tracker_step(self.tracker, given, self.dtype, self.config.device)
         self.duplicates += dropped
         self.previous = positions
         if self.config.weak_continues_pending and hasattr(self.tracker, "pending_positions"):
