@@ -5,8 +5,10 @@ import itertools
 import numpy as np
 import pytest
 import torch
+from scipy.optimize import linear_sum_assignment
 
 from torchtrack.association.assignment import assign, greedy, hungarian
+from torchtrack.association.pairs import max_total_assignment
 from torchtrack.errors import TorchtrackError
 
 
@@ -90,3 +92,22 @@ def test_assign_bad_input():
         assign(torch.zeros(2, 2), method="auction")
     with pytest.raises(TorchtrackError, match="valid mask shape"):
         hungarian(np.zeros((2, 2)), np.zeros((3, 2), bool))
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_per_component_assignment_is_the_dense_optimum(seed):
+    """Sparse pairs in clusters of every shape (1 x k, 2 x 2, ..., up to 9 x 9): the assignment built per
+    connected component (enumerated or Hungarian) reaches the total of one dense Hungarian solve."""
+    rng = np.random.default_rng(seed)
+    n, m = 300, 280
+    cluster_of_row, cluster_of_col = rng.integers(0, 60, n), rng.integers(0, 60, m)
+    i, j = np.nonzero((cluster_of_row[:, None] == cluster_of_col[None, :]) & (rng.random((n, m)) < 0.7))
+    score = rng.random(i.size)
+    dense = np.zeros((n, m))
+    dense[i, j] = score
+    r, k = linear_sum_assignment(-dense)
+    won = max_total_assignment(n, m, i, j, score)
+    assert np.unique(i[won]).size == won.size and np.unique(j[won]).size == won.size  # one-to-one
+    assert score[won].sum() == pytest.approx(dense[r, k].sum(), rel=1e-12)
+
+

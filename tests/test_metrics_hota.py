@@ -162,25 +162,6 @@ def test_bad_arguments():
         hota(concat_mot([gt, from_points([1], [-1], [0.0], [0.0])]), pred)
 
 
-@pytest.mark.parametrize("seed", range(4))
-def test_per_component_assignment_is_the_dense_optimum(seed):
-    """Sparse pairs in clusters of every shape (1 x k, 2 x 2, ..., up to 9 x 9): the assignment built per
-    connected component (enumerated or Hungarian) reaches the total of one dense Hungarian solve."""
-    from scipy.optimize import linear_sum_assignment
-
-    rng = np.random.default_rng(seed)
-    n, m = 300, 280
-    cluster_of_row, cluster_of_col = rng.integers(0, 60, n), rng.integers(0, 60, m)
-    i, j = np.nonzero((cluster_of_row[:, None] == cluster_of_col[None, :]) & (rng.random((n, m)) < 0.7))
-    score = rng.random(i.size)
-    dense = np.zeros((n, m))
-    dense[i, j] = score
-    r, k = linear_sum_assignment(-dense)
-    won = hota_module._assign(n, m, i, j, score)
-    assert np.unique(i[won]).size == won.size and np.unique(j[won]).size == won.size  # one-to-one
-    assert score[won].sum() == pytest.approx(dense[r, k].sum(), rel=1e-12)
-
-
 @pytest.mark.parametrize("iou", [False, True])
 def test_sweep_and_kd_tree_find_the_same_pairs(iou, monkeypatch):
     gt, pred = random_tracks(3, frames=40, objects=30)

@@ -28,17 +28,12 @@ the pairs (ties may break differently). :func:`combine` scores several sequences
 
 from __future__ import annotations
 
-import itertools
-import math
 from collections.abc import Sequence
 
 import numpy as np
-from scipy.optimize import linear_sum_assignment
-from scipy.sparse import coo_matrix
-from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from torchtrack.association.pairs import by_component
+from torchtrack.association.pairs import max_total_assignment
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData
 from torchtrack.metrics.clear_mot import scored_sets
@@ -49,10 +44,6 @@ ALPHAS = np.arange(0.05, 0.99, 0.05)
 KEYS = ("HOTA", "DetA", "AssA", "LocA", "DetRe", "DetPr", "AssRe", "AssPr")
 
 _EPS = np.finfo(float).eps
-
-_ENUMERATED = 1000
-"""Most assignments enumerated for one shape of connected component; larger ones are solved by the Hungarian."""
-
 
 def box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """IoU of boxes ``a`` (..., 4) and ``b`` (..., 4) in ``x, y, w, h``, broadcast over the leading axes;
@@ -115,81 +106,6 @@ def _pairs(gt: MOTData, pred: MOTData, threshold: float, iou: bool) -> tuple[np.
     return i[keep], j[keep], sim[keep]
 
 
-def _max_score(score: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The assignment maximising the total of a dense block (NaN: no pair, score 0), solved as TrackEval does."""
-    return linear_sum_assignment(-np.nan_to_num(score, nan=0.0))
-
-
-def _present(values: np.ndarray, size: int) -> np.ndarray:
-    """The distinct ``values`` (ints in [0, size)), ascending."""
-    seen = np.zeros(size, bool)
-    seen[values] = True
-    return np.flatnonzero(seen)
-
-
-def _local_index(nodes: np.ndarray, label: np.ndarray) -> np.ndarray:
-    """The rank of each of the ascending ``nodes`` among the nodes of its component ``label[nodes]``."""
-    order = np.argsort(label[nodes], kind="stable")
-    group = label[nodes][order]
-    start = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
-    rank = np.empty(nodes.size, np.int64)
-    rank[order] = np.arange(nodes.size) - np.repeat(start, np.diff(np.r_[start, nodes.size]))
-    return rank
-
-
-def _segments(sorted_keys: np.ndarray) -> list[slice]:
-    """The runs of equal values of ``sorted_keys``."""
-    bounds = np.r_[0, np.flatnonzero(sorted_keys[1:] != sorted_keys[:-1]) + 1, sorted_keys.size]
-    return [slice(lo, hi) for lo, hi in zip(bounds[:-1].tolist(), bounds[1:].tolist())]
-
-
-def _assign(n: int, m: int, i: np.ndarray, j: np.ndarray, score: np.ndarray) -> np.ndarray:
-    """Positions into the pairs ``(i, j)`` of the assignment of ``n`` rows to ``m`` columns maximising the
-    total ``score > 0`` (every other pair scores 0).
-
-    The pairs' connected components are independent. A component with ``s`` rows or columns on its smaller
-    side and ``L`` on the other is solved exactly by enumerating the ``L! / (L - s)!`` ways to give each of
-    the ``s`` a distinct partner (all components of one shape at once) when there are at most
-    :data:`_ENUMERATED` of them — one row or column: its best pair; 2 x 2: the better diagonal — and by the
-    Hungarian algorithm otherwise. The optimum of a dense solve; ties may break differently.
-    """
-    if i.size == 0:
-        return np.zeros(0, np.int64)
-    graph = coo_matrix((np.ones(i.size), (i, n + j)), shape=(n + m, n + m))
-    count, label = connected_components(graph, directed=False)
-    rows, cols = _present(i, n), n + _present(j, m)
-    local = np.zeros(n + m, np.int64)
-    local[rows], local[cols] = _local_index(rows, label), _local_index(cols, label)
-    n_rows, n_cols = np.bincount(label[rows], minlength=count), np.bincount(label[cols], minlength=count)
-    flip = (n_rows > n_cols)[label[i]]  # enumerate from the smaller side
-    a, b = np.where(flip, local[n + j], local[i]), np.where(flip, local[i], local[n + j])
-    small, large = np.minimum(n_rows, n_cols), np.maximum(n_rows, n_cols)
-    comp = label[i]
-    order = np.lexsort((comp, large[comp], small[comp]))  # by shape, then component
-    won, hungarian = [], []
-    for seg in _segments(small[comp][order] * (large.max() + 1) + large[comp][order]):
-        mine = order[seg]
-        s, size = int(small[comp[mine[0]]]), int(large[comp[mine[0]]])
-        if math.perm(size, s) > _ENUMERATED:
-            hungarian.append(mine)
-            continue
-        slot = np.cumsum(np.r_[0, comp[mine][1:] != comp[mine][:-1]])
-        block = np.zeros((slot[-1] + 1, s, size))
-        where = np.full(block.shape, -1)
-        block[slot, a[mine], b[mine]] = score[mine]
-        where[slot, a[mine], b[mine]] = mine
-        maps = np.array(list(itertools.permutations(range(size), s)))  # (P, s)
-        best = maps[block[:, np.arange(s), maps].sum(-1).argmax(1)]  # (components, s)
-        picked = where[np.arange(block.shape[0])[:, None], np.arange(s), best]
-        won.append(picked[picked >= 0])
-    rest = np.concatenate(hungarian) if hungarian else np.zeros(0, np.int64)
-    r, k, _ = by_component(n, m, i[rest], j[rest], score[rest], _max_score)
-    key = i[rest] * m + j[rest]
-    at = np.argsort(key)
-    pos = at[np.minimum(np.searchsorted(key[at], r * m + k), max(rest.size - 1, 0))] if rest.size else rest
-    return np.concatenate([*won, rest[pos[key[pos] == r * m + k]]])
-
-
 def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None = None,
          ignore: np.ndarray | None = None, count_zero_conf: bool = False) -> dict:
     """HOTA and its parts of tracker output ``pred`` against ground truth ``gt``.
@@ -229,7 +145,7 @@ def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None 
 
     # step 2: the assignment maximising A * S in every frame (one per connected component of the pairs,
     # which never spans two frames); the TPs of every alpha at once
-    won = _assign(gt.size, pred.size, i, j, alignment[pair_of] * sim)
+    won = max_total_assignment(gt.size, pred.size, i, j, alignment[pair_of] * sim)
     m_sims, m_keys = sim[won], pair_keys[pair_of[won]]
     hit = m_sims[:, None] >= ALPHAS[None, :] - _EPS  # (matches, 19)
     tp = hit.sum(0).astype(np.float64)
