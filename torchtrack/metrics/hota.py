@@ -20,10 +20,11 @@ The reported scores are the means of these over the 19 alphas. Similarities: **c
 euclidean similarity with ``zero_distance = threshold``); **IoU mode** the IoU of the boxes (TrackEval's
 ``_calculate_box_ious``, boxes of zero area overlap nothing).
 
-No frame is a dense matrix and no step loops over frames: one k-d tree search finds the pairs with
-``S > 0`` of all frames, step 1 is sums over them, and step 2 solves each connected component of the pairs
-(small ones all at once by enumeration): the optimum TrackEval's dense solve finds, in memory proportional to
-the pairs (ties may break differently). :func:`combine` scores several sequences together as TrackEval does.
+No frame is a dense matrix and no step loops over frames: one search finds the pairs with ``S > 0`` of all
+frames (a sweep along ``x``, or a k-d tree where points line up), step 1 is sums over them, and step 2 solves
+each connected component of the pairs (:func:`torchtrack.association.pairs.max_total_assignment`, small ones
+all at once by enumeration): the optimum TrackEval's dense solve finds, in memory proportional to the pairs
+(ties may break differently). :func:`combine` scores several sequences together as TrackEval does.
 """
 
 from __future__ import annotations
