@@ -48,7 +48,9 @@ def test_empirical_distribution_matches_enumeration(n_tracks, n_meas, seed):
     present[-1] = n_tracks < 4 or seed % 2 == 0          # one track outside the hypothesis in some cases
     exact = _enumerate(full, present)
     chains, sweeps, burn = 4000, 6, 2
-    out = gibbs_sample(log_eta, cand, present.expand(chains, -1), gating_groups(cand, n_meas), n_meas, sweeps,
+    rows = torch.arange(n_tracks)
+    row_of = torch.where(present, rows, -1).expand(chains, -1)
+    out = gibbs_sample(log_eta, cand, row_of, gating_groups(cand, rows, n_tracks, n_meas), n_meas, sweeps,
                        torch.Generator().manual_seed(7))
     samples = _as_measurements(out[:, burn:].reshape(-1, n_tracks), cand)
     counts: dict[tuple, int] = {}
@@ -64,15 +66,18 @@ def test_empirical_distribution_matches_enumeration(n_tracks, n_meas, seed):
 
 def test_groups_are_components_of_the_gating_graph():
     cand = torch.tensor([[0, -1], [0, 1], [2, -1], [-1, -1], [1, -1]])
-    groups = gating_groups(cand, 3)
-    members = [sorted(int(t) for t in col if t < 5) for col in groups.T]
-    assert sorted(members) == [[0, 1, 4], [2], [3]]
+    order = gating_groups(cand, torch.arange(5), 5, 3)
+    assert [t.tolist() for t in order.slots] == [[0, 2, 3], [1], [4]]    # the largest group first
+    assert order.widths == [3, 4, 3]                                      # 2 + most candidates of the step
+    # rows 0 and 2 are alternatives of one label slot: their measurements join one group
+    order = gating_groups(cand, torch.tensor([0, 1, 0, 2, 3]), 4, 3)
+    assert [sorted(t.tolist()) for t in order.slots] == [[0, 2], [1], [3]]
 
 
 def test_same_seed_same_samples():
     _, log_eta, cand = _problem(4, 4, 5)
-    present = torch.ones(64, 4, dtype=torch.bool)
-    groups = gating_groups(cand, 4)
-    a = gibbs_sample(log_eta, cand, present, groups, 4, 3, torch.Generator().manual_seed(1))
-    b = gibbs_sample(log_eta, cand, present, groups, 4, 3, torch.Generator().manual_seed(1))
+    row_of = torch.arange(4).expand(64, -1)
+    groups = gating_groups(cand, torch.arange(4), 4, 4)
+    a = gibbs_sample(log_eta, cand, row_of, groups, 4, 3, torch.Generator().manual_seed(1))
+    b = gibbs_sample(log_eta, cand, row_of, groups, 4, 3, torch.Generator().manual_seed(1))
     assert torch.equal(a, b)

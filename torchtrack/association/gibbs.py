@@ -23,6 +23,8 @@ the weights the caller forms from them).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import torch
 from torch import Tensor
@@ -31,70 +33,88 @@ ABSENT, MISSED, FIRST_MEASUREMENT = 0, 1, 2
 """Choice codes: column of ``log_eta`` (``2 + k`` is the k-th candidate measurement)."""
 
 
-def gating_groups(cand: Tensor, n_meas: int) -> Tensor:
-    """The tracks of each connected component of the track–measurement gating graph, as the sweep order
-    ``(P, G)``: column ``g`` lists group ``g``'s tracks (padded with ``N``, a dummy track), ``P`` the largest
-    group's size. ``cand (N, K)``: gated measurement indices per track, ``-1`` padding."""
+class SweepOrder(NamedTuple):
+    """The steps of one sweep: ``slots[p]`` the label slots updated together at step ``p`` (one per group, at most),
+    ``widths[p]`` the number of choice columns they need (2 + the most candidates of their rows)."""
+
+    slots: list[Tensor]
+    widths: list[int]
+
+
+def gating_groups(cand: Tensor, slot_of_row: Tensor, n_slots: int, n_meas: int) -> SweepOrder:
+    """The sweep order over the connected components ("groups") of the slot–measurement gating graph: step
+    ``p`` updates the ``p``-th slot of every group that has one. ``cand (N, K)``: gated measurement indices per
+    row, ``-1`` padding (a row's candidates first); ``slot_of_row (N,)``: the label slot of each row (a slot's
+    rows are alternatives: a hypothesis holds at most one of them)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    N = cand.shape[0]
+    S = n_slots
     c = cand.cpu().numpy()
+    slot = slot_of_row.cpu().numpy()
     i, k = np.nonzero(c >= 0)
-    graph = coo_matrix((np.ones(i.size), (i, N + c[i, k])), shape=(N + n_meas, N + n_meas))
+    graph = coo_matrix((np.ones(i.size), (slot[i], S + c[i, k])), shape=(S + n_meas, S + n_meas))
     _, comp = connected_components(graph, directed=False)
-    comp = comp[:N]
-    order = np.argsort(comp, kind="stable")
+    comp = comp[:S]
+    size = np.bincount(comp)
+    # groups by decreasing size (step p then touches a prefix of them), slots of a group by index
+    order = np.lexsort((np.arange(S), comp, -size[comp]))
     sorted_comp = comp[order]
-    starts = np.flatnonzero(np.r_[True, sorted_comp[1:] != sorted_comp[:-1]])
-    sizes = np.diff(np.r_[starts, N])
-    position = np.arange(N) - np.repeat(starts, sizes)
-    group = np.repeat(np.arange(starts.size), sizes)
-    out = np.full((int(sizes.max(initial=0)), starts.size), N, dtype=np.int64)
-    out[position, group] = order
-    return torch.from_numpy(out).to(cand.device)
+    starts = np.flatnonzero(np.r_[True, sorted_comp[1:] != sorted_comp[:-1]]) if S else np.zeros(0, np.int64)
+    sizes = np.diff(np.r_[starts, S])
+    position = np.empty(S, np.int64)
+    position[order] = np.arange(S) - np.repeat(starts, sizes)
+    n_cand = np.zeros(S, np.int64)
+    np.maximum.at(n_cand, slot, (c >= 0).sum(1) if c.size else np.zeros(slot.size, np.int64))
+    by_position = np.argsort(position, kind="stable")
+    bounds = np.searchsorted(position[by_position], np.arange(int(sizes.max(initial=0)) + 1))
+    slots = [by_position[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
+    return SweepOrder([torch.from_numpy(m).to(cand.device) for m in slots],
+                      [FIRST_MEASUREMENT + int(n_cand[m].max(initial=0)) for m in slots])
 
 
-def gibbs_sample(log_eta: Tensor, cand: Tensor, present: Tensor, groups: Tensor, n_meas: int, sweeps: int,
+def gibbs_sample(log_eta: Tensor, cand: Tensor, row_of: Tensor, order: SweepOrder, n_meas: int, sweeps: int,
                  generator: torch.Generator | None = None) -> Tensor:
-    """Run ``C`` Gibbs chains for ``sweeps`` sweeps; returns the joint choice after each sweep ``(C, sweeps, N)``.
+    """Run ``C`` Gibbs chains for ``sweeps`` sweeps; returns the choice of each label slot after each sweep
+    ``(C, sweeps, S)``.
 
     Args:
-        log_eta: ``(N, K + 2)`` log weights of the choices (module docstring); ``-inf`` for padded candidates.
+        log_eta: ``(N, K + 2)`` log weights of the choices of each row (module docstring); ``-inf`` for padding.
         cand: ``(N, K)`` measurement index of each candidate, ``-1`` padding.
-        present: ``(C, N)`` bool, the tracks each chain may use (a surviving track outside the chain's
-            hypothesis is held absent).
-        groups: ``(P, G)`` sweep order from :func:`gating_groups`.
+        row_of: ``(C, S)`` the row each chain's hypothesis holds for each label slot, ``-1``: none (the slot is
+            held absent).
+        order: the sweep order from :func:`gating_groups`.
         n_meas: ``M``. sweeps: samples per chain. generator: the random stream (same seed, same samples).
 
-    Chains start with every track absent (always valid). Each conditional is drawn by Gumbel-max.
+    Chains start with every slot absent (always valid). Each conditional is drawn by inverting its cumulative
+    distribution with one uniform per chain and slot.
     """
     N, width = log_eta.shape
-    C = present.shape[0]
+    C = row_of.shape[0]
     device = log_eta.device
-    eta = torch.full((N + 1, width), float("-inf"), dtype=log_eta.dtype, device=device)
-    eta[:N] = log_eta.detach()
-    eta[N, ABSENT] = 0.0                                       # the dummy track: always absent
+    eta = log_eta.detach()
+    prob = torch.zeros(N + 1, width, dtype=eta.dtype, device=device)       # row N: "no row", absent only
+    prob[:N] = torch.exp(eta - eta.max(1, keepdim=True).values)
+    prob[N, ABSENT] = 1.0
     meas_of = torch.full((N + 1, width), n_meas, dtype=torch.long, device=device)
     meas_of[:N, FIRST_MEASUREMENT:] = torch.where(cand >= 0, cand, n_meas)   # n_meas: "no measurement"
-    absent_only = torch.zeros(C, N + 1, 1, dtype=torch.bool, device=device)
-    absent_only[:, :N, 0] = ~present
-    not_absent = torch.arange(width, device=device) != ABSENT
-    choice = torch.zeros(C, N + 1, dtype=torch.long, device=device)
+    rows = torch.where(row_of >= 0, row_of, N)
+    choice = torch.zeros(row_of.shape, dtype=torch.long, device=device)
     taken = torch.zeros(C, n_meas + 1, dtype=torch.bool, device=device)
-    rows = torch.arange(C, device=device).unsqueeze(1)
-    out = torch.empty(C, sweeps, N, dtype=torch.long, device=device)
+    out = torch.empty(C, sweeps, row_of.shape[1], dtype=torch.long, device=device)
     for s in range(sweeps):
-        for idx in groups:                                      # (G,) one track per group
-            held = meas_of[idx].gather(1, choice[:, idx].T).T   # (C, G) measurement held now
-            taken[rows, held] = False
-            taken[:, n_meas] = False
-            blocked = taken[:, meas_of[idx]]                    # (C, G, width)
-            logits = eta[idx].masked_fill(blocked | (absent_only[:, idx] & not_absent), float("-inf"))
-            u = torch.rand(logits.shape, generator=generator, dtype=logits.dtype, device=device)
-            new = (logits - torch.log(-torch.log(u.clamp_min(1e-300)))).argmax(-1)
+        for idx, w in zip(*order):                               # (G,) at most one slot per group
+            r = rows[:, idx]                                     # (C, G)
+            mo = meas_of[r, :w]                                  # (C, G, w)
+            G = idx.shape[0]
+            taken.scatter_(1, mo.gather(2, choice[:, idx].unsqueeze(2)).view(C, G), False)   # release
+            blocked = taken.gather(1, mo.view(C, G * w)).view(C, G, w)
+            cum = prob[r, :w].masked_fill(blocked, 0.0).cumsum(-1)
+            # u < total: an option of probability 0 (cum equal to its predecessor's) is never chosen
+            u = torch.rand(C, G, 1, generator=generator, dtype=cum.dtype, device=device) * cum[..., -1:]
+            new = (cum < u).sum(-1)
             choice[:, idx] = new
-            taken[rows, meas_of[idx].gather(1, new.T).T] = True
+            taken.scatter_(1, mo.gather(2, new.unsqueeze(2)).view(C, G), True)
             taken[:, n_meas] = False
-        out[:, s] = choice[:, :N]
+        out[:, s] = choice
     return out

@@ -179,29 +179,35 @@ class GLMBFilter:
         clutter = log_clutter[cand.clamp_min(0)] if M else vals
         log_eta = torch.cat([log_absent.unsqueeze(1), (log_exist + _log(1 - self.p_detection)).unsqueeze(1),
                              log_exist.unsqueeze(1) + _log(self.p_detection) + vals - clutter], 1)
-        # (G3) Gibbs chains, √w_h of them per hypothesis
+        # (G3) Gibbs chains, √w_h of them per hypothesis, over label slots (a hypothesis holds at most one row
+        # per label; births are slots of their own)
         Hn = state.hyp.shape[0]
+        slots, slot_of_row = torch.unique(label[:, 1], return_inverse=True)
+        n_slots = slots.shape[0]
         share = torch.exp(0.5 * state.log_weight.detach())
         counts = torch.ceil(share / share.sum() * self.chains).long().clamp_min(1)
         parent = torch.repeat_interleave(torch.arange(Hn, device=mean.device), counts)
-        present_h = torch.zeros(Hn, N + 1, dtype=torch.bool, device=mean.device)
-        present_h.scatter_(1, torch.where(state.hyp >= 0, state.hyp, N), True)
-        present_h[:, T:] = True
-        present_h = present_h[:, :N]
-        choice = gibbs_sample(log_eta, cand, present_h[parent], gating_groups(cand, M), M, self.sweeps,
-                              self.generator)
-        choice = choice.reshape(parent.shape[0] * self.sweeps, N)
+        row_of_h = torch.full((Hn, n_slots + 1), -1, dtype=torch.long, device=mean.device)
+        held = state.hyp >= 0
+        row_of_h.scatter_(1, torch.where(held, slot_of_row[state.hyp.clamp_min(0)], n_slots), state.hyp)
+        birth_rows = torch.arange(T, N, device=mean.device)
+        row_of_h[:, slot_of_row[T:]] = birth_rows
+        row_of_h = row_of_h[:, :n_slots]
+        choice = gibbs_sample(log_eta, cand, row_of_h[parent], gating_groups(cand, slot_of_row, n_slots, M), M,
+                              self.sweeps, self.generator)
+        choice = choice.reshape(parent.shape[0] * self.sweeps, n_slots)
         parent = parent.repeat_interleave(self.sweeps)
         # (G4) distinct samples and their weights
         first, _ = _first_of_each(_row_hash(torch.cat([parent.unsqueeze(1), choice], 1)))
         choice, parent = choice[first], parent[first]
-        present = present_h[parent]
-        contrib = log_eta.gather(1, choice.T).T if N else choice.to(log_eta.dtype)
-        log_w = state.log_weight[parent] + torch.where(present, contrib, torch.zeros_like(contrib)).sum(1)
+        row = row_of_h[parent]                                                  # (U, S)
+        has_row = row >= 0
+        contrib = log_eta[row.clamp_min(0), choice]
+        log_w = state.log_weight[parent] + torch.where(has_row, contrib, torch.zeros_like(contrib)).sum(1)
         # (G5) new table rows: distinct (row, choice) with the row present
         width = log_eta.shape[1]
-        exists = choice != ABSENT
-        key = torch.where(exists, torch.arange(N, device=mean.device) * width + choice, -1)
+        exists = has_row & (choice != ABSENT)
+        key = torch.where(exists, row * width + choice, -1)
         keys, new_index = torch.unique(key[exists], return_inverse=True)
         rows_new = torch.full_like(key, -1)
         rows_new[exists] = new_index

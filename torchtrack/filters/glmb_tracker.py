@@ -69,7 +69,7 @@ class GLMBTracker:
 
     @torch.no_grad()
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
-        """One frame: ``positions (M, 2)``, ``velocities (M, 2)`` or None → reported ``ids (E,)``, ``positions (E, 2)``."""
+        """One frame: ``positions (M, 2)``, ``velocities (M, 2)`` or None → reported ``ids (E,)``, ``(E, 2)``."""
         c = self.config
         if self._last_frame is not None and frame <= self._last_frame:
             raise TorchtrackError(f"glmb tracker: frames must increase: frame {frame} after {self._last_frame}")
