@@ -2,9 +2,11 @@
 filter", IEEE TSP 62(12) 2014, section IV-C, as the satellite paper's GLMB uses it): every measurement of frame
 ``k`` proposes a birth row for frame ``k + 1`` whose existence grows with how badly the tracks explain it,
 
-    r_B(z) = min(r_max, λ_B · (1 − r_U(z)) / Σ_{z'} (1 − r_U(z'))),     r_U(z) = Σ_h w_h [z ∈ h]     (B1)
+    r_B(z) = min(r_max, λ_B · (1 − r_U(z)) / max(1, Σ_{z'} (1 − r_U(z')))),     r_U(z) = Σ_h w_h [z ∈ h]   (B1)
 
-(``λ_B``: expected births per frame; ``r_U``: the probability that ``z`` was assigned to a track). Rows with
+(``λ_B``: expected births per frame; ``r_U``: the probability that ``z`` was assigned to a track). Reuter et al.
+divide by ``Σ (1 − r_U)`` alone; with every measurement explained that sum is tiny and the last sliver of an
+explained measurement would be born with ``r_max`` — the ``max(1, ·)`` keeps ``r_B ≤ λ_B (1 − r_U)``. Rows with
 ``r_B < r_min`` are not proposed. The density is ``N([z, v], diag(σ_p², σ_p², σ_v², σ_v²))`` with ``v`` the
 detector's velocity (``σ_v`` its noise) where given, else ``v = 0`` with a wide ``σ_v``.
 """
@@ -23,7 +25,7 @@ def adaptive_births(z: Tensor, velocity: Tensor | None, used: Tensor, frame: int
     """The birth rows (B1) from ``z (M, 2)``, ``velocity (M, 2)`` or None and ``used (M,)`` ``r_U``; labels
     ``(frame, next_index + b)``. No gradient flows into ``used`` (a selection)."""
     free = (1.0 - used.detach()).clamp_min(0.0)
-    r = (birth_rate * free / free.sum().clamp_min(1e-12)).clamp_max(r_max)
+    r = (birth_rate * free / free.sum().clamp_min(1.0)).clamp_max(r_max)
     keep = r >= r_min
     zb, r = z[keep], r[keep]
     B = zb.shape[0]
