@@ -102,7 +102,7 @@ def _state(tracks) -> GLMBState:
     n = len(tracks)
     return GLMBState(torch.tensor(np.array([x for x, _ in tracks])), torch.tensor(np.array([P for _, P in tracks])),
                      torch.tensor([[0, i] for i in range(n)]), torch.full((n,), -1), torch.arange(n)[None],
-                     torch.zeros(1, dtype=torch.float64))
+                     torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.long))
 
 
 def test_cardinality_distribution_matches_enumeration_over_two_frames():
@@ -130,9 +130,10 @@ def test_birth_rows_enter_the_joint_update():
     glmb = _filter()
     empty = GLMBState(torch.empty(0, 4, dtype=torch.float64), torch.empty(0, 4, 4, dtype=torch.float64),
                       torch.empty(0, 2, dtype=torch.long), torch.empty(0, dtype=torch.long),
-                      torch.empty(1, 0, dtype=torch.long), torch.zeros(1, dtype=torch.float64))
+                      torch.empty(1, 0, dtype=torch.long), torch.zeros(1, dtype=torch.float64),
+                      torch.zeros(1, dtype=torch.long))
     z = np.array([[0.5, -1.0]])
-    state, info = glmb.step(empty, births, torch.tensor(z), torch.tensor([math.log(KAPPA)]))
+    state, info = glmb.step(empty, births, torch.tensor(z), torch.tensor([math.log(KAPPA)], dtype=torch.float64))
     P = F @ np.diag([4.0, 4.0, 1.0, 1.0]) @ F.T + Q
     S = H @ P @ H.T + R
     g = math.exp(-0.5 * z[0] @ np.linalg.solve(S, z[0])) / (2 * math.pi * math.sqrt(np.linalg.det(S)))
@@ -145,8 +146,8 @@ def test_birth_rows_enter_the_joint_update():
 def _crossing(n_frames=30):
     """Two targets crossing at right angles at frame 15 (positions (n_frames, 2, 2))."""
     k = np.arange(1, n_frames + 1)[:, None]
-    a = np.array([20.0, 20.0]) + (k - 15) * np.array([2.0, 2.0]) + 30
-    b = np.array([20.0, 80.0]) + (k - 15) * np.array([2.0, -2.0]) + 30
+    a = np.array([50.0, 50.0]) + (k - 15) * np.array([2.0, 2.0])
+    b = np.array([50.0, 50.0]) + (k - 15) * np.array([2.0, -2.0])
     return np.stack([a, b], 1)
 
 
@@ -157,7 +158,7 @@ def test_labels_continue_through_a_crossing():
     owner: dict[int, set] = {0: set(), 1: set()}
     for k, x in enumerate(truth, start=1):
         ids, pos = tracker.step(k, torch.tensor(x + rng.normal(0, 0.5, x.shape)))
-        for t in range(2):
+        for t in range(2 if abs(k - 15) > 1 else 0):      # at the crossing itself either id is right
             d = np.linalg.norm(pos.numpy() - x[t], axis=1) if len(ids) else np.array([])
             if d.size and d.min() < 3:
                 owner[t].add(int(ids[d.argmin()]))
@@ -180,7 +181,7 @@ def test_cap_respected_and_warned_once(caplog):
     with caplog.at_level(logging.WARNING, logger="torchtrack.filters.glmb"):
         for k, x in enumerate(truth, start=1):
             tracker.step(k, torch.tensor(np.vstack([x + rng.normal(0, 1.0, x.shape), rng.uniform(0, 150, (5, 2))])))
-            assert tracker.state.hyp.shape[0] <= 2
+            assert int(torch.bincount(tracker.state.group).max()) <= 2          # the cap is per group
     assert tracker.cap_hits > 1
     assert sum("hypothesis cap hit" in r.message for r in caplog.records) == 1
 

@@ -33,19 +33,20 @@ ABSENT, MISSED, FIRST_MEASUREMENT = 0, 1, 2
 """Choice codes: column of ``log_eta`` (``2 + k`` is the k-th candidate measurement)."""
 
 
-class SweepOrder(NamedTuple):
-    """The steps of one sweep: ``slots[p]`` the label slots updated together at step ``p`` (one per group, at most),
-    ``widths[p]`` the number of choice columns they need (2 + the most candidates of their rows)."""
+class Groups(NamedTuple):
+    """The connected components ("groups") of the slot–measurement gating graph: ``slots (K, P)`` the label slots
+    of each group in sweep order (padded with ``S``), ``group_of_slot (S,)``, ``widths[p]`` the choice columns
+    step ``p`` of a sweep needs (2 + the most candidates of the rows of the slots at that step)."""
 
-    slots: list[Tensor]
+    slots: Tensor
+    group_of_slot: Tensor
     widths: list[int]
 
 
-def gating_groups(cand: Tensor, slot_of_row: Tensor, n_slots: int, n_meas: int) -> SweepOrder:
-    """The sweep order over the connected components ("groups") of the slot–measurement gating graph: step
-    ``p`` updates the ``p``-th slot of every group that has one. ``cand (N, K)``: gated measurement indices per
-    row, ``-1`` padding (a row's candidates first); ``slot_of_row (N,)``: the label slot of each row (a slot's
-    rows are alternatives: a hypothesis holds at most one of them)."""
+def gating_groups(cand: Tensor, slot_of_row: Tensor, n_slots: int, n_meas: int) -> Groups:
+    """The groups of label slots that share gated measurements (directly or through others). ``cand (N, K)``:
+    gated measurement indices per row, ``-1`` padding (a row's candidates first); ``slot_of_row (N,)``: the
+    label slot of each row (a slot's rows are alternatives: a hypothesis holds at most one of them)."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -55,66 +56,63 @@ def gating_groups(cand: Tensor, slot_of_row: Tensor, n_slots: int, n_meas: int) 
     i, k = np.nonzero(c >= 0)
     graph = coo_matrix((np.ones(i.size), (slot[i], S + c[i, k])), shape=(S + n_meas, S + n_meas))
     _, comp = connected_components(graph, directed=False)
-    comp = comp[:S]
+    _, comp = np.unique(comp[:S], return_inverse=True)
     size = np.bincount(comp)
-    # groups by decreasing size (step p then touches a prefix of them), slots of a group by index
-    order = np.lexsort((np.arange(S), comp, -size[comp]))
-    sorted_comp = comp[order]
-    starts = np.flatnonzero(np.r_[True, sorted_comp[1:] != sorted_comp[:-1]]) if S else np.zeros(0, np.int64)
-    sizes = np.diff(np.r_[starts, S])
+    order = np.lexsort((np.arange(S), comp))
+    starts = np.r_[0, np.cumsum(size)[:-1]]
     position = np.empty(S, np.int64)
-    position[order] = np.arange(S) - np.repeat(starts, sizes)
+    position[order] = np.arange(S) - np.repeat(starts, size)
+    P = int(size.max(initial=0))
+    slots = np.full((size.size, P), S, np.int64)
+    slots[comp, position] = np.arange(S)
     n_cand = np.zeros(S, np.int64)
     np.maximum.at(n_cand, slot, (c >= 0).sum(1) if c.size else np.zeros(slot.size, np.int64))
-    by_position = np.argsort(position, kind="stable")
-    bounds = np.searchsorted(position[by_position], np.arange(int(sizes.max(initial=0)) + 1))
-    slots = [by_position[a:b] for a, b in zip(bounds[:-1], bounds[1:])]
-    return SweepOrder([torch.from_numpy(m).to(cand.device) for m in slots],
-                      [FIRST_MEASUREMENT + int(n_cand[m].max(initial=0)) for m in slots])
+    widths = np.zeros(P, np.int64)
+    np.maximum.at(widths, position, n_cand)
+    return Groups(torch.from_numpy(slots).to(cand.device), torch.from_numpy(comp).to(cand.device),
+                  [FIRST_MEASUREMENT + int(w) for w in widths])
 
 
-def gibbs_sample(log_eta: Tensor, cand: Tensor, row_of: Tensor, order: SweepOrder, n_meas: int, sweeps: int,
+def gibbs_sample(log_eta: Tensor, cand: Tensor, rows: Tensor, widths: list[int], n_meas: int, sweeps: int,
                  generator: torch.Generator | None = None) -> Tensor:
-    """Run ``C`` Gibbs chains for ``sweeps`` sweeps; returns the choice of each label slot after each sweep
-    ``(C, sweeps, S)``.
+    """Run ``C`` Gibbs chains for ``sweeps`` sweeps; returns each chain's choices after each sweep ``(C, sweeps, P)``.
 
     Args:
         log_eta: ``(N, K + 2)`` log weights of the choices of each row (module docstring); ``-inf`` for padding.
         cand: ``(N, K)`` measurement index of each candidate, ``-1`` padding.
-        row_of: ``(C, S)`` the row each chain's hypothesis holds for each label slot, ``-1``: none (the slot is
-            held absent).
-        order: the sweep order from :func:`gating_groups`.
+        rows: ``(C, P)`` the row chain ``c`` updates at step ``p`` of a sweep (its group's ``p``-th label slot, the
+            row its hypothesis holds for it), ``-1``: none (held absent).
+        widths: choice columns of each step (:class:`Groups`).
         n_meas: ``M``. sweeps: samples per chain. generator: the random stream (same seed, same samples).
 
     Chains start with every slot absent (always valid). Each conditional is drawn by inverting its cumulative
-    distribution with one uniform per chain and slot.
+    distribution with one uniform per chain.
     """
     N, width = log_eta.shape
-    C = row_of.shape[0]
+    C, P = rows.shape
     device = log_eta.device
     eta = log_eta.detach()
     prob = torch.zeros(N + 1, width, dtype=eta.dtype, device=device)       # row N: "no row", absent only
-    prob[:N] = torch.exp(eta - eta.max(1, keepdim=True).values)
+    if N:
+        prob[:N] = torch.exp(eta - eta.max(1, keepdim=True).values)
     prob[N, ABSENT] = 1.0
     meas_of = torch.full((N + 1, width), n_meas, dtype=torch.long, device=device)
     meas_of[:N, FIRST_MEASUREMENT:] = torch.where(cand >= 0, cand, n_meas)   # n_meas: "no measurement"
-    rows = torch.where(row_of >= 0, row_of, N)
-    choice = torch.zeros(row_of.shape, dtype=torch.long, device=device)
+    rows = torch.where(rows >= 0, rows, N)
+    choice = torch.zeros(C, P, dtype=torch.long, device=device)
     taken = torch.zeros(C, n_meas + 1, dtype=torch.bool, device=device)
-    out = torch.empty(C, sweeps, row_of.shape[1], dtype=torch.long, device=device)
+    out = torch.empty(C, sweeps, P, dtype=torch.long, device=device)
     for s in range(sweeps):
-        for idx, w in zip(*order):                               # (G,) at most one slot per group
-            r = rows[:, idx]                                     # (C, G)
-            mo = meas_of[r, :w]                                  # (C, G, w)
-            G = idx.shape[0]
-            taken.scatter_(1, mo.gather(2, choice[:, idx].unsqueeze(2)).view(C, G), False)   # release
-            blocked = taken.gather(1, mo.view(C, G * w)).view(C, G, w)
-            cum = prob[r, :w].masked_fill(blocked, 0.0).cumsum(-1)
+        for p, w in enumerate(widths):
+            r = rows[:, p]                                       # (C,)
+            mo = meas_of[r, :w]                                  # (C, w)
+            taken.scatter_(1, mo.gather(1, choice[:, p:p + 1]), False)        # release what the slot holds
+            cum = prob[r, :w].masked_fill(taken.gather(1, mo), 0.0).cumsum(-1)
             # u < total: an option of probability 0 (cum equal to its predecessor's) is never chosen
-            u = torch.rand(C, G, 1, generator=generator, dtype=cum.dtype, device=device) * cum[..., -1:]
-            new = (cum < u).sum(-1)
-            choice[:, idx] = new
-            taken.scatter_(1, mo.gather(2, new.unsqueeze(2)).view(C, G), True)
+            u = torch.rand(C, 1, generator=generator, dtype=cum.dtype, device=device) * cum[:, -1:]
+            new = (cum < u).sum(-1, keepdim=True)
+            choice[:, p:p + 1] = new
+            taken.scatter_(1, mo.gather(1, new), True)
             taken[:, n_meas] = False
         out[:, s] = choice
     return out

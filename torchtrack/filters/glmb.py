@@ -64,7 +64,8 @@ class GLMBState(NamedTuple):
     label: Tensor       # (T, 2) long: (birth frame, birth index)
     meas: Tensor        # (T,) long: measurement of the last frame each row took (-1: none)
     hyp: Tensor         # (H, L) long: table rows of each hypothesis, ascending, -1 padding
-    log_weight: Tensor  # (H,) normalised log-weights
+    log_weight: Tensor  # (H,) log-weights, normalised within each group
+    group: Tensor       # (H,) long: the group of each hypothesis (groups are independent GLMBs)
 
 
 class Births(NamedTuple):
@@ -92,7 +93,7 @@ def empty_state(state_dim: int, dtype: torch.dtype = torch.float64, device=None)
     return GLMBState(torch.empty(0, state_dim, dtype=dtype, device=device),
                      torch.empty(0, state_dim, state_dim, dtype=dtype, device=device),
                      torch.empty(0, 2, **long), torch.empty(0, **long), torch.empty(1, 0, **long),
-                     torch.zeros(1, dtype=dtype, device=device))
+                     torch.zeros(1, dtype=dtype, device=device), torch.zeros(1, **long))
 
 
 def _log(p: float) -> float:
@@ -116,10 +117,25 @@ def _row_hash(rows: Tensor) -> Tensor:
 
 
 def _logsumexp_by(log_w: Tensor, group: Tensor, n: int) -> Tensor:
-    """``log Σ exp(log_w)`` over the rows of each of ``n`` groups."""
-    top = log_w.max().detach()
+    """``log Σ exp(log_w)`` over the rows of each of ``n`` groups ``(n,)`` (``-inf`` for an empty group)."""
+    top = torch.full((n,), -math.inf, dtype=log_w.dtype, device=log_w.device).scatter_reduce(
+        0, group, log_w.detach(), "amax")
+    top = torch.where(torch.isfinite(top), top, torch.zeros_like(top))
     return torch.log(torch.zeros(n, dtype=log_w.dtype, device=log_w.device)
-                     .index_add(0, group, torch.exp(log_w - top))) + top
+                     .index_add(0, group, torch.exp(log_w - top[group]))) + top
+
+
+def _rank_in_group(log_w: Tensor, group: Tensor) -> Tensor:
+    """Each row's rank by decreasing weight within its group ``(R,)`` (0: the heaviest)."""
+    order = torch.sort(log_w.detach(), descending=True, stable=True).indices
+    order = order[torch.sort(group[order], stable=True).indices]
+    g = group[order]
+    first = torch.ones_like(g, dtype=torch.bool)
+    first[1:] = g[1:] != g[:-1]
+    start = torch.cummax(torch.where(first, torch.arange(g.shape[0], device=g.device), 0), 0).values
+    rank = torch.empty_like(order)
+    rank[order] = torch.arange(g.shape[0], device=g.device) - start
+    return rank
 
 
 class GLMBFilter:
@@ -152,17 +168,21 @@ class GLMBFilter:
              velocity: Tensor | None = None) -> tuple[GLMBState, StepInfo]:
         """One frame (G1–G7): ``z (M, 2)`` positions, ``velocity (M, 2)`` or None, ``log_clutter (M,)``
         ``log κ(z_j)`` (of ``[z, v]`` where velocities are used)."""
-        T, B = state.mean.shape[0], births.mean.shape[0]
+        T = state.mean.shape[0]
         with_velocity = velocity is not None and self.H_full is not None
         H, R = (self.H_full, self.R_full) if with_velocity else (self.H_pos, self.R_pos)
         meas = torch.cat([z, velocity], 1) if with_velocity else z
         M = meas.shape[0]
+        device = meas.device
         # (G1) prediction of table and births
         F, Q = self.F, self.Q
         mean = torch.cat([state.mean, births.mean]) @ F.T
         cov = symmetrize(F @ torch.cat([state.cov, births.cov]) @ F.T + Q)
         label = torch.cat([state.label, births.label])
-        N = T + B
+        N = mean.shape[0]
+        if N == 0:
+            new = empty_state(mean.shape[1], mean.dtype, device)
+            return new, self._info(new, M, 1, False)
         # (G2) gated likelihoods and the weights η
         C, S = innovation_cov(cov, H, R)
         gain = kalman_gain(S, C, "GLMB: innovation covariance S")
@@ -172,64 +192,65 @@ class GLMBFilter:
         K = int(gated.sum(1).max()) if N and M else 0
         vals, cand = torch.where(gated, loglik, torch.full_like(loglik, -math.inf)).topk(K, dim=1)
         cand = torch.where(torch.isfinite(vals.detach()), cand, torch.full_like(cand, -1))
-        log_ps = torch.full((T,), _log(self.p_survival), dtype=mean.dtype, device=mean.device)
+        log_ps = torch.full((T,), _log(self.p_survival), dtype=mean.dtype, device=device)
         log_exist = torch.cat([log_ps, births.log_r])
         log_absent = torch.cat([torch.full_like(log_ps, _log(1 - self.p_survival)),
                                 torch.log1p(-torch.exp(births.log_r))])
         clutter = log_clutter[cand.clamp_min(0)] if M else vals
         log_eta = torch.cat([log_absent.unsqueeze(1), (log_exist + _log(1 - self.p_detection)).unsqueeze(1),
                              log_exist.unsqueeze(1) + _log(self.p_detection) + vals - clutter], 1)
-        # (G3) Gibbs chains, √w_h of them per hypothesis, over label slots (a hypothesis holds at most one row
-        # per label; births are slots of their own)
-        Hn = state.hyp.shape[0]
-        slots, slot_of_row = torch.unique(label[:, 1], return_inverse=True)
-        n_slots = slots.shape[0]
-        share = torch.exp(0.5 * state.log_weight.detach())
-        counts = torch.ceil(share / share.sum() * self.chains).long().clamp_min(1)
-        parent = torch.repeat_interleave(torch.arange(Hn, device=mean.device), counts)
-        row_of_h = torch.full((Hn, n_slots + 1), -1, dtype=torch.long, device=mean.device)
-        held = state.hyp >= 0
-        row_of_h.scatter_(1, torch.where(held, slot_of_row[state.hyp.clamp_min(0)], n_slots), state.hyp)
-        birth_rows = torch.arange(T, N, device=mean.device)
-        row_of_h[:, slot_of_row[T:]] = birth_rows
-        row_of_h = row_of_h[:, :n_slots]
-        choice = gibbs_sample(log_eta, cand, row_of_h[parent], gating_groups(cand, slot_of_row, n_slots, M), M,
-                              self.sweeps, self.generator)
-        choice = choice.reshape(parent.shape[0] * self.sweeps, n_slots)
+        # groups: label slots linked by shared gated measurements; the prior over each (G3)
+        _, slot_of_row = torch.unique(label[:, 1], return_inverse=True)
+        n_slots = int(slot_of_row.max()) + 1 if N else 0
+        groups = gating_groups(cand, slot_of_row, n_slots, M)
+        n_groups = groups.slots.shape[0]
+        prior_hyp, prior_w, prior_group, product_capped = self._regroup(state, groups.group_of_slot[slot_of_row[:T]],
+                                                                        n_groups)
+        # (G3) Gibbs chains: `chains` per group, shared among its hypotheses in proportion to √w_h
+        Hp = prior_hyp.shape[0]
+        half = 0.5 * prior_w.detach()
+        share = torch.exp(half - _logsumexp_by(half, prior_group, n_groups)[prior_group])
+        counts = torch.ceil(share * self.chains).long()
+        parent = torch.repeat_interleave(torch.arange(Hp, device=device), counts.clamp_min(1))
+        row_of_h = torch.full((Hp, n_slots + 1), -1, dtype=torch.long, device=device)
+        held = prior_hyp >= 0
+        row_of_h.scatter_(1, torch.where(held, slot_of_row[prior_hyp.clamp_min(0)], n_slots), prior_hyp)
+        row_of_h[:, slot_of_row[T:]] = torch.arange(T, N, device=device)          # births: in every hypothesis
+        row_of_h[:, n_slots] = -1
+        rows = row_of_h[parent].gather(1, groups.slots[prior_group[parent]])     # (C, P)
+        choice = gibbs_sample(log_eta, cand, rows, groups.widths, M, self.sweeps, self.generator)
+        P = rows.shape[1]
+        choice = choice.reshape(parent.shape[0] * self.sweeps, P)
         parent = parent.repeat_interleave(self.sweeps)
+        rows = rows.repeat_interleave(self.sweeps, 0)
         # (G4) distinct samples and their weights
         first, _ = _first_of_each(_row_hash(torch.cat([parent.unsqueeze(1), choice], 1)))
-        choice, parent = choice[first], parent[first]
-        row = row_of_h[parent]                                                  # (U, S)
-        has_row = row >= 0
-        contrib = log_eta[row.clamp_min(0), choice]
-        log_w = state.log_weight[parent] + torch.where(has_row, contrib, torch.zeros_like(contrib)).sum(1)
-        # (G5) new table rows: distinct (row, choice) with the row present
+        choice, parent, rows = choice[first], parent[first], rows[first]
+        has_row = rows >= 0
+        contrib = log_eta[rows.clamp_min(0), choice] if N else torch.zeros(choice.shape, dtype=mean.dtype)
+        log_w = prior_w[parent] + torch.where(has_row, contrib, torch.zeros_like(contrib)).sum(1)
+        group = prior_group[parent]
+        # (G5) new table rows: distinct (row, choice) of the existing
         width = log_eta.shape[1]
         exists = has_row & (choice != ABSENT)
-        key = torch.where(exists, row * width + choice, -1)
-        keys, new_index = torch.unique(key[exists], return_inverse=True)
-        rows_new = torch.full_like(key, -1)
+        keys, new_index = torch.unique((rows * width + choice)[exists], return_inverse=True)
+        rows_new = torch.full_like(rows, -1)
         rows_new[exists] = new_index
         hyp = _compact(rows_new)
-        # merge hypotheses that are the same set of new rows
-        first, group = _first_of_each(_row_hash(hyp + 1))
-        log_w = _logsumexp_by(log_w, group, first.shape[0])
-        hyp = hyp[first]
-        log_w = log_w - torch.logsumexp(log_w, 0)
-        # (G6) prune, cap
-        keep = log_w.detach() >= self.log_prune
-        keep[log_w.detach().argmax()] = True
-        capped = int(keep.sum()) > self.max_hypotheses
+        # hypotheses of a group that are the same set of new rows merge
+        first, same = _first_of_each(_row_hash(torch.cat([group.unsqueeze(1), hyp + 1], 1)))
+        log_w = _logsumexp_by(log_w, same, first.shape[0])
+        hyp, group = hyp[first], group[first]
+        log_w = log_w - _logsumexp_by(log_w, group, n_groups)[group]
+        # (G6) prune, cap (per group)
+        rank = _rank_in_group(log_w, group)
+        keep = (log_w.detach() >= self.log_prune) | (rank == 0)
+        capped = product_capped or bool((keep & (rank >= self.max_hypotheses)).any())
         if capped:
-            self.cap_hits += 1
-            if self.cap_hits == 1:
-                log.warning("GLMB: hypothesis cap hit (%d hypotheses above the prune threshold, cap %d): the "
-                            "lightest are dropped (counted in cap_hits)", int(keep.sum()), self.max_hypotheses)
-            keep = torch.zeros_like(keep)
-            keep[log_w.detach().topk(self.max_hypotheses).indices] = True
-        hyp, log_w = hyp[keep], log_w[keep]
-        log_w = log_w - torch.logsumexp(log_w, 0)
+            self._cap_hit(int(keep.sum()))
+        keep &= rank < self.max_hypotheses
+        hyp, log_w, group = hyp[keep], log_w[keep], group[keep]
+        log_w = log_w - _logsumexp_by(log_w, group, n_groups)[group]
         used_rows, remap = torch.unique(hyp[hyp >= 0], return_inverse=True)
         hyp_final = torch.full_like(hyp, -1)
         hyp_final[hyp >= 0] = remap
@@ -243,14 +264,79 @@ class GLMBFilter:
         new_meas[hit] = j
         if bool(hit.any()):
             upd = kalman_update(mean[row[hit]], cov[row[hit]], meas[j], H, R, check=False)
-            table_mean = table_mean.index_put((hit.nonzero().squeeze(1),), upd.mean)
-            table_cov = table_cov.index_put((hit.nonzero().squeeze(1),), upd.cov)
-        new = GLMBState(table_mean, table_cov, label[row], new_meas, hyp, log_w)
-        return new, self._info(new, M, capped)
+            at = (hit.nonzero().squeeze(1),)
+            table_mean, table_cov = table_mean.index_put(at, upd.mean), table_cov.index_put(at, upd.cov)
+        new = GLMBState(table_mean, table_cov, label[row], new_meas, hyp, log_w, group)
+        return new, self._info(new, M, n_groups, capped)
+
+    def _cap_hit(self, count: int) -> None:
+        self.cap_hits += 1
+        if self.cap_hits == 1:
+            log.warning("GLMB: hypothesis cap hit (%d hypotheses above the prune threshold, cap %d per group): the "
+                        "lightest are dropped (counted in cap_hits)", count, self.max_hypotheses)
+
+    def _regroup(self, state: GLMBState, group_of_row: Tensor, n_groups: int) -> tuple[Tensor, Tensor, Tensor, bool]:
+        """The prior of each new group (G3): the old groups' hypotheses projected onto the new groups (an old
+        group split by the gating is marginalised; exact when its parts were independent) and, where a new group
+        joins several old ones, the product of their projections (exact). ``group_of_row (T,)``: the new group
+        of each table row. Returns hypotheses ``(Hp, L)``, log-weights normalised per group, their groups and
+        whether a product was capped. A new group with no table row (births only) gets the empty hypothesis."""
+        device = state.hyp.device
+        H = state.hyp.shape[0]
+        member = state.hyp >= 0
+        entry = state.hyp.clamp_min(0)
+        old_of_row = torch.zeros(group_of_row.shape[0], dtype=torch.long, device=device)
+        old_of_row[state.hyp[member]] = state.group.unsqueeze(1).expand_as(state.hyp)[member]
+        # pairs (old group, new group) linked by a row, and each hypothesis of the old group against each pair
+        n_old = int(state.group.max()) + 1 if H else 0
+        pair_key = torch.unique(old_of_row * n_groups + group_of_row)
+        pair_old, pair_new = pair_key // n_groups, pair_key % n_groups
+        n_pairs = torch.bincount(pair_old, minlength=n_old)
+        pair_start = torch.cumsum(n_pairs, 0) - n_pairs
+        per_h = n_pairs[state.group]
+        h_idx = torch.repeat_interleave(torch.arange(H, device=device), per_h)
+        offset = torch.arange(h_idx.shape[0], device=device) - torch.repeat_interleave(torch.cumsum(per_h, 0) - per_h,
+                                                                                          per_h)
+        q = pair_start[state.group[h_idx]] + offset
+        rows = state.hyp[h_idx]
+        inside = member[h_idx] & (group_of_row[entry[h_idx]] == pair_new[q].unsqueeze(1))
+        proj = _compact(torch.where(inside, rows, -1))
+        first, same = _first_of_each(_row_hash(torch.cat([q.unsqueeze(1), proj + 1], 1)))
+        proj_w = _logsumexp_by(state.log_weight[h_idx], same, first.shape[0])
+        proj, proj_q = proj[first], q[first]
+        proj_new = pair_new[proj_q]
+        # new groups of one factor take it as it is; several factors: their product; none: the empty set
+        factors = torch.bincount(pair_new, minlength=n_groups)
+        single = factors[proj_new] == 1
+        hyps, weights, groups = [proj[single]], [proj_w[single]], [proj_new[single]]
+        capped = False
+        for g in torch.nonzero(factors > 1).squeeze(1).tolist():      # groups that join several old ones (few)
+            prod_h = torch.empty(1, 0, dtype=torch.long, device=device)
+            prod_w = torch.zeros(1, dtype=proj_w.dtype, device=device)
+            for qq in torch.nonzero(pair_new == g).squeeze(1).tolist():
+                sel = proj_q == qq
+                fh, fw = proj[sel], proj_w[sel]
+                prod_h = torch.cat([prod_h.repeat_interleave(fh.shape[0], 0), fh.repeat(prod_h.shape[0], 1)], 1)
+                prod_w = (prod_w.unsqueeze(1) + fw.unsqueeze(0)).reshape(-1)
+                if prod_w.shape[0] > self.max_hypotheses:
+                    capped = True
+                    top = prod_w.detach().topk(self.max_hypotheses).indices
+                    prod_h, prod_w = prod_h[top], prod_w[top]
+            hyps.append(_compact(prod_h))
+            weights.append(prod_w)
+            groups.append(torch.full((prod_w.shape[0],), g, dtype=torch.long, device=device))
+        empty = torch.nonzero(factors == 0).squeeze(1)
+        hyps.append(torch.empty(empty.shape[0], 0, dtype=torch.long, device=device))
+        weights.append(torch.zeros(empty.shape[0], dtype=proj_w.dtype, device=device))
+        groups.append(empty)
+        width = max(h.shape[1] for h in hyps)
+        hyp = torch.cat([torch.nn.functional.pad(h, (0, width - h.shape[1]), value=-1) for h in hyps])
+        log_w, group = torch.cat(weights), torch.cat(groups)
+        return hyp, log_w - _logsumexp_by(log_w, group, n_groups)[group], group, capped
 
     @staticmethod
-    def _info(state: GLMBState, n_meas: int, capped: bool) -> StepInfo:
-        """Measurement usage, row existence and the estimate (G7) of ``state``."""
+    def _info(state: GLMBState, n_meas: int, n_groups: int, capped: bool) -> StepInfo:
+        """Measurement usage, row existence and the estimate (G7, per group) of ``state``."""
         w = torch.exp(state.log_weight.detach())
         Hn, L = state.hyp.shape
         member = state.hyp >= 0
@@ -262,10 +348,12 @@ class GLMBFilter:
         used = torch.zeros(n_meas + 1, dtype=w.dtype, device=w.device).index_add(
             0, torch.where(meas >= 0, meas, n_meas), wh)[:n_meas]
         card = member.sum(1)
-        rho = torch.zeros(L + 1, dtype=w.dtype, device=w.device).index_add(0, card, w)
-        best = torch.where(card == rho.argmax(), state.log_weight.detach(), -math.inf).argmax()
-        estimate = state.hyp[best][state.hyp[best] >= 0]
-        return StepInfo(used.clamp(0.0, 1.0), estimate, existence, capped)
+        rho = torch.zeros(n_groups * (L + 1), dtype=w.dtype, device=w.device).index_add(
+            0, state.group * (L + 1) + card, w).reshape(n_groups, L + 1)
+        at_map = card == rho.argmax(1)[state.group]
+        rank = _rank_in_group(torch.where(at_map, state.log_weight.detach(), -math.inf), state.group)
+        best = state.hyp[(rank == 0) & at_map]
+        return StepInfo(used.clamp(0.0, 1.0), best[best >= 0], existence, capped)
 
 
 def _compact(rows: Tensor) -> Tensor:
