@@ -74,7 +74,7 @@ def gating_groups(cand: Tensor, slot_of_row: Tensor, n_slots: int, n_meas: int) 
 
 
 def gibbs_sample(log_eta: Tensor, cand: Tensor, rows: Tensor, widths: list[int], n_meas: int, sweeps: int,
-                 generator: torch.Generator | None = None) -> Tensor:
+                 generator: torch.Generator | None = None, active: list[int] | None = None) -> Tensor:
     """Run ``C`` Gibbs chains for ``sweeps`` sweeps; returns each chain's choices after each sweep ``(C, sweeps, P)``.
 
     Args:
@@ -84,6 +84,7 @@ def gibbs_sample(log_eta: Tensor, cand: Tensor, rows: Tensor, widths: list[int],
             row its hypothesis holds for it), ``-1``: none (held absent).
         widths: choice columns of each step (:class:`Groups`).
         n_meas: ``M``. sweeps: samples per chain. generator: the random stream (same seed, same samples).
+        active: chains with a slot at each step, a prefix (chains ordered by decreasing group size); None: all.
 
     Chains start with every slot absent (always valid). Each conditional is drawn by inverting its cumulative
     distribution with one uniform per chain.
@@ -104,15 +105,17 @@ def gibbs_sample(log_eta: Tensor, cand: Tensor, rows: Tensor, widths: list[int],
     out = torch.empty(C, sweeps, P, dtype=torch.long, device=device)
     for s in range(sweeps):
         for p, w in enumerate(widths):
-            r = rows[:, p]                                       # (C,)
-            mo = meas_of[r, :w]                                  # (C, w)
-            taken.scatter_(1, mo.gather(1, choice[:, p:p + 1]), False)        # release what the slot holds
-            cum = prob[r, :w].masked_fill(taken.gather(1, mo), 0.0).cumsum(-1)
+            a = C if active is None else active[p]
+            r = rows[:a, p]                                      # (a,)
+            mo = meas_of[r, :w]                                  # (a, w)
+            tk = taken[:a]
+            tk.scatter_(1, mo.gather(1, choice[:a, p:p + 1]), False)          # release what the slot holds
+            cum = prob[r, :w].masked_fill(tk.gather(1, mo), 0.0).cumsum(-1)
             # u < total: an option of probability 0 (cum equal to its predecessor's) is never chosen
-            u = torch.rand(C, 1, generator=generator, dtype=cum.dtype, device=device) * cum[:, -1:]
+            u = torch.rand(a, 1, generator=generator, dtype=cum.dtype, device=device) * cum[:, -1:]
             new = (cum < u).sum(-1, keepdim=True)
-            choice[:, p:p + 1] = new
-            taken.scatter_(1, mo.gather(1, new), True)
-            taken[:, n_meas] = False
+            choice[:a, p:p + 1] = new
+            tk.scatter_(1, mo.gather(1, new), True)
+            tk[:, n_meas] = False
         out[:, s] = choice
     return out

@@ -212,13 +212,18 @@ class GLMBFilter:
         share = torch.exp(half - _logsumexp_by(half, prior_group, n_groups)[prior_group])
         counts = torch.ceil(share * self.chains).long()
         parent = torch.repeat_interleave(torch.arange(Hp, device=device), counts.clamp_min(1))
+        size = (groups.slots < n_slots).sum(1)                     # slots per group; chains by decreasing size
+        chain_size = size[prior_group[parent]]
+        order = torch.sort(chain_size, descending=True, stable=True).indices
+        parent, chain_size = parent[order], chain_size[order]
+        active = torch.searchsorted(-chain_size, -torch.arange(len(groups.widths), device=device), right=False)
         row_of_h = torch.full((Hp, n_slots + 1), -1, dtype=torch.long, device=device)
         held = prior_hyp >= 0
         row_of_h.scatter_(1, torch.where(held, slot_of_row[prior_hyp.clamp_min(0)], n_slots), prior_hyp)
         row_of_h[:, slot_of_row[T:]] = torch.arange(T, N, device=device)          # births: in every hypothesis
         row_of_h[:, n_slots] = -1
         rows = row_of_h[parent].gather(1, groups.slots[prior_group[parent]])     # (C, P)
-        choice = gibbs_sample(log_eta, cand, rows, groups.widths, M, self.sweeps, self.generator)
+        choice = gibbs_sample(log_eta, cand, rows, groups.widths, M, self.sweeps, self.generator, active.tolist())
         P = rows.shape[1]
         choice = choice.reshape(parent.shape[0] * self.sweeps, P)
         parent = parent.repeat_interleave(self.sweeps)
