@@ -108,12 +108,16 @@ def _first_of_each(hashes: Tensor) -> tuple[Tensor, Tensor]:
     return first.scatter_reduce(0, inverse, rows, "amin"), inverse
 
 
+_HASH = torch.randint(1, 2**62, (4096,), generator=torch.Generator().manual_seed(0x61B), dtype=torch.long) * 2 + 1
+
+
 def _row_hash(rows: Tensor) -> Tensor:
     """A 64-bit hash of each row of ``rows (R, D)`` (small non-negative integers): a fixed random linear form
     with wrap-around (two distinct rows collide with probability about 2⁻⁶⁴)."""
-    g = torch.Generator().manual_seed(0x61B)
-    coef = torch.randint(1, 2**62, (rows.shape[1],), generator=g, dtype=torch.long).to(rows.device) * 2 + 1
-    return (rows * coef).sum(1)
+    global _HASH
+    if rows.shape[1] > _HASH.shape[0]:
+        _HASH = torch.cat([_HASH, torch.randint(1, 2**62, (rows.shape[1],), dtype=torch.long) * 2 + 1])
+    return (rows * _HASH[:rows.shape[1]].to(rows.device)).sum(1)
 
 
 def _logsumexp_by(log_w: Tensor, group: Tensor, n: int) -> Tensor:
