@@ -1,4 +1,4 @@
-"""The Gibbs sampler of the joint δ-GLMB prediction–update (Vo, Vo & Hoang, IEEE TSP 65(8) 2017, section IV),
+"""The Gibbs sampler of the joint δ-GLMB prediction–update (Vo, Vo & Hoang, IEEE TSP 65(8) 2017),
 many chains at once.
 
 The problem: ``N`` candidate tracks (surviving tracks of one predicted hypothesis and the birth tracks) and
@@ -12,13 +12,15 @@ and a joint choice ``γ`` is valid when no measurement is taken twice; its proba
 ``π(γ) ∝ Π_i η_i(γ_i)`` over valid ``γ`` (the joint prediction–update's association weight). The Gibbs
 sampler draws ``γ_i`` from its conditional given the others, ``π(γ_i | γ_{−i}) ∝ η_i(γ_i) · [γ_i takes no
 measurement held by another track]``, track after track; a full sweep is one sample. Its stationary
-distribution is ``π`` (the paper's Proposition on the sampler's convergence).
+distribution is ``π`` (the paper proves the convergence of this sampler).
 
-Batching: every chain is a row of one ``(C, N)`` tensor, and tracks whose gates share no measurement are
-conditionally independent, so one step updates one track of **every** group of the gating graph (its
-connected components, :func:`gating_groups`) in every chain at once — a sweep is as many steps as the largest
-group has tracks, not as there are tracks. The samples are discrete: they carry no gradient (the η's do, in
-the weights the caller forms from them).
+Batching: the tracks are grouped by the connected components of the label–measurement gating graph
+(:func:`gating_groups`); each chain samples one group (the caller's GLMB keeps one independent GLMB per group),
+and all chains of all groups are rows of one ``(C, P)`` tensor: step ``p`` of a sweep updates the ``p``-th track
+of every chain at once (chains ordered by decreasing group size, so the chains of groups with fewer than
+``p + 1`` tracks, a suffix, are skipped). A sweep is as many steps as the largest group has tracks, not as there
+are tracks, chains or hypotheses. The samples are discrete: they carry no gradient (the η's do, in the weights
+the caller forms from them).
 """
 
 from __future__ import annotations

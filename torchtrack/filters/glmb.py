@@ -3,33 +3,44 @@
 Gaussian single-target densities.
 
 Representation (:class:`GLMBState`): a **track table** — one Gaussian ``N(x; m_t, P_t)`` per (label, association
-history), ``t = 0 … T−1``, with its label ``ℓ = (birth frame, birth index)`` — and ``H`` **hypotheses**, each a
-set ``I_h`` of table rows with weight ``w_h`` (``Σ w_h = 1``, kept as ``log w_h``). The multi-object density is
-``π(X) = Δ(X) Σ_h w_h δ_{I_h}(L(X)) Π_{t ∈ I_h} N(x_t; m_t, P_t)`` (the δ-GLMB; equations below are numbered
-(G·) here and named after the paper's sections).
+history), ``t = 0 … T−1``, with its label ``ℓ = (birth frame, birth index)`` — and **hypotheses** ``I_h`` (sets of
+table rows, at most one per label) with weights ``w_h``, grouped: the labels are partitioned into **groups**, each
+an independent δ-GLMB with its own hypotheses (weights normalised within the group). The multi-object density is
+the product over groups ``g`` of ``Σ_{h ∈ g} w_h δ_{I_h}(L(X_g)) Π_{t ∈ I_h} N(x_t; m_t, P_t)``; with a single
+group this is the paper's δ-GLMB. (Equations are numbered (G·) here; the paper's own numbering is not reproduced.)
+
+Why groups: one joint δ-GLMB over a whole WAMI frame (~100 vehicles) multiplies every vehicle's alternatives, and
+the hypothesis cap then keeps only the heaviest combinations — the alternative "this track died" (weight ratio
+``(1 − p_S) / (p_S (1 − p_D))`` ≈ 0.1 per frame) never makes the cut, and lost tracks coast for ever. Split into
+independent groups (as the large-scale GLMB of Beard, Vo & Vo, IEEE TSP 2020), every group keeps its own
+alternatives.
 
 One frame (:meth:`GLMBFilter.step`), births ``B`` (rows of existence ``r_B``) given:
 
-(G1) prediction of every table row and birth row: ``m⁻ = F m``, ``P⁻ = F P Fᵀ + Q`` (section III-A);
+(G1) prediction of every table row and birth row: ``m⁻ = F m``, ``P⁻ = F P Fᵀ + Q``;
 (G2) for each of the ``N = T + B`` predicted rows ``i`` and measurement ``z_j`` (gated: NIS ≤ χ²(gate)):
      ``η_i(0) = 1 − p_S`` (absent; births ``1 − r_B``), ``η_i(1) = p_S (1 − p_D)`` (missed; births
      ``r_B (1 − p_D)``), ``η_i(j) = p_S p_D N(z_j; H m⁻_i, S_i) / κ(z_j)`` (births with ``r_B``)
-     — the joint prediction–update's per-track weights (section III-B);
-(G3) for each hypothesis ``h``, ``c_h ∝ √w_h`` Gibbs chains (:mod:`torchtrack.association.gibbs`, section IV)
-     draw joint choices ``γ`` over the rows of ``I_h`` and the births (rows outside ``I_h`` stay absent);
+     — the per-track weights of the joint prediction–update;
+(G3) this frame's groups are the connected components of the label–measurement gating graph; the prior of a
+     group is the product of the old groups' hypotheses projected onto it (exact where old groups join; where an
+     old group splits, its parts are its marginals, the one approximation, exact when the parts were
+     independent). For each hypothesis ``h``, ``c_h ∝ √w_h`` (``chains`` per group) Gibbs chains
+     (:mod:`torchtrack.association.gibbs`, the paper's sampler) draw joint choices ``γ`` over the group's
+     labels and births;
 (G4) each distinct ``(h, γ)`` (duplicates kept once) is a new hypothesis with
-     ``log w_{h,γ} = log w_h + Σ_{i ∈ I_h ∪ B} log η_i(γ_i)``, normalised in the log domain; hypotheses
-     that end as the same set of new rows are merged (weights added);
+     ``log w_{h,γ} = log w_h + Σ_{i ∈ I_h ∪ B_g} log η_i(γ_i)``, normalised in the log domain within its group;
+     hypotheses of a group that end as the same set of new rows are merged (weights added);
 (G5) new table rows are the distinct ``(i, γ_i)`` with ``γ_i ≠ absent``: the predicted density (missed) or
      its Kalman update with ``z_j`` (:func:`torchtrack.gaussian.kalman_update`);
-(G6) pruning (``w < prune_threshold``) and the cap (``max_hypotheses`` heaviest kept; counted and warned
-     once), renormalisation, unused table rows dropped;
-(G7) estimate: the MAP cardinality ``n* = argmax_n Σ_{|I_h| = n} w_h`` and the heaviest hypothesis of that
-     cardinality.
+(G6) per group: pruning (``w < prune_threshold``, the heaviest always kept) and the cap (``max_hypotheses``
+     heaviest; hits counted and warned once), renormalisation; unused table rows dropped;
+(G7) estimate, per group: the MAP cardinality ``n* = argmax_n Σ_{|I_h| = n} w_h`` and the heaviest hypothesis of
+     that cardinality; the frame's estimate is their union.
 
-Stop-gradient steps: the gating, the sampled choices ``γ`` and every selection made from them (distinct,
-merge, prune, cap, estimate) are discrete. The means, covariances and log-weights of what is selected stay
-differentiable with respect to ``F, Q, H, R, p_S, p_D, κ`` and the birth densities.
+Stop-gradient steps: the gating, the grouping, the sampled choices ``γ`` and every selection made from them
+(distinct, merge, prune, cap, estimate) are discrete. The means, covariances and log-weights of what is selected
+stay differentiable with respect to ``F, Q, H, R, p_S, p_D, κ`` and the birth densities.
 
 Shapes: state size ``n``, measurement size ``m``, ``T`` table rows, ``H`` hypotheses of at most ``L`` rows.
 """
@@ -150,8 +161,9 @@ class GLMBFilter:
             position measurement; H_full, R_full: the measurement with the detector's velocity ``[z, v]``
             (None: positions only).
         p_survival, p_detection: ``p_S``, ``p_D``. gate: χ² gate probability.
-        chains: Gibbs chains per frame (shared among hypotheses in proportion to ``√w_h``); sweeps: samples
-            per chain. prune_threshold: hypotheses lighter are dropped; max_hypotheses: the cap.
+        chains: Gibbs chains per group and frame (shared among its hypotheses in proportion to ``√w_h``);
+            sweeps: samples per chain. prune_threshold: hypotheses lighter are dropped; max_hypotheses: the cap
+            per group.
         generator: random stream of the sampler.
     """
 

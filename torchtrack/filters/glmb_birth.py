@@ -1,5 +1,5 @@
-"""Adaptive measurement-driven birth for the GLMB (Reuter, Vo, Vo & Dietmayer, "The labeled multi-Bernoulli
-filter", IEEE TSP 62(12) 2014, section IV-C, as the satellite paper's GLMB uses it): every measurement of frame
+"""Adaptive measurement-driven birth for the GLMB (the birth of Reuter, Vo, Vo & Dietmayer, "The labeled
+multi-Bernoulli filter", IEEE TSP 62(12) 2014, as the satellite paper's GLMB uses it): every measurement of frame
 ``k`` proposes a birth row for frame ``k + 1`` whose existence grows with how badly the tracks explain it,
 
     r_B(z) = min(r_max, λ_B · (1 − r_U(z)) / max(1, Σ_{z'} (1 − r_U(z')))),     r_U(z) = Σ_h w_h [z ∈ h]   (B1)
