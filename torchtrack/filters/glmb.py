@@ -268,7 +268,7 @@ class GLMBFilter:
         keep = (log_w.detach() >= self.log_prune) | (rank == 0)
         capped = product_capped or bool((keep & (rank >= self.max_hypotheses)).any())
         if capped:
-            self._cap_hit(int(keep.sum()))
+            self._cap_hit()
         keep &= rank < self.max_hypotheses
         hyp, log_w, group = hyp[keep], log_w[keep], group[keep]
         log_w = log_w - _logsumexp_by(log_w, group, n_groups)[group]
@@ -290,11 +290,11 @@ class GLMBFilter:
         new = GLMBState(table_mean, table_cov, label[row], new_meas, hyp, log_w, group)
         return new, self._info(new, M, n_groups, capped)
 
-    def _cap_hit(self, count: int) -> None:
+    def _cap_hit(self) -> None:
         self.cap_hits += 1
         if self.cap_hits == 1:
-            log.warning("GLMB: hypothesis cap hit (%d hypotheses above the prune threshold, cap %d per group): the "
-                        "lightest are dropped (counted in cap_hits)", count, self.max_hypotheses)
+            log.warning("GLMB: hypothesis cap hit (more than %d hypotheses of one group above the prune threshold): "
+                        "the lightest are dropped (frames with a hit are counted in cap_hits)", self.max_hypotheses)
 
     def _regroup(self, state: GLMBState, group_of_row: Tensor, n_groups: int) -> tuple[Tensor, Tensor, Tensor, bool]:
         """The prior of each new group (G3): the old groups' hypotheses projected onto the new groups (an old
