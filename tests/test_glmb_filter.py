@@ -207,3 +207,27 @@ def test_config_refuses_bad_values_naming_the_key():
         tracker = make_tracker("glmb")
         tracker.step(3, torch.zeros(0, 2))
         tracker.step(2, torch.zeros(0, 2))
+
+
+def test_gradients_flow_through_the_gaussian_parts():
+    """d/dσ of the expected cardinality and of the posterior means: autograd against central differences (the
+    same seed draws the same hypotheses, so only the continuous parts move)."""
+    tracks = [(np.array([0.0, 0.0, 1.0, 0.0]), np.diag([2.0, 2.0, 1.0, 1.0])),
+              (np.array([4.0, 0.0, -1.0, 0.0]), np.diag([2.0, 2.0, 1.0, 1.0]))]
+    z = torch.tensor([[1.2, 0.3], [2.6, 0.1]], dtype=torch.float64)
+    t = lambda a: torch.tensor(a, dtype=torch.float64)   # noqa: E731
+
+    def objective(sigma: torch.Tensor) -> torch.Tensor:
+        glmb = GLMBFilter(t(F), t(Q), t(H), sigma**2 * torch.eye(2, dtype=torch.float64), None, None, P_S, P_D,
+                          1 - 1e-12, 500, 3, 1e-15, 10000, torch.Generator().manual_seed(0))
+        state, _ = glmb.step(_state(tracks), no_births(torch.float64), z,
+                             torch.full((2,), math.log(KAPPA), dtype=torch.float64))
+        card = (state.hyp >= 0).sum(1).to(torch.float64)
+        return (state.log_weight.exp() * card).sum() + 0.01 * state.mean.sum()
+
+    sigma = torch.tensor(1.3, dtype=torch.float64, requires_grad=True)
+    (grad,) = torch.autograd.grad(objective(sigma), sigma)
+    eps = 1e-6
+    numeric = (objective(t(1.3 + eps)) - objective(t(1.3 - eps))) / (2 * eps)
+    assert torch.isfinite(grad) and abs(float(grad)) > 1e-4
+    assert float(grad) == pytest.approx(float(numeric), rel=1e-5)
