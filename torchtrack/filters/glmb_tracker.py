@@ -13,6 +13,7 @@ start at the detector's velocity; without, positions only and births at rest.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping
 
 import torch
@@ -85,9 +86,8 @@ class GLMBTracker:
 
     def _advance(self, frame: int, z: Tensor, v: Tensor | None) -> tuple[Tensor, Tensor]:
         c = self.config
-        log_clutter = torch.full((z.shape[0],), float(torch.log(torch.tensor(c.clutter_density))), dtype=self.dtype)
-        if v is not None:
-            log_clutter = log_clutter + float(torch.log(torch.tensor(c.velocity_clutter_density)))
+        log_kappa = math.log(c.clutter_density) + (math.log(c.velocity_clutter_density) if v is not None else 0.0)
+        log_clutter = torch.full((z.shape[0],), log_kappa, dtype=self.dtype)
         self.state, info = self.filter.step(self.state, self.births, z, log_clutter, v)
         self.births = adaptive_births(z, v, info.used, frame, self.next_index, c.birth_rate, c.birth_max,
                                       c.birth_min, c.birth_sigma_pos, c.birth_sigma_vel, c.birth_sigma_vel_detector)

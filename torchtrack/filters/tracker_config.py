@@ -221,8 +221,9 @@ class GLMBConfig(Checked):
     (px²/frame³) and position noise std (px); velocity_sigma: the detector's velocity noise std (px/frame): with
     velocities given, ``[z, v]`` is the measurement (None: positions only); p_survival, p_detection;
     clutter_density: false detections per px²; velocity_clutter_density: density of a false detection's velocity;
-    gate: χ² gate probability; chains: Gibbs chains per frame, shared in proportion to √w_h; sweeps: samples per
-    chain; prune_threshold: lighter hypotheses are dropped; max_hypotheses: the cap (hits counted, warned once);
+    gate: χ² gate probability; chains: Gibbs chains per hypothesis group and frame, shared among its hypotheses in
+    proportion to √w_h; sweeps: samples per chain; prune_threshold: lighter hypotheses are dropped;
+    max_hypotheses: the cap per group (hits counted, warned once);
     birth_rate: expected births per frame λ_B; birth_max, birth_min: cap and floor of a birth's existence;
     birth_sigma_pos (px), birth_sigma_vel (px/frame, births at rest), birth_sigma_vel_detector (from the
     detector's velocity); confirm_frames: a label is reported from its n-th consecutive frame in the estimate;
