@@ -119,16 +119,19 @@ def _first_of_each(hashes: Tensor) -> tuple[Tensor, Tensor]:
     return first.scatter_reduce(0, inverse, rows, "amin"), inverse
 
 
-_HASH = torch.randint(1, 2**62, (4096,), generator=torch.Generator().manual_seed(0x61B), dtype=torch.long) * 2 + 1
+def _hash_coefficients(n: int) -> Tensor:
+    """``n`` fixed odd 63-bit integers (the same for every run)."""
+    return torch.randint(1, 2**62, (n,), generator=torch.Generator().manual_seed(0x61B), dtype=torch.long) * 2 + 1
+
+
+_HASH = _hash_coefficients(4096)
 
 
 def _row_hash(rows: Tensor) -> Tensor:
     """A 64-bit hash of each row of ``rows (R, D)`` (small non-negative integers): a fixed random linear form
     with wrap-around (two distinct rows collide with probability about 2⁻⁶⁴)."""
-    global _HASH
-    if rows.shape[1] > _HASH.shape[0]:
-        _HASH = torch.cat([_HASH, torch.randint(1, 2**62, (rows.shape[1],), dtype=torch.long) * 2 + 1])
-    return (rows * _HASH[:rows.shape[1]].to(rows.device)).sum(1)
+    coef = _HASH if rows.shape[1] <= _HASH.shape[0] else _hash_coefficients(rows.shape[1])
+    return (rows * coef[:rows.shape[1]].to(rows.device)).sum(1)
 
 
 def _logsumexp_by(log_w: Tensor, group: Tensor, n: int) -> Tensor:
