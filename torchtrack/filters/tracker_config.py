@@ -238,7 +238,7 @@ class GLMBConfig(Checked):
     velocity_clutter_density: float = option(2.5e-3, gt=0)
     gate: float = option(0.999, gt=0, lt=1)
     chains: int = option(32, ge=1)
-    sweeps: int = option(3, ge=1)
+    sweeps: int = option(2, ge=1)
     prune_threshold: float = option(1e-4, gt=0, lt=1)
     max_hypotheses: int = option(30, ge=1)
     birth_rate: float = option(0.3, gt=0)
