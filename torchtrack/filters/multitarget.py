@@ -41,6 +41,7 @@ TRACKERS: dict[str, str] = {
     "sort": "torchtrack.filters.baselines:sort",
     "greedy": "torchtrack.filters.baselines:greedy",
     "pmb": "torchtrack.filters.baselines:pmb",
+    "glmb": "torchtrack.filters.glmb_tracker:glmb",
 }
 """Tracker name → ``module:factory`` taking the tracker's configuration (dataclass, mapping or None)."""
 

@@ -211,8 +211,46 @@ class PMBConfig(Checked):
             raise self.refuse("region", f"must be [x0, y0, x1, y1] with x0 < x1 and y0 < y1; got {list(self.region)}")
 
 
+@dataclass(frozen=True)
+class GLMBConfig(Checked):
+    """The joint δ-GLMB tracker (:mod:`torchtrack.filters.glmb_tracker`; docs/glmb.md). q, sigma: CV process noise
+    (px²/frame³) and position noise std (px); velocity_sigma: the detector's velocity noise std (px/frame): with
+    velocities given, ``[z, v]`` is the measurement (None: positions only); p_survival, p_detection;
+    clutter_density: false detections per px²; velocity_clutter_density: density of a false detection's velocity;
+    gate: χ² gate probability; chains: Gibbs chains per hypothesis group and frame, shared among its hypotheses in
+    proportion to √w_h; sweeps: samples per chain; prune_threshold: lighter hypotheses are dropped;
+    max_hypotheses: the cap per group (hits counted, warned once);
+    birth_rate: expected births per frame λ_B; birth_max, birth_min: cap and floor of a birth's existence;
+    birth_sigma_pos (px), birth_sigma_vel (px/frame, births at rest), birth_sigma_vel_detector (from the
+    detector's velocity); confirm_frames: a label is reported from its n-th consecutive frame in the estimate;
+    seed: the sampler's random stream; dtype."""
+
+    q: float = option(1.0, gt=0)
+    sigma: float = option(1.0, gt=0)
+    velocity_sigma: float | None = option(1.5, gt=0)
+    p_survival: float = option(0.97, gt=0, lt=1)
+    p_detection: float = option(0.9, gt=0, le=1)
+    clutter_density: float = option(2e-4, gt=0)
+    velocity_clutter_density: float = option(2.5e-3, gt=0)
+    gate: float = option(0.999, gt=0, lt=1)
+    chains: int = option(32, ge=1)
+    sweeps: int = option(2, ge=1)
+    prune_threshold: float = option(1e-4, gt=0, lt=1)
+    max_hypotheses: int = option(30, ge=1)
+    birth_rate: float = option(0.3, gt=0)
+    birth_max: float = option(0.5, gt=0, lt=1)
+    birth_min: float = option(1e-3, gt=0, lt=1)
+    birth_sigma_pos: float = option(2.0, gt=0)
+    birth_sigma_vel: float = option(8.0, gt=0)
+    birth_sigma_vel_detector: float = option(1.5, gt=0)
+    confirm_frames: int = option(3, ge=1)
+    seed: int = option(0, ge=0)
+    dtype: str = option("float64", one_of=("float32", "float64"))
+
+
 DEFAULTS: dict[str, Any] = {"gmphd": GMPHDConfig(), "labelled-gmphd": LABELLED_GMPHD, "sort": SORTConfig(),
-                            "greedy": GreedyConfig(), "pmb": PMBConfig()}
+                            "greedy": GreedyConfig(), "pmb": PMBConfig(),
+                            "glmb": GLMBConfig()}
 """The built-in configuration of each registered tracker."""
 
 

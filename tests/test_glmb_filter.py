@@ -1,0 +1,233 @@
+"""The joint δ-GLMB against independent truth: a Kalman filter, brute-force enumeration of the two-frame posterior,
+label continuity, the hypothesis cap, duplicates, seeds."""
+
+import itertools
+import logging
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.glmb import Births, GLMBFilter, GLMBState
+from torchtrack.filters.glmb_birth import no_births
+from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.tracker_config import tracker_config
+
+Q_DENSITY, SIGMA = 0.5, 1.0
+F = np.array([[1, 0, 1, 0], [0, 1, 0, 1], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=float)
+Q = Q_DENSITY * np.kron(np.array([[1 / 3, 1 / 2], [1 / 2, 1]]), np.eye(2))   # CWNA, dt = 1
+H = np.hstack([np.eye(2), np.zeros((2, 2))])
+R = SIGMA**2 * np.eye(2)
+
+
+def _kf(x, P, z):
+    """Predict and update, written out (the reference)."""
+    x, P = F @ x, F @ P @ F.T + Q
+    S = H @ P @ H.T + R
+    K = np.linalg.solve(S, H @ P).T
+    x = x + K @ (z - H @ x)
+    A = np.eye(4) - K @ H
+    return x, A @ P @ A.T + K @ R @ K.T
+
+
+def test_one_target_no_clutter_pd_one_is_a_kalman_filter():
+    cfg = {"q": Q_DENSITY, "sigma": SIGMA, "p_detection": 1.0, "clutter_density": 1e-12, "velocity_sigma": None,
+           "confirm_frames": 1, "birth_sigma_pos": 2.0, "birth_sigma_vel": 5.0}
+    tracker = make_tracker("glmb", cfg)
+    rng = np.random.default_rng(3)
+    truth = np.array([10.0, 20.0]) + np.outer(np.arange(1, 16), [1.5, -0.5])
+    zs = truth + rng.normal(0, SIGMA, truth.shape)
+    x, P = np.r_[zs[0], 0.0, 0.0], np.diag([4.0, 4.0, 25.0, 25.0])   # the birth density from frame 1's detection
+    ids, _ = tracker.step(1, torch.tensor(zs[:1]))
+    assert ids.numel() == 0
+    for k in range(2, 16):
+        ids, pos = tracker.step(k, torch.tensor(zs[k - 1:k]))
+        x, P = _kf(x, P, zs[k - 1])
+        state = tracker.state
+        assert state.hyp.shape[0] == 1 and ids.tolist() == [1]
+        np.testing.assert_allclose(state.mean[state.hyp[0, 0]].numpy(), x, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(state.cov[state.hyp[0, 0]].numpy(), P, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(pos[0].numpy(), x[:2], rtol=1e-9)
+
+
+P_S, P_D, KAPPA = 0.8, 0.7, 0.02   # a flat posterior: every joint association has a sizeable weight
+
+
+def _reference_cardinality(tracks, frames):
+    """Brute force over every joint association of every frame: the posterior cardinality distribution."""
+    hyps = [(1.0, tracks)]
+    for z in frames:
+        new = []
+        for w, tr in hyps:
+            pred = [(F @ x, F @ P @ F.T + Q) for x, P in tr]
+            for gamma in itertools.product(range(-2, len(z)), repeat=len(pred)):
+                used = [j for j in gamma if j >= 0]
+                if len(used) != len(set(used)):
+                    continue
+                wt, kept = w, []
+                for (x, P), j in zip(pred, gamma):
+                    if j == -2:
+                        wt *= 1 - P_S
+                        continue
+                    if j == -1:
+                        wt *= P_S * (1 - P_D)
+                        kept.append((x, P))
+                        continue
+                    S = H @ P @ H.T + R
+                    nu = z[j] - H @ x
+                    g = math.exp(-0.5 * nu @ np.linalg.solve(S, nu)) / (2 * math.pi * math.sqrt(np.linalg.det(S)))
+                    wt *= P_S * P_D * g / KAPPA
+                    K = np.linalg.solve(S, H @ P).T
+                    kept.append((x + K @ nu, P - K @ S @ K.T))
+                new.append((wt, kept))
+        hyps = new
+    total = sum(w for w, _ in hyps)
+    rho = np.zeros(len(tracks) + 1)
+    for w, tr in hyps:
+        rho[len(tr)] += w / total
+    return rho
+
+
+def _filter(**kw) -> GLMBFilter:
+    t = lambda a: torch.tensor(a, dtype=torch.float64)   # noqa: E731
+    args = {"p_survival": P_S, "p_detection": P_D, "gate": 1 - 1e-12, "chains": 3000, "sweeps": 4,
+            "prune_threshold": 1e-15, "max_hypotheses": 10000, "generator": torch.Generator().manual_seed(0)}
+    args.update(kw)
+    return GLMBFilter(t(F), t(Q), t(H), t(R), None, None, **args)
+
+
+def _state(tracks) -> GLMBState:
+    n = len(tracks)
+    return GLMBState(torch.tensor(np.array([x for x, _ in tracks])), torch.tensor(np.array([P for _, P in tracks])),
+                     torch.tensor([[0, i] for i in range(n)]), torch.full((n,), -1), torch.arange(n)[None],
+                     torch.zeros(1, dtype=torch.float64), torch.zeros(1, dtype=torch.long))
+
+
+def test_cardinality_distribution_matches_enumeration_over_two_frames():
+    tracks = [(np.array([0.0, 0.0, 1.0, 0.0]), np.diag([2.0, 2.0, 1.0, 1.0])),
+              (np.array([4.0, 0.0, -1.0, 0.0]), np.diag([2.0, 2.0, 1.0, 1.0]))]
+    frames = [np.array([[1.2, 0.3], [2.6, 0.1]]), np.array([[2.1, 0.2], [1.9, 0.9]])]
+    glmb, state = _filter(), _state(tracks)
+    for z in frames:
+        zt = torch.tensor(z)
+        state, info = glmb.step(state, no_births(torch.float64), zt, torch.full((len(z),), math.log(KAPPA)))
+    card = (state.hyp >= 0).sum(1)
+    rho = torch.zeros(3, dtype=torch.float64).index_add(0, card, state.log_weight.exp()).numpy()
+    # tolerance: pairs outside the χ² gate (1 − 1e-12) are left out by the filter, kept by the brute force
+    np.testing.assert_allclose(rho, _reference_cardinality(tracks, frames), atol=1e-7)
+    assert abs(float(state.log_weight.exp().sum()) - 1) < 1e-12
+    sets = {tuple(r) for r in state.hyp.tolist()}
+    assert len(sets) == state.hyp.shape[0]                  # duplicates merged: every hypothesis a distinct set
+
+
+def test_birth_rows_enter_the_joint_update():
+    """A birth row with existence r and one measurement: the exact posterior existence of the new label."""
+    births = Births(torch.zeros(1, 4, dtype=torch.float64),
+                    torch.diag(torch.tensor([4.0, 4.0, 1.0, 1.0], dtype=torch.float64))[None],
+                    torch.tensor([math.log(0.3)], dtype=torch.float64), torch.tensor([[0, 0]]))
+    glmb = _filter()
+    empty = GLMBState(torch.empty(0, 4, dtype=torch.float64), torch.empty(0, 4, 4, dtype=torch.float64),
+                      torch.empty(0, 2, dtype=torch.long), torch.empty(0, dtype=torch.long),
+                      torch.empty(1, 0, dtype=torch.long), torch.zeros(1, dtype=torch.float64),
+                      torch.zeros(1, dtype=torch.long))
+    z = np.array([[0.5, -1.0]])
+    state, info = glmb.step(empty, births, torch.tensor(z), torch.tensor([math.log(KAPPA)], dtype=torch.float64))
+    P = F @ np.diag([4.0, 4.0, 1.0, 1.0]) @ F.T + Q
+    S = H @ P @ H.T + R
+    g = math.exp(-0.5 * z[0] @ np.linalg.solve(S, z[0])) / (2 * math.pi * math.sqrt(np.linalg.det(S)))
+    weights = {"absent": 0.7, "missed": 0.3 * (1 - P_D), "hit": 0.3 * P_D * g / KAPPA}
+    exist = (weights["missed"] + weights["hit"]) / sum(weights.values())
+    assert float(info.existence.sum()) == pytest.approx(exist, rel=1e-12)
+    assert float(info.used[0]) == pytest.approx(weights["hit"] / sum(weights.values()), rel=1e-12)
+
+
+def _crossing(n_frames=30):
+    """Two targets crossing at right angles at frame 15 (positions (n_frames, 2, 2))."""
+    k = np.arange(1, n_frames + 1)[:, None]
+    a = np.array([50.0, 50.0]) + (k - 15) * np.array([2.0, 2.0])
+    b = np.array([50.0, 50.0]) + (k - 15) * np.array([2.0, -2.0])
+    return np.stack([a, b], 1)
+
+
+def test_labels_continue_through_a_crossing():
+    truth = _crossing()
+    rng = np.random.default_rng(0)
+    tracker = make_tracker("glmb", {"velocity_sigma": None, "clutter_density": 1e-4, "p_detection": 0.95})
+    owner: dict[int, set] = {0: set(), 1: set()}
+    for k, x in enumerate(truth, start=1):
+        ids, pos = tracker.step(k, torch.tensor(x + rng.normal(0, 0.5, x.shape)))
+        for t in range(2 if abs(k - 15) > 1 else 0):      # at the crossing itself either id is right
+            d = np.linalg.norm(pos.numpy() - x[t], axis=1) if len(ids) else np.array([])
+            if d.size and d.min() < 3:
+                owner[t].add(int(ids[d.argmin()]))
+    assert len(owner[0]) == 1 and len(owner[1]) == 1 and owner[0] != owner[1]
+
+
+def test_clutter_is_never_reported():
+    """One-frame detections (clutter) and a two-frame pair never reach the output (confirmation)."""
+    tracker = make_tracker("glmb", {"velocity_sigma": None})
+    rng = np.random.default_rng(1)
+    for k in range(1, 40):
+        ids, _ = tracker.step(k, torch.tensor(rng.uniform(0, 500, (20, 2))))
+        assert ids.numel() == 0
+
+
+def test_cap_respected_and_warned_once(caplog):
+    truth = _crossing()
+    tracker = make_tracker("glmb", {"velocity_sigma": None, "max_hypotheses": 2, "clutter_density": 1e-3})
+    rng = np.random.default_rng(2)
+    with caplog.at_level(logging.WARNING, logger="torchtrack.filters.glmb"):
+        for k, x in enumerate(truth, start=1):
+            tracker.step(k, torch.tensor(np.vstack([x + rng.normal(0, 1.0, x.shape), rng.uniform(0, 150, (5, 2))])))
+            assert int(torch.bincount(tracker.state.group).max()) <= 2          # the cap is per group
+    assert tracker.cap_hits > 1
+    assert sum("hypothesis cap hit" in r.message for r in caplog.records) == 1
+
+
+def test_same_seed_same_result_and_reset_repeats():
+    truth = _crossing()
+    rng = np.random.default_rng(4)
+    frames = [torch.tensor(np.vstack([x + rng.normal(0, 1.0, x.shape), rng.uniform(0, 150, (5, 2))])) for x in truth]
+    tracker = make_tracker("glmb", {"velocity_sigma": None, "clutter_density": 1e-3})
+    first = [tracker.step(k, z) for k, z in enumerate(frames, start=1)]
+    tracker.reset()
+    again = [tracker.step(k, z) for k, z in enumerate(frames, start=1)]
+    other = make_tracker("glmb", {"velocity_sigma": None, "clutter_density": 1e-3})
+    third = [other.step(k, z) for k, z in enumerate(frames, start=1)]
+    for (i1, p1), (i2, p2), (i3, p3) in zip(first, again, third):
+        assert torch.equal(i1, i2) and torch.equal(p1, p2) and torch.equal(i1, i3) and torch.equal(p1, p3)
+
+
+def test_config_refuses_bad_values_naming_the_key():
+    with pytest.raises(TorchtrackError, match="chains"):
+        tracker_config("glmb", {"chains": 0})
+    with pytest.raises(TorchtrackError, match="frames must increase"):
+        tracker = make_tracker("glmb")
+        tracker.step(3, torch.zeros(0, 2))
+        tracker.step(2, torch.zeros(0, 2))
+
+
+def test_gradients_flow_through_the_gaussian_parts():
+    """d/dσ of the expected cardinality and of the posterior means: autograd against central differences (the
+    same seed draws the same hypotheses, so only the continuous parts move)."""
+    tracks = [(np.array([0.0, 0.0, 1.0, 0.0]), np.diag([2.0, 2.0, 1.0, 1.0])),
+              (np.array([4.0, 0.0, -1.0, 0.0]), np.diag([2.0, 2.0, 1.0, 1.0]))]
+    z = torch.tensor([[1.2, 0.3], [2.6, 0.1]], dtype=torch.float64)
+    t = lambda a: torch.tensor(a, dtype=torch.float64)   # noqa: E731
+
+    def objective(sigma: torch.Tensor) -> torch.Tensor:
+        glmb = GLMBFilter(t(F), t(Q), t(H), sigma**2 * torch.eye(2, dtype=torch.float64), None, None, P_S, P_D,
+                          1 - 1e-12, 500, 3, 1e-15, 10000, torch.Generator().manual_seed(0))
+        state, _ = glmb.step(_state(tracks), no_births(torch.float64), z,
+                             torch.full((2,), math.log(KAPPA), dtype=torch.float64))
+        card = (state.hyp >= 0).sum(1).to(torch.float64)
+        return (state.log_weight.exp() * card).sum() + 0.01 * state.mean.sum()
+
+    sigma = torch.tensor(1.3, dtype=torch.float64, requires_grad=True)
+    (grad,) = torch.autograd.grad(objective(sigma), sigma)
+    eps = 1e-6
+    numeric = (objective(t(1.3 + eps)) - objective(t(1.3 - eps))) / (2 * eps)
+    assert torch.isfinite(grad) and abs(float(grad)) > 1e-4
+    assert float(grad) == pytest.approx(float(numeric), rel=1e-5)
