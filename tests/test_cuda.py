@@ -27,7 +27,7 @@ def scene(frames=25, targets=40, clutter=15, seed=0):
 
 
 TRACKER_CONFIGS = {"gmphd": {"dtype": "float64"}, "labelled-gmphd": {"dtype": "float64"}, "sort": None,
-                   "greedy": None, "pmb": None}
+                   "greedy": None, "pmb": None, "glmb": None}
 
 
 @pytest.mark.parametrize("name", list(TRACKER_CONFIGS))

@@ -8,7 +8,8 @@ hypothesis of the MAP cardinality), and the **confirmation**: a label is reporte
 consecutive frame in the estimate on, and afterwards whenever it is in the estimate. (The published GLMB reports
 every birth at once, which floods the output with one-frame tracks from clutter.) Reported ids are the labels'
 birth indices + 1. With the detector's velocities (and ``velocity_sigma``) the update uses ``[z, v]`` and births
-start at the detector's velocity; without, positions only and births at rest.
+start at the detector's velocity; without, positions only and births at rest. The filter runs on the host:
+detections on another device are copied there and the estimates returned on their device.
 """
 
 from __future__ import annotations
@@ -72,17 +73,19 @@ class GLMBTracker:
     def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """One frame: ``positions (M, 2)``, ``velocities (M, 2)`` or None → reported ``ids (E,)``, ``(E, 2)``."""
         c = self.config
+        device = torch.as_tensor(positions).device
         if self._last_frame is not None and frame <= self._last_frame:
             raise TorchtrackError(f"glmb tracker: frames must increase: frame {frame} after {self._last_frame}")
         if self._last_frame is not None and frame != self._last_frame + 1:
             for skipped in range(self._last_frame + 1, frame):       # frames without detections
                 self._advance(skipped, torch.empty(0, 2, dtype=self.dtype), None)
         self._last_frame = frame
-        z = torch.as_tensor(positions, dtype=self.dtype).reshape(-1, 2)
+        z = torch.as_tensor(positions, dtype=self.dtype, device="cpu").reshape(-1, 2)
         v = None
         if velocities is not None and c.velocity_sigma is not None:
-            v = torch.as_tensor(velocities, dtype=self.dtype).reshape(-1, 2)
-        return self._advance(frame, z, v)
+            v = torch.as_tensor(velocities, dtype=self.dtype, device="cpu").reshape(-1, 2)
+        ids, estimates = self._advance(frame, z, v)
+        return ids.to(device), estimates.to(device)
 
     def _advance(self, frame: int, z: Tensor, v: Tensor | None) -> tuple[Tensor, Tensor]:
         c = self.config
