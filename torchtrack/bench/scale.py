@@ -22,7 +22,7 @@ import math
 import resource
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -166,10 +166,13 @@ def _quiet_filters() -> Iterator[None]:
     """The filters' cap warnings (one per frame once a cap binds) are not printed during a run: the GM-PHD
     counts them in ``cap_hits``; PMB logs its first one only."""
     logger = logging.getLogger("torchtrack.filters")
+    sink = logging.NullHandler()          # a logger without any handler would print through logging.lastResort
     propagate, logger.propagate = logger.propagate, False
+    logger.addHandler(sink)
     try:
         yield
     finally:
+        logger.removeHandler(sink)
         logger.propagate = propagate
 
 
@@ -177,10 +180,12 @@ WARMUP_FRAMES = 3
 """Untimed frames each tracker runs first (imports, caches, first-call costs), then it is reset."""
 
 
-def run_one(name: str, scene: Scene, device: torch.device, max_seconds: float) -> ScaleRow:
-    """Tracker ``name`` over ``scene`` on ``device``, after a warm-up on its first frames; stops once its step
-    time passes ``max_seconds``."""
-    tracker = make_tracker(name, tracker_options(name, scene))
+def run_one(name: str, scene: Scene, device: torch.device, max_seconds: float,
+            options: Mapping | None = None) -> ScaleRow:
+    """Tracker ``name`` over ``scene`` on ``device`` (``options``: its keys to change, over
+    :func:`tracker_options`), after a warm-up on its first frames; stops once its step time passes
+    ``max_seconds``."""
+    tracker = make_tracker(name, {**(tracker_options(name, scene) or {}), **(options or {})})
     dets = [(f, z.to(device), v.to(device)) for f, z, v in scene.detections]
     with _quiet_filters():
         for frame, z, v in dets[:WARMUP_FRAMES]:
