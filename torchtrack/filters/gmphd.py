@@ -4,8 +4,9 @@ The PHD ``D_k(x)`` is a Gaussian mixture (eq. 2 of Aguilar, Ortner & Zerubia 202
 
     D_k(x) = Σ_j w_j N(x; m_j, P_j)
 
-held in a :class:`MixtureState` whose leading axis (``J`` components) is bounded by the filter's
-``capacity``: every step ends with pruning, merging and capping, so memory stays bounded over
+held in a :class:`MixtureState` whose leading axis (``J`` components) is bounded by a cap that follows the
+scene (:meth:`GMPHD.capacity_for`: ``max(capacity, k (measurements + live labels))``, the configured
+``capacity`` its floor): every step ends with pruning, merging and capping, so memory stays bounded over
 arbitrarily long sequences, and a cap that is hit is logged (``logging`` warning) and counted.
 
 Prediction (eq. 3; Vo & Ma 2006 eq. 21–24)::
@@ -32,8 +33,9 @@ gated on the position alone; the pair's posterior takes the update of the larger
 (with or without the velocity), its weight the whole mixture.
 
 ``S`` is factored once per component (it does not depend on the measurement); pairs outside the gate
-get weight zero and are not materialised. The measurement axis is processed in chunks so that tens
-of thousands of measurements in one frame keep memory bounded.
+get weight zero and are not materialised. The measurement axis is processed in chunks (at most ``chunk``
+measurements and :data:`PAIR_BLOCK` pairs each) so that tens of thousands of measurements in one frame keep
+memory bounded.
 
 The PHD predictive log-likelihood of a measurement set (Mahler 2007, the Poisson form used for
 parameter learning) is returned by :meth:`GMPHD.update`::
@@ -285,7 +287,7 @@ class GMPHD(nn.Module):
         support = None
         if label_index is not None:
             support = torch.zeros(label_index[1], dtype=live_w.dtype, device=live_w.device)
-        M, C = z.shape[0], self.options.chunk
+        M, C = z.shape[0], min(self.options.chunk, max(1, PAIR_BLOCK // max(state.size, 1)))
         for start in range(0, M, C):
             zc, kc = z[start:start + C], log_kappa[start:start + C]
             nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
@@ -346,8 +348,16 @@ class GMPHD(nn.Module):
         lw = state.log_weight
         return state.select(state.mask & (lw > scalar(math.log(self.options.prune_threshold), lw)))
 
+    def capacity_for(self, measurements: int, labels: int) -> int:
+        """The component cap of a step with ``measurements`` detections and ``labels`` live labels:
+        ``max(capacity, k (measurements + labels))`` with ``k =`` :data:`SCENE_COMPONENTS`, so that the cap
+        follows the scene and a live track's components are not dropped to fit a constant (``capacity`` is
+        the floor)."""
+        return max(self.options.capacity, SCENE_COMPONENTS * (measurements + labels))
+
     def cap(self, state: MixtureState, capacity: int | None = None) -> MixtureState:
-        """Keep the ``capacity`` highest-weight components; a hit cap is logged and counted."""
+        """Keep the ``capacity`` (default: the configured floor) highest-weight components; a hit cap is logged
+        and counted."""
         capacity = self.options.capacity if capacity is None else capacity
         if state.size <= capacity:
             return state
@@ -357,12 +367,14 @@ class GMPHD(nn.Module):
         idx = torch.topk(state.log_weight.detach(), capacity).indices
         return state.select(idx)
 
-    def reduce(self, state: MixtureState, keep_label: Tensor | None = None) -> MixtureState:
-        """Prune, merge, cap (Vo & Ma 2006, Table II); ``keep_label (P,)`` labels that win a merge
-        (see :func:`merge`). More than ``2 capacity`` components are capped before merging, so the
-        pairwise merge stays bounded in memory."""
-        state = self.cap(self.prune(state), 2 * self.options.capacity)   # bounds the O(J²) merge
-        return self.cap(merge(state, self.options.merge_threshold, self.options.merge_rounds, keep_label))
+    def reduce(self, state: MixtureState, keep_label: Tensor | None = None,
+               capacity: int | None = None) -> MixtureState:
+        """Prune, merge, cap at ``capacity`` (default: the configured floor; a step's is :meth:`capacity_for`)
+        (Vo & Ma 2006, Table II); ``keep_label (P,)`` labels that win a merge (see :func:`merge`). More than
+        ``2 capacity`` components are capped before merging, so the pairwise merge stays bounded in memory."""
+        capacity = self.options.capacity if capacity is None else capacity
+        state = self.cap(self.prune(state), 2 * capacity)   # bounds the merge
+        return self.cap(merge(state, self.options.merge_threshold, self.options.merge_rounds, keep_label), capacity)
 
     def extract(self, state: MixtureState) -> Tensor:
         """Bool mask ``(J,)`` of components reported as targets (weight above ``extract_threshold``)."""
@@ -375,21 +387,52 @@ def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, 
 
     Pairs are first screened on the position block (the first ``min(n, 2)`` coordinates): the full
     Mahalanobis distance is at least ``‖Δp‖² / λ_max(P_i,pos) ≥ ‖Δp‖² / tr(P_i,pos)``, so only pairs
-    passing that bound are solved exactly (through Cholesky factors), keeping the exact test sparse.
+    passing that bound are solved exactly (through Cholesky factors), keeping the exact test sparse. In 2-D
+    the screen looks only at the neighbouring cells of a grid (:func:`_grid_pairs`), so its memory follows
+    the pairs that are near, not ``J²``.
     """
     J, n = mean.shape
     k = min(n, 2)
     lam = torch.diagonal(cov[:, :k, :k], dim1=-2, dim2=-1).sum(-1)
     pos = mean[:, :k]
-    d2 = (pos.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)                 # [i, j]
-    cand = torch.tril(d2 <= lam.unsqueeze(1) * scalar(threshold, lam) * scalar(1 + 1e-4, lam), diagonal=-1)
-    ii, jj = cand.nonzero().unbind(1)
+    bound = lam * scalar(threshold, lam) * scalar(1 + 1e-4, lam)              # squared screening radius of i
+    if k == 2:
+        ii, jj = _grid_pairs(pos, bound.sqrt())
+        d2 = (pos[ii] - pos[jj]).pow(2).sum(-1)
+        near = ((jj < ii) & (d2 <= bound[ii])).nonzero().squeeze(1)
+        ii, jj = ii[near], jj[near]
+    else:
+        d2 = (pos.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)             # [i, j]
+        ii, jj = torch.tril(d2 <= bound.unsqueeze(1), diagonal=-1).nonzero().unbind(1)
     if ii.numel():
         L, _ = torch.linalg.cholesky_ex(cov[ii])
         y = torch.linalg.solve_triangular(L, (mean[jj] - mean[ii]).unsqueeze(-1), upper=False)
         ok = (y.pow(2).sum((-1, -2)) <= scalar(threshold, y)).nonzero().squeeze(1)
         ii, jj = ii[ok], jj[ok]
     return ii, jj
+
+
+def _grid_pairs(pos: Tensor, radius: Tensor) -> tuple[Tensor, Tensor]:
+    """Every pair ``(i, j)`` of points ``pos (J, 2)`` whose grid cells touch, on square cells of side
+    ``max radius``: a superset of the pairs with ``‖p_i − p_j‖ ≤ radius_i``. Points are sorted by cell
+    (row-major), so the three cells of a neighbouring row are one run of the order, found by two binary
+    searches; memory ``O(pairs in neighbouring cells)``."""
+    lo_xy = pos.min(0).values
+    extent = float((pos.max(0).values - lo_xy).max())
+    cell = max(float(radius.max()), extent / 2**20, 1e-12)          # at most 2^20 cells a side: keys fit int64
+    g = torch.floor((pos - lo_xy) / cell).long() + 1                # a margin cell on each side
+    cols = int(g[:, 0].max()) + 2
+    key = g[:, 1] * cols + g[:, 0]
+    order = torch.argsort(key)
+    sorted_key = key[order]
+    first = key.unsqueeze(1) + torch.tensor([-cols - 1, -1, cols - 1], device=key.device)   # (J, 3) rows' first cells
+    start = torch.searchsorted(sorted_key, first)
+    count = (torch.searchsorted(sorted_key, first + 2, right=True) - start).reshape(-1)
+    start = start.reshape(-1)
+    ii = torch.arange(pos.shape[0], device=pos.device).repeat_interleave(3).repeat_interleave(count)
+    run_start = (torch.cumsum(count, 0) - count).repeat_interleave(count)
+    offset = torch.arange(int(count.sum()), device=pos.device) - run_start          # position within each run
+    return ii, order[start.repeat_interleave(count) + offset]
 
 
 def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Tensor | None = None) -> MixtureState:
@@ -486,6 +529,18 @@ def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> 
         if not bool(alive.any()):
             break
     return owner
+
+
+PAIR_BLOCK = 4096 * 1024
+"""Most (component, measurement) pairs in one block of the update: with a mixture larger than the default
+capacity a block holds fewer than ``chunk`` measurements, so the update's memory stays that of the default
+capacity's full chunk however far the scene-sized mixture grows (blocks give the same result)."""
+
+
+SCENE_COMPONENTS = 2
+"""``k`` of :meth:`GMPHD.capacity_for`: components kept per measurement and per live label. After the merge a
+target holds one or two components (its missed-detection and detected hypotheses rarely stay apart) and a
+measurement adds at most one birth, so ``2 (M + L)`` leaves room for every live label's components."""
 
 
 DENSE_MERGE = 128

@@ -5,7 +5,7 @@ One frame ``k`` (:meth:`GMPHDTracker.advance`)::
 
     predict (eq. 3)  →  birth measurements Z_k^b (eq. 4, against the predicted components)
     →  update with Z_k (and the detector's velocities, with ``velocity_sigma``)
-    →  prune, merge (established labels win), cap  →  extract (w > ½)
+    →  prune, merge (established labels win), cap (sized from the measurements and live labels)  →  extract (w > ½)
     →  label fix (2.3)  →  coasting  →  label hand-over  →  velocity map ← settled estimates
     →  births from Z_k^b (eq. 5–6) join the mixture for k+1
 
@@ -168,7 +168,8 @@ class GMPHDTracker(nn.Module):
             with_velocity = velocity is not None and mats.R_velocity is not None
             log_lik, existence = bernoulli_log_likelihood(existence, groups, info.label_support, mats, z.shape[0],
                                                           with_velocity, phd.area)
-        post = phd.reduce(post, memory.prev_label if o.label_fix and o.merge_priority else None)
+        capacity = phd.capacity_for(z.shape[0], int(torch.unique(pred.label).numel()))
+        post = phd.reduce(post, memory.prev_label if o.label_fix and o.merge_priority else None, capacity)
         est = phd.extract(post)
         next_label = memory.next_label
         if o.label_fix:
@@ -221,7 +222,7 @@ class GMPHDTracker(nn.Module):
                               torch.ones(B, dtype=torch.bool, device=z.device))
         if use_tone and B:
             tones = add_births(tones, b_label, tone[is_birth])
-        new_state = phd.cap(concat(post, births))
+        new_state = phd.cap(concat(post, births), capacity)
         # labels carry no gradient
         new_memory = TrackerMemory(next_label + B, ids, pos_d, vel_d, lost, tentative, tones, existence)
         return StepResult(new_state, new_memory, ids, pos, vel, log_lik, pending)
