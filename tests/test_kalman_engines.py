@@ -4,10 +4,20 @@ FilterPy in ``test_kalman_reference.py``."""
 
 import pytest
 import torch
-from test_kalman_reference import _cv_problem
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.kalman import GaussianState
+from torchtrack.filters.kalman import GaussianState, KalmanFilter
+from torchtrack.models import ConstantVelocity, LinearPosition
+
+
+def _cv_problem(batch=(3,), T=12, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    z = torch.randn(T, *batch, 2, generator=g, dtype=torch.float64) * 2 + torch.arange(T)[:, None].expand(
+        T, 2).reshape(T, *([1] * len(batch)), 2)
+    init = GaussianState(torch.zeros(*batch, 4, dtype=torch.float64),
+                         torch.diag(torch.tensor([5.0, 5.0, 20.0, 20.0], dtype=torch.float64)).expand(*batch, 4, 4))
+    kf = KalmanFilter(ConstantVelocity(2, q=0.3), LinearPosition(2, sigma=1.5)).double()
+    return kf, z, init
 
 
 def test_engines_equal_the_batch_engine_including_missing_measurements():
