@@ -7,16 +7,16 @@ import numpy as np
 import torch
 
 from torchtrack.bench.scale import simulate
-from torchtrack.filters.glmb_birth import adaptive_births, birth_rate
+from torchtrack.filters.glmb_birth import adaptive_births, scene_birth_rate
 from torchtrack.filters.multitarget import make_tracker
 
 
 def test_birth_rate_is_the_larger_of_the_floor_and_the_density_times_the_extent():
     z = torch.tensor([[100.0, 50.0], [1100.0, 250.0], [600.0, 2050.0]], dtype=torch.float64)   # 1000 × 2000 px
-    assert birth_rate(z, 0.3, 1.5) == 1.5 * 2.0
-    assert birth_rate(z, 0.3, 0.1) == 0.3
-    assert birth_rate(z[:1], 0.3, 100.0) == 0.3        # one detection spans no area
-    assert birth_rate(z[:0], 0.3, 100.0) == 0.3
+    assert scene_birth_rate(z, 0.3, 1.5) == 1.5 * 2.0
+    assert scene_birth_rate(z, 0.3, 0.1) == 0.3
+    assert scene_birth_rate(z[:1], 0.3, 100.0) == 0.3        # one detection spans no area
+    assert scene_birth_rate(z[:0], 0.3, 100.0) == 0.3
 
 
 def test_birth_existence_is_b1_with_the_given_rate():

@@ -29,7 +29,7 @@ from torch import Tensor
 from torchtrack.filters.glmb import Births
 
 
-def birth_rate(z: Tensor, least_rate: float, rate_per_megapixel: float) -> float:
+def scene_birth_rate(z: Tensor, least_rate: float, rate_per_megapixel: float) -> float:
     """Expected births per frame (B2) for the frame's detections ``z (M, 2)`` in px."""
     if z.shape[0] < 2:
         return least_rate
