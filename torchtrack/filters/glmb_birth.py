@@ -9,6 +9,16 @@ divide by ``Σ (1 − r_U)`` alone; with every measurement explained that sum is
 explained measurement would be born with ``r_max`` — the ``max(1, ·)`` keeps ``r_B ≤ λ_B (1 − r_U)``. Rows with
 ``r_B < r_min`` are not proposed. The density is ``N([z, v], diag(σ_p², σ_p², σ_v², σ_v²))`` with ``v`` the
 detector's velocity (``σ_v`` its noise) where given, else ``v = 0`` with a wide ``σ_v``.
+
+A fixed ``λ_B`` is a property of the scene's size: spread over the ~1250 unexplained measurements of a frame with
+1000 vehicles it leaves every row below ``r_min`` and no track ever starts. So ``λ_B`` follows the area the frame's
+detections span,
+
+    λ_B = max(λ_0, ρ_B · A),     A = (max_z x − min_z x)(max_z y − min_z y) / 10⁶                          (B2)
+
+(``ρ_B``: expected births per frame per megapixel; ``λ_0``: the least rate, for scenes of a few detections whose
+box is nearly empty). At constant density ``A`` grows with the number of measurements, so each unexplained
+measurement keeps the same ``r_B`` at any scene size.
 """
 
 from __future__ import annotations
@@ -17,6 +27,14 @@ import torch
 from torch import Tensor
 
 from torchtrack.filters.glmb import Births
+
+
+def scene_birth_rate(z: Tensor, least_rate: float, rate_per_megapixel: float) -> float:
+    """Expected births per frame (B2) for the frame's detections ``z (M, 2)`` in px."""
+    if z.shape[0] < 2:
+        return least_rate
+    extent = z.detach().amax(0) - z.detach().amin(0)
+    return max(least_rate, rate_per_megapixel * float(extent[0] * extent[1]) * 1e-6)
 
 
 def adaptive_births(z: Tensor, velocity: Tensor | None, used: Tensor, frame: int, next_index: int,

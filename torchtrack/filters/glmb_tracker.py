@@ -22,7 +22,7 @@ from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.glmb import GLMBFilter, GLMBState, empty_state
-from torchtrack.filters.glmb_birth import adaptive_births, no_births
+from torchtrack.filters.glmb_birth import adaptive_births, no_births, scene_birth_rate
 from torchtrack.filters.tracker_config import GLMBConfig, tracker_config
 from torchtrack.models import ConstantVelocity, LinearPosition
 
@@ -92,8 +92,9 @@ class GLMBTracker:
         log_kappa = math.log(c.clutter_density) + (math.log(c.velocity_clutter_density) if v is not None else 0.0)
         log_clutter = torch.full((z.shape[0],), log_kappa, dtype=self.dtype)
         self.state, info = self.filter.step(self.state, self.births, z, log_clutter, v)
-        self.births = adaptive_births(z, v, info.used, frame, self.next_index, c.birth_rate, c.birth_max,
-                                      c.birth_min, c.birth_sigma_pos, c.birth_sigma_vel, c.birth_sigma_vel_detector)
+        rate = scene_birth_rate(z, c.birth_rate, c.birth_density)
+        self.births = adaptive_births(z, v, info.used, frame, self.next_index, rate, c.birth_max, c.birth_min,
+                                      c.birth_sigma_pos, c.birth_sigma_vel, c.birth_sigma_vel_detector)
         self.next_index += self.births.mean.shape[0]
         rows = info.estimate
         labels = self.state.label[rows, 1]

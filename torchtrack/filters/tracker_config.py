@@ -221,7 +221,9 @@ class GLMBConfig(Checked):
     gate: χ² gate probability; chains: Gibbs chains per hypothesis group and frame, shared among its hypotheses in
     proportion to √w_h; sweeps: samples per chain; prune_threshold: lighter hypotheses are dropped;
     max_hypotheses: the cap per group (hits counted, warned once);
-    birth_rate: expected births per frame λ_B; birth_max, birth_min: cap and floor of a birth's existence;
+    birth_rate: the least expected births per frame λ_0; birth_density: expected births per frame per megapixel of
+    the frame's detections' bounding box ρ_B (λ_B = max(λ_0, ρ_B A), docs/glmb.md (B2));
+    birth_max, birth_min: cap and floor of a birth's existence;
     birth_sigma_pos (px), birth_sigma_vel (px/frame, births at rest), birth_sigma_vel_detector (from the
     detector's velocity); confirm_frames: a label is reported from its n-th consecutive frame in the estimate;
     seed: the sampler's random stream; dtype."""
@@ -239,6 +241,7 @@ class GLMBConfig(Checked):
     prune_threshold: float = option(1e-4, gt=0, lt=1)
     max_hypotheses: int = option(30, ge=1)
     birth_rate: float = option(0.3, gt=0)
+    birth_density: float = option(1.0, ge=0)
     birth_max: float = option(0.5, gt=0, lt=1)
     birth_min: float = option(1e-3, gt=0, lt=1)
     birth_sigma_pos: float = option(2.0, gt=0)
