@@ -40,7 +40,7 @@ def trackeval_data(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: flo
     _, h = np.unique(pred.id, return_inverse=True)
     both = np.concatenate([gt.frame, pred.frame])
     frames = np.arange(both.min(), both.max() + 2) if both.size else np.arange(3)
-    data = {"gt_ids": [], "tracker_ids": [], "similarity_scores": [], "num_timesteps": frames.size,
+    data = {"gt_ids": [], "tracker_ids": [], "similarity_scores": [], "num_timesteps": frames.size - 1,
             "num_gt_dets": gt.size, "num_tracker_dets": pred.size,
             "num_gt_ids": int(g.max(initial=-1)) + 1, "num_tracker_ids": int(h.max(initial=-1)) + 1}
     g_split, p_split = np.searchsorted(gt.frame, frames), np.searchsorted(pred.frame, frames)
@@ -54,7 +54,6 @@ def trackeval_data(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: flo
         data["gt_ids"].append(g[a])
         data["tracker_ids"].append(h[b])
         data["similarity_scores"].append(s)
-    data["num_timesteps"] = frames.size - 1
     return data
 
 

@@ -75,8 +75,9 @@ def _candidates(frame_a: np.ndarray, xy_a: np.ndarray, frame_b: np.ndarray, xy_b
     span = 2 * (np.abs(xy_a[:, 0]).max(initial=0) + np.abs(xy_b[:, 0]).max(initial=0) + radius) + 1
     key_a, key_b = frame_a * span + xy_a[:, 0], frame_b * span + xy_b[:, 0]  # frames far apart along x
     order = np.argsort(key_b, kind="stable")
-    lo = np.searchsorted(key_b[order], key_a - radius, "left")
-    count = np.searchsorted(key_b[order], key_a + radius, "right") - lo
+    sorted_b = key_b[order]
+    lo = np.searchsorted(sorted_b, key_a - radius, "left")
+    count = np.searchsorted(sorted_b, key_a + radius, "right") - lo
     if count.sum() > _SWEEP_CANDIDATES * (key_a.size + key_b.size) + (1 << 20):
         return None
     first = np.repeat(lo - np.cumsum(count) + count, count)
