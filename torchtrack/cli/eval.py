@@ -96,13 +96,13 @@ def _options(args: argparse.Namespace) -> EvalOptions:
 
 def run(args: argparse.Namespace) -> int:
     options = _options(args)
+    scored = f"({options.gate}{', moving objects only' if args.moving else ''})"
     if args.gt is not None:
         pairs = [("", args.gt, args.pred)]
-        print(f"{args.pred} vs {args.gt} ({options.gate}{', moving objects only' if args.moving else ''})")
+        print(f"{args.pred} vs {args.gt} {scored}")
     else:
         pairs = benchmark_sequences(args.gt_folder, args.pred_folder)
-        print(f"{args.pred_folder} vs {args.gt_folder}: {len(pairs)} sequences "
-              f"({options.gate}{', moving objects only' if args.moving else ''})")
+        print(f"{args.pred_folder} vs {args.gt_folder}: {len(pairs)} sequences {scored}")
     evaluations = {name: evaluate(read_mot(gt), read_mot(pred), options) for name, gt, pred in pairs}
     if len(pairs) > 1:
         evaluations["COMBINED"] = combine(list(evaluations.values()))
