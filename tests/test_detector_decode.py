@@ -103,3 +103,11 @@ def test_decode_matches_a_dense_max_pool_reference():
             assert got == want
             sc = det.score[b][det.mask[b]]
             assert torch.all(sc[:-1] >= sc[1:])       # best first
+
+
+def test_the_peak_cap_grows_with_the_frame_area():
+    """``top_k`` holds for frames up to 512²; a 2048² frame (16 times the area) may keep 16 times the peaks."""
+    from torchtrack.detector.config import DecodeConfig
+
+    cfg = DecodeConfig(top_k=1000)
+    assert [cfg.peaks_for(*s) for s in [(64, 64), (512, 512), (1024, 512), (2048, 2048)]] == [1000, 1000, 2000, 16000]

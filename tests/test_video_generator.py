@@ -112,3 +112,18 @@ def test_yaml_config_equals_the_defaults_and_numbers_are_numbers(tmp_path):
     path.write_text("video:\n  speed_median: fast\n")
     with pytest.raises(TorchtrackError, match="speed_median"):
         load_video_config(path)
+
+
+def test_a_larger_view_keeps_the_density_of_the_scene():
+    """Up to 512² the configured counts are drawn as they are; a 1024² view holds four times the point objects
+    (trees, speckles, buildings, car parks: area) and twice the roads (side) — the same density per area."""
+    from torchtrack.sim.video_scene import build_scene
+
+    small, large = VideoConfig(height=256, width=256), VideoConfig(height=1024, width=1024)
+    scene_small = build_scene(small, np.random.default_rng(0))
+    scene_large = build_scene(large, np.random.default_rng(0))
+    assert len(scene_small.buildings) == small.buildings
+    assert len(scene_large.buildings) == 4 * large.buildings
+    # a highway has 2-3 lanes each way, a local road one: 4 highways and 6 local roads make at least 28 lanes,
+    # more than 2 highways and 3 local roads can (at most 18)
+    assert len(scene_large.lanes) >= 2 * (2 * 2 * large.highways) + 2 * (2 * large.local_roads)

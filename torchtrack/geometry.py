@@ -3,7 +3,8 @@ frame onto another, and the transfer error of an estimated homography against th
 
 A homography ``H (3, 3)`` maps ``p = (x, y)`` to ``π(H [p; 1])`` with ``π(q) = q[:2] / q[2]``. Used by the
 video pipeline (:mod:`torchtrack.pipeline`), the detector's data and evaluation (:mod:`torchtrack.detector`)
-and the video writer (:mod:`torchtrack.io.video_writer`).
+and the video writer (:mod:`torchtrack.io.video_writer`); and the one rule by which per-frame counts scale
+with the frame (:func:`area_factor`).
 """
 
 from __future__ import annotations
@@ -12,6 +13,17 @@ import cv2
 import numpy as np
 
 from torchtrack.errors import TorchtrackError
+
+REFERENCE_SIDE = 512
+"""Side (px) of the frame for which per-frame counts are configured: the generator's roads, trees and
+buildings, the detector's peak cap, the registration's features."""
+
+
+def area_factor(height: int, width: int) -> float:
+    """``max(1, H W / 512²)``: counts configured for a frame of up to 512 × 512 px are multiplied by it (by
+    its square root for objects that are lines across the frame) so that a wide-area frame keeps their
+    density instead of spreading a constant count over a larger area."""
+    return max(1.0, height * width / REFERENCE_SIDE ** 2)
 
 
 def apply_homography(points: np.ndarray, homography: np.ndarray | None) -> np.ndarray:

@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchtrack.config import Checked, from_mapping, option, read_mapping
+from torchtrack.geometry import area_factor
 
 
 @dataclass(frozen=True)
@@ -53,12 +55,18 @@ class TrainConfig(Checked):
 @dataclass(frozen=True)
 class DecodeConfig(Checked):
     threshold: float = option(0.3, ge=0, lt=1)
-    top_k: int = option(1000, ge=1)
+    top_k: int = option(1000, ge=1)                 # most peaks in a frame of up to 512 x 512 px (see peaks_for)
     radius: float = option(10.0, gt=0)              # px, match distance for precision / recall / F1
     refine_radius: int = option(6, ge=0)            # px, block-matching search around the network's velocity (0: off)
     refine_patch: int = option(3, ge=0)             # half-size of the matched patch (7x7 px)
     refine_pull: float = option(0.002, ge=0)        # pull towards the network's velocity (see detector.refine)
     continuity_reach: float = option(20.0, ge=0)    # px, motion-continuity check with the previous velocities (0: off)
+
+    def peaks_for(self, height: int, width: int) -> int:
+        """The most peaks decoded from a ``height × width`` frame: ``top_k`` up to 512 × 512 px, scaled with
+        the area above it — a constant cap would silently drop vehicles from wide-area frames (a 2048² frame
+        of the synthetic scene holds about 2,500)."""
+        return math.ceil(self.top_k * area_factor(height, width))
 
 
 @dataclass(frozen=True)

@@ -78,7 +78,7 @@ class Detector(nn.Module):
         hm, off, vel = (t.cpu() for t in self.net(x.to(device)))
         hm, off, vel = (t[..., : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE] for t in (hm, off, vel))
         d = self.config.decode
-        det = decode(hm, off, vel, STRIDE, d.threshold if threshold is None else threshold, d.top_k)
+        det = decode(hm, off, vel, STRIDE, d.threshold if threshold is None else threshold, d.peaks_for(h, w))
         keep = det.mask[0]
         xy, vel = det.xy[0, keep], det.velocity[0, keep]
         if prev_frame is not None and d.refine_radius > 0:

@@ -21,6 +21,7 @@ in reference coordinates stay valid for the whole sequence and are drawn back in
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import ClassVar, NamedTuple
 
@@ -29,6 +30,7 @@ import numpy as np
 
 from torchtrack.config import Checked, option
 from torchtrack.errors import TorchtrackError
+from torchtrack.geometry import area_factor
 
 
 @dataclass
@@ -38,7 +40,9 @@ class RegistrationConfig(Checked):
     ``method``: ``lk`` (keyframe corners + Lucas–Kanade flow + RANSAC), ``orb`` (ORB features +
     RANSAC), or ``none`` (frames already stabilised); ``ecc``: refine each estimate by ECC
     (slower; more accurate on static scenes, less with parallax, see docs/pipeline.md). ``features``:
-    corners (lk) or ORB features per frame; ``window``, ``levels``: Lucas–Kanade window side (px) and
+    corners (lk) or ORB features in a frame of up to 512 × 512 px, scaled with the area of a larger one
+    (:func:`torchtrack.geometry.area_factor`; see docs/scale.md for why a constant count fails on wide-area
+    frames); ``window``, ``levels``: Lucas–Kanade window side (px) and
     pyramid levels above the base (the flow starts from the previous frame's estimate, so the residual
     motion to recover is small).
     """
@@ -76,9 +80,11 @@ class Registration:
         self.frames = 0
 
     def _features(self, image: np.ndarray):
+        count = math.ceil(self.config.features * area_factor(*image.shape[:2]))
         if self.config.method == "lk":
-            corners = cv2.goodFeaturesToTrack(image, self.config.features, 0.01, 8, blockSize=7)
+            corners = cv2.goodFeaturesToTrack(image, count, 0.01, 8, blockSize=7)
             return (np.zeros((0, 1, 2), np.float32) if corners is None else corners.astype(np.float32)), None
+        self._orb.setMaxFeatures(count)
         keypoints, descriptors = self._orb.detectAndCompute(image, None)
         return np.array([k.pt for k in keypoints], np.float32).reshape(-1, 2), descriptors
 

@@ -14,7 +14,9 @@ class VideoConfig(Checked):
     """Every knob of :func:`torchtrack.sim.video.generate_sequence`; defaults mimic WPAFB AOI 02.
 
     Lengths are in pixels, speeds in pixels per frame, rates per frame; grey levels in [0, 255];
-    ``(low, high)`` pairs are ranges with ``low <= high``.
+    ``(low, high)`` pairs are ranges with ``low <= high``. The counts of roads, car parks, trees, speckles
+    and buildings are those of a view of up to 512 × 512 px; a larger view scales them to keep their
+    density (:func:`torchtrack.sim.video_scene.scene_counts`).
     """
 
     height: int = option(512, ge=32)

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from torchtrack.geometry import area_factor
 from torchtrack.sim.video_config import VideoConfig
 
 
@@ -115,9 +116,21 @@ def _crossings(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (p[i, 0] + t[i, j, None] * r[i, 0])
 
 
+def scene_counts(cfg: VideoConfig) -> dict[str, int]:
+    """The counts of static objects for ``cfg``'s view: as configured up to a 512 × 512 px view; above it,
+    objects that are points (trees, speckles, buildings, car parks) scale with the view's area and roads
+    (lines across the view) with its side (:func:`torchtrack.geometry.area_factor`), so that a 4096² frame
+    shows the scene of a 512² frame at the same density rather than the same five roads over 64 times the area."""
+    area = area_factor(cfg.height, cfg.width)
+    return {"highways": round(cfg.highways * area ** 0.5), "local_roads": round(cfg.local_roads * area ** 0.5),
+            "car_parks": round(cfg.car_parks * area), "trees": round(cfg.trees * area),
+            "speckles": round(cfg.speckles * area), "buildings": round(cfg.buildings * area)}
+
+
 def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     """Draw the static world (see module docstring) and lay out lanes, car-park slots and buildings."""
     h, w = cfg.height + 2 * cfg.margin, cfg.width + 2 * cfg.margin
+    counts = scene_counts(cfg)
     ground = 0.55 * _multiscale_noise(rng, (h, w), (64, 128), 1.0) + 0.45 * _multiscale_noise(
         rng, (h, w), (2, 4, 8, 16), 0.7)
     forest_field = _multiscale_noise(rng, (h, w), (48, 96), 1.0)
@@ -130,7 +143,7 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     lanes: list[Lane] = []
     owners: list[int] = []
     centres = []
-    for highway in [True] * cfg.highways + [False] * cfg.local_roads:
+    for highway in [True] * counts["highways"] + [False] * counts["local_roads"]:
         c = _road_centreline(rng, w, h, curved=highway)
         n_per_dir = int(rng.integers(2, 4)) if highway else 1
         median = 6.0 if highway else 0.0
@@ -161,7 +174,7 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
 
     # car parks with slots in rows; slot spacing = length + gap (2-5 px)
     slot_xy, slot_angle = [], []
-    for _ in range(cfg.car_parks):
+    for _ in range(counts["car_parks"]):
         cw, ch = min(rng.uniform(50, 110), 0.4 * w), min(rng.uniform(40, 90), 0.4 * h)
         cx, cy = rng.uniform(cw / 2, w - cw / 2), rng.uniform(ch / 2, h - ch / 2)
         ang = rng.uniform(0, np.pi)
@@ -180,21 +193,21 @@ def build_scene(cfg: VideoConfig, rng: np.random.Generator) -> Scene:
     slots = ParkingSlot(np.array(slot_xy).reshape(-1, 2), np.array(slot_angle))
 
     # single trees (dark round crowns with a highlight), partly overhanging roads
-    centres_t = rng.uniform(0, [w, h], size=(cfg.trees, 2))
-    for (x, y), r in zip(centres_t, rng.uniform(2.5, 6.0, cfg.trees)):
+    centres_t = rng.uniform(0, [w, h], size=(counts["trees"], 2))
+    for (x, y), r in zip(centres_t, rng.uniform(2.5, 6.0, counts["trees"])):
         cv2.circle(img, (int(x * 16), int(y * 16)), int(r * 16), float(rng.uniform(22, 42)), -1,
                    cv2.LINE_AA, shift=4)
         cv2.circle(img, (int((x - r / 3) * 16), int((y - r / 3) * 16)), int(r * 5), float(rng.uniform(45, 70)),
                    -1, cv2.LINE_AA, shift=4)
     # static speckles: small dots of vehicle-like contrast
-    for x, y in rng.uniform(0, [w, h], size=(cfg.speckles, 2)):
+    for x, y in rng.uniform(0, [w, h], size=(counts["speckles"], 2)):
         tone = float(rng.choice([rng.uniform(120, 200), rng.uniform(10, 30)]))
         r = rng.uniform(0.5, 1.1)
         cv2.circle(img, (int(x * 16), int(y * 16)), int(r * 16), tone, -1, cv2.LINE_AA, shift=4)
 
     buildings = []
     sun = np.array([rng.uniform(2, 5), rng.uniform(2, 5)]) * rng.choice([-1, 1], 2)
-    for _ in range(cfg.buildings):
+    for _ in range(counts["buildings"]):
         bw, bh = rng.uniform(*cfg.building_size, 2)
         c = rng.uniform(0, [w, h])
         box = cv2.boxPoints(((c[0], c[1]), (bw, bh), rng.uniform(0, 180))).astype(np.float64)
