@@ -7,6 +7,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from torchtrack.config import Checked, from_mapping, option, read_mapping
+from torchtrack.detector.network import MULTIPLE
 from torchtrack.geometry import area_factor
 
 
@@ -61,12 +62,19 @@ class DecodeConfig(Checked):
     refine_patch: int = option(3, ge=0)             # half-size of the matched patch (7x7 px)
     refine_pull: float = option(0.002, ge=0)        # pull towards the network's velocity (see detector.refine)
     continuity_reach: float = option(20.0, ge=0)    # px, motion-continuity check with the previous velocities (0: off)
+    tile: int = option(1024, ge=0)                  # px, core side of the tiles a larger frame runs in (0: whole)
+    tile_batch: int = option(2, ge=1)               # tiles of one shape per network call (memory: this many tiles)
 
     def peaks_for(self, height: int, width: int) -> int:
         """The most peaks decoded from a ``height × width`` frame: ``top_k`` up to 512 × 512 px, scaled with
         the area above it — a constant cap would silently drop vehicles from wide-area frames (a 2048² frame
         of the synthetic scene holds about 2,500)."""
         return math.ceil(self.top_k * area_factor(height, width))
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.tile % MULTIPLE:
+            raise self.refuse("tile", f"must be a multiple of {MULTIPLE} (the network's stride), got {self.tile}")
 
 
 @dataclass(frozen=True)

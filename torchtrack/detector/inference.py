@@ -7,7 +7,6 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
-from torch.nn import functional as F
 
 from torchtrack.detector.checkpoint import load_checkpoint
 from torchtrack.detector.config import DetectorConfig
@@ -19,6 +18,9 @@ from torchtrack.detector.targets import gaussian_heatmap
 from torchtrack.errors import TorchtrackError
 
 DEFAULT_WEIGHTS = Path(__file__).resolve().parent / "weights" / "centertrack_small.pt"
+HALO = 128
+"""px of frame around each tile's core: more than the network's receptive field reaches from a cell (measured:
+100 px up and left, 87 down and right, by the gradient of an output cell), a multiple of its stride 16."""
 
 
 def _as_frame(frame, name: str) -> torch.Tensor:
@@ -50,46 +52,86 @@ class Detector(nn.Module):
         self.net = CenterTrackNet(tuple(m.widths), m.head, m.motion, m.radius, m.fine)
         self.net = self.net.to(memory_format=torch.channels_last)
 
-    def prepare(self, frame, prev_frame=None, prev_points=None) -> tuple[torch.Tensor, tuple[int, int]]:
-        """Network input ``(1, 3, H', W')`` (padded to a multiple of 16) and the original size."""
+    def inputs(self, frame, prev_frame=None, prev_points=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """The normalised frames ``(H, W)`` (current, previous) and the prior's points ``(N, 2)``."""
         cur = _as_frame(frame, "frame")
         prev = cur if prev_frame is None else _as_frame(prev_frame, "prev_frame")
         if prev.shape != cur.shape:
             raise TorchtrackError(f"detector: frame {tuple(cur.shape)} and prev_frame {tuple(prev.shape)} "
                                   "have different sizes")
-        h, w = cur.shape
         pts = torch.zeros(0, 2) if prev_points is None else torch.as_tensor(prev_points, dtype=torch.float32)
         if pts.dim() != 2 or pts.shape[-1] != 2:
             raise TorchtrackError(f"detector: prev_points must have shape (N, 2), got {tuple(pts.shape)}")
-        prior = gaussian_heatmap(pts.reshape(-1, 2), (h, w), self.config.data.prior_sigma)
-        x = torch.empty(1, h, w, 3)                       # written channels-last directly (one copy)
-        x[0, ..., 0], x[0, ..., 1], x[0, ..., 2] = normalise(cur), normalise(prev), prior
-        x = x.permute(0, 3, 1, 2)
-        ph, pw = (-h) % MULTIPLE, (-w) % MULTIPLE
-        if ph or pw:
-            x = F.pad(x, (0, pw, 0, ph))
-        return x.contiguous(memory_format=torch.channels_last), (h, w)
+        return normalise(cur), normalise(prev), pts
+
+    def _window(self, cur: torch.Tensor, prev: torch.Tensor, pts: torch.Tensor, rows: slice, cols: slice,
+                shape: tuple[int, int]) -> torch.Tensor:
+        """Network input ``(3, h, w)`` of the window ``rows × cols`` of the frame, zero where it passes the
+        frame's size (the padding to a multiple of 16), the prior drawn in window coordinates."""
+        x = torch.zeros(3, *shape)
+        fh, fw = cur[rows, cols].shape
+        x[0, :fh, :fw], x[1, :fh, :fw] = cur[rows, cols], prev[rows, cols]
+        origin = torch.tensor([cols.start, rows.start], dtype=torch.float32)
+        x[2, :fh, :fw] = gaussian_heatmap(pts - origin, (fh, fw), self.config.data.prior_sigma)
+        return x
+
+    def maps(self, cur: torch.Tensor, prev: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
+        """The network's five output maps ``(5, ⌈H/2⌉, ⌈W/2⌉)`` (heatmap logits, offset, velocity) for the
+        normalised frames ``(H, W)``.
+
+        A frame larger than ``tile`` (plus its halo) runs in tiles: the cores of side ``tile`` partition the
+        frame (padded to a multiple of 16), each core is run with :data:`HALO` px of the frame around it —
+        more than the network's receptive field reaches (about 100 px each way), at offsets that are
+        multiples of its stride 16 — and only the core's outputs are kept. So the maps equal the whole
+        frame's (up to float rounding), peaks are decoded once on them (none doubled across a seam), and
+        memory holds ``tile_batch`` tiles rather than the frame's activations."""
+        h, w = cur.shape
+        hp, wp = h + (-h) % MULTIPLE, w + (-w) % MULTIPLE
+        device = next(self.net.parameters()).device       # the network may sit on a GPU (training); the rest runs here
+        d = self.config.decode
+        if d.tile == 0 or (hp <= d.tile + 2 * HALO and wp <= d.tile + 2 * HALO):
+            x = self._window(cur, prev, pts, slice(0, h), slice(0, w), (hp, wp))[None]
+            out = torch.cat(self.net(x.to(device).contiguous(memory_format=torch.channels_last)), 1)[0].cpu()
+            return out[:, : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
+        out = torch.empty(5, hp // STRIDE, wp // STRIDE)
+        tiles: dict[tuple[int, int], list[tuple[slice, slice, int, int]]] = {}
+        for y0 in range(0, hp, d.tile):
+            for x0 in range(0, wp, d.tile):
+                rows = slice(max(0, y0 - HALO), min(hp, y0 + d.tile + HALO))
+                cols = slice(max(0, x0 - HALO), min(wp, x0 + d.tile + HALO))
+                tiles.setdefault((rows.stop - rows.start, cols.stop - cols.start), []).append((rows, cols, y0, x0))
+        for shape, group in tiles.items():
+            for b in range(0, len(group), d.tile_batch):
+                batch = group[b: b + d.tile_batch]
+                x = torch.stack([self._window(cur, prev, pts, rows, cols, shape) for rows, cols, _, _ in batch])
+                maps = torch.cat(self.net(x.to(device).contiguous(memory_format=torch.channels_last)), 1).cpu()
+                for m, (rows, cols, y0, x0) in zip(maps, batch):
+                    ch, cw = min(d.tile, hp - y0) // STRIDE, min(d.tile, wp - x0) // STRIDE
+                    oy, ox = (y0 - rows.start) // STRIDE, (x0 - cols.start) // STRIDE
+                    cy, cx = y0 // STRIDE, x0 // STRIDE
+                    out[:, cy: cy + ch, cx: cx + cw] = m[:, oy: oy + ch, ox: ox + cw]
+        return out[:, : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
 
     @torch.inference_mode()
     def detect(self, frame, prev_frame=None, prev_points=None, threshold: float | None = None,
                prev_velocity=None) -> Detections:
-        x, (h, w) = self.prepare(frame, prev_frame, prev_points)
-        device = next(self.net.parameters()).device       # the network may sit on a GPU (training); the rest runs here
-        hm, off, vel = (t.cpu() for t in self.net(x.to(device)))
-        hm, off, vel = (t[..., : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE] for t in (hm, off, vel))
+        cur, prev, pts = self.inputs(frame, prev_frame, prev_points)
+        h, w = cur.shape
+        out = self.maps(cur, prev, pts)[None]
         d = self.config.decode
-        det = decode(hm, off, vel, STRIDE, d.threshold if threshold is None else threshold, d.peaks_for(h, w))
+        det = decode(out[:, :1], out[:, 1:3], out[:, 3:], STRIDE, d.threshold if threshold is None else threshold,
+                     d.peaks_for(h, w))
         keep = det.mask[0]
         xy, vel = det.xy[0, keep], det.velocity[0, keep]
         if prev_frame is not None and d.refine_radius > 0:
-            vel = refine_velocity(x[0, 0], x[0, 1], xy, vel, d.refine_patch, d.refine_radius, d.refine_pull)
+            vel = refine_velocity(cur, prev, xy, vel, d.refine_patch, d.refine_radius, d.refine_pull)
         if prev_frame is not None and prev_points is not None and prev_velocity is not None and d.continuity_reach > 0:
             pv = torch.as_tensor(prev_velocity, dtype=torch.float32).reshape(-1, 2)
             pts = torch.as_tensor(prev_points, dtype=torch.float32).reshape(-1, 2)
             if pv.shape != pts.shape:
                 raise TorchtrackError(f"detector: prev_velocity {tuple(pv.shape)} does not match prev_points "
                                       f"{tuple(pts.shape)}")
-            vel = continuity_refine(x[0, 0], x[0, 1], xy, vel, pts, pv, d.refine_patch, d.continuity_reach)
+            vel = continuity_refine(cur, prev, xy, vel, pts, pv, d.refine_patch, d.continuity_reach)
         return Detections(xy, det.score[0, keep], vel, keep[keep])
 
 
