@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -145,7 +146,11 @@ def detector_from_checkpoint(data: dict) -> Detector:
     return det.eval()
 
 
-def load_detector(path: str | Path | None = None) -> Detector:
+def load_detector(path: str | Path | None = None, tile: int | None = None) -> Detector:
     """The shipped detector (``torchtrack/detector/weights/centertrack_small.pt``) or the checkpoint at ``path``,
-    in eval mode."""
-    return detector_from_checkpoint(load_checkpoint(DEFAULT_WEIGHTS if path is None else path))
+    in eval mode; ``tile`` replaces the checkpoint's tile side (see :meth:`Detector.maps`)."""
+    data = load_checkpoint(DEFAULT_WEIGHTS if path is None else path)
+    if tile is not None:
+        config = data["config"]
+        data["config"] = dataclasses.replace(config, decode=dataclasses.replace(config.decode, tile=tile))
+    return detector_from_checkpoint(data)

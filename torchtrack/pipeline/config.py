@@ -44,6 +44,9 @@ class PipelineConfig(Checked):
     not given to the tracker (they are still recorded in ``detections.txt`` and feed the detector's prior
     heatmap). 0 passes every detection.
     detector_weights: a weights file (``None``: the shipped weights).
+    detector_tile: a frame larger than this (px, a multiple of 16) is detected in tiles of this side, each
+    with 128 px of frame around it, with the whole frame's result and memory bounded by the tiles
+    (``torchtrack.detector.inference``; ``None``: the detector's own setting, 1024; 0: whole frames).
     detection_threshold: decode the detector's heatmap down to this score (``None``: the detector's own
     calibrated threshold); lower values raise recall when the moving-object gate removes the false alarms.
     weak_threshold, weak_distance: detections decoded between ``weak_threshold`` and the detection
@@ -75,6 +78,7 @@ class PipelineConfig(Checked):
     min_motion: float = option(5.0, ge=0)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
+    detector_tile: int | None = option(None, ge=0)
     detection_threshold: float | None = option(None, ge=0, lt=1)
     weak_threshold: float | None = option(0.15, gt=0, lt=1)
     weak_distance: float = option(2.5, gt=0)
