@@ -13,7 +13,7 @@ Prediction (eq. 3; Vo & Ma 2006 eq. 21–24)::
 
     w⁻ = p_S w,   m⁻ = F m,   P⁻ = F P Fᵀ + Q          (birth components are added by the caller)
 
-Update of every component against every measurement in one batched operation (eq. 25–29)::
+Update of every component against every measurement in its gate (eq. 25–29)::
 
     ẑ_j = H m_j,  S_j = H P_j Hᵀ + R,  K_j = P_j Hᵀ S_j⁻¹,  P_j⁺ = P_j − K_j S_j K_jᵀ
     missed:    w = (1 − p_D) w_j,                         m = m_j,                P = P_j
@@ -33,9 +33,10 @@ gated on the position alone; the pair's posterior takes the update of the larger
 (with or without the velocity), its weight the whole mixture.
 
 ``S`` is factored once per component (it does not depend on the measurement); pairs outside the gate
-get weight zero and are not materialised. The measurement axis is processed in chunks (at most ``chunk``
-measurements and :data:`PAIR_BLOCK` pairs each) so that tens of thousands of measurements in one frame keep
-memory bounded.
+get weight zero and are never formed: the gated pairs come from a grid index of the measurements searched
+with a radius per component that no in-gate pair exceeds (:func:`gated_pairs`), and the denominator of each
+measurement is a segment sum over its pairs (:func:`log_normaliser`), so the update's time and memory follow
+the gated pairs — about the number of targets at a constant density — not ``J × M``.
 
 The PHD predictive log-likelihood of a measurement set (Mahler 2007, the Poisson form used for
 parameter learning) is returned by :meth:`GMPHD.update`::
@@ -54,18 +55,21 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
+from torchtrack.association.grid import disc_candidates
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.tracker_config import GMPHDFilterOptions
 from torchtrack.gaussian import (
     chi2_quantile,
     gain_from_cholesky,
-    innovations_likelihood,
+    gaussian_log_likelihood,
     kalman_gain,
+    log_det_from_cholesky,
     posterior_cov,
     scalar,
 )
@@ -157,8 +161,8 @@ class GMPHD(nn.Module):
         options: :class:`~torchtrack.filters.tracker_config.GMPHDFilterOptions` (their meaning and bounds there):
             ``p_S``, ``p_D``, ``κ`` (learnable), ``area`` of the log-likelihood's ``−λ_c`` term (None: dropped),
             the χ² gate's probability (``γ`` its quantile, ``m`` dof), prune threshold ``T``, merge threshold
-            ``U`` and rounds (see :func:`merge`), ``capacity`` ``J_max``, extraction threshold, ``chunk`` (the
-            update's measurements per block) and the detector's velocity: with ``velocity_sigma`` ``σ_v``
+            ``U`` and rounds (see :func:`merge`), ``capacity`` ``J_max``, extraction threshold and the detector's
+            velocity: with ``velocity_sigma`` ``σ_v``
             (learnable) and velocities given to the update, each detection is the 4-vector ``[z, v]`` measured
             through ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)``, the clutter intensity of ``[z, v]`` is
             ``κ(z) κ_v`` (``velocity_clutter_density``, learnable) and ``velocity_outlier`` is ``ε`` of the
@@ -224,18 +228,20 @@ class GMPHD(nn.Module):
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
     def update(self, state: MixtureState, z: Tensor, mats: Matrices, velocity: Tensor | None = None,
-               likelihood: bool = True, pair_loglik: Tensor | None = None,
+               likelihood: bool = True, pair_loglik: Callable[[Tensor, Tensor], Tensor] | None = None,
                label_index: tuple[Tensor, int] | None = None) -> tuple[MixtureState, UpdateInfo]:
         """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
 
         Clutter has the uniform intensity ``clutter_density``. ``velocity (M, 2)``: the detector's velocities,
         used as measurements (with ``H = I``, ``R_4 = blockdiag(R, σ_v² I)``, clutter ``κ κ_v``) when the filter
         has a ``velocity_sigma``, ignored otherwise. Returns the posterior (missed-detection components first,
-        then the gated detection components, ``J + G`` in all) and :class:`UpdateInfo` (its
-        ``log_likelihood`` is None with ``likelihood=False``, which saves its operations when streaming).
-        ``pair_loglik (J, M)``: a further log-likelihood ratio per (component, detection) pair, added to each
-        gated pair's weight — an attribute of the detection measured against the component's, over that
-        attribute's density under clutter (e.g. :mod:`torchtrack.filters.gmphd_tone`); None: none.
+        then the gated detection components ordered by component, then measurement, ``J + G`` in all) and
+        :class:`UpdateInfo` (its ``log_likelihood`` is None with ``likelihood=False``, which saves its operations
+        when streaming).
+        ``pair_loglik(jj, kk) → (G,)``: a further log-likelihood ratio of the gated (component, detection) pairs
+        ``(jj, kk)`` (two ``(G,)`` index tensors), added to each pair's weight — an attribute of the detection
+        measured against the component's, over that attribute's density under clutter (e.g.
+        :mod:`torchtrack.filters.gmphd_tone`); None: none.
         ``label_index = (index (J,), L)``: each component's label as an index in ``0 … L−1``; the result's
         ``label_support (L,)`` sums ``p_D w_j g_jk / κ(z_k)`` over each label's components and all detections
         (what a Bernoulli per label needs, :mod:`torchtrack.filters.gmphd_existence`).
@@ -269,62 +275,40 @@ class GMPHD(nn.Module):
             S = H @ PHt + R                      # (J, m, m); Cholesky reads its lower triangle only
             z_hat = state.mean @ H.transpose(-1, -2)                # (J, m)
         # the shared Kalman update of torchtrack.gaussian: per component (J) the factor L of S, the gain
-        # and P − W Wᵀ; per (component, measurement) pair the whitened innovation gives NIS and log ℓ
+        # and P − W Wᵀ; per gated (component, measurement) pair the whitened innovation gives NIS and log ℓ
         gain = kalman_gain(S, PHt, "GMPHD update: innovation covariance S")
         K, P_upd = gain.gain, posterior_cov(state.cov, gain)
         base = log_pd + live_w                                       # (J,)
-        gate = scalar(gate, live_w)
-        if robust:         # the leading block of L is the factor of S's position block
-            p_dim = H.shape[0]
+        p_dim = H.shape[0]
+        jj, kk = gated_pairs(z_hat, S, gain.chol_inv, z, gate, state.mask, p_dim if robust else m_dim)
+        nu = z.index_select(0, kk) - z_hat.index_select(0, jj)           # (G, m)
+        white = (gain.chol_inv.index_select(0, jj) * nu.unsqueeze(-2)).sum(-1)      # L⁻¹ ν
+        log_num = base.index_select(0, jj) + gaussian_log_likelihood(
+            white.pow(2).sum(-1), log_det_from_cholesky(gain.chol).index_select(0, jj), m_dim)
+        if robust:         # the leading block of L is the factor of S's position block, that of L⁻¹ its inverse
             gain_p = gain_from_cholesky(gain.chol[:, :p_dim, :p_dim], PHt[:, :, :p_dim])
             K_p, P_upd_p = gain_p.gain, posterior_cov(state.cov, gain_p)
             log_eps = mats.log_velocity_outlier
             base_pos = log_pd + live_w + log_eps + mats.log_clutter_velocity
-            base = base + torch.log1p(-log_eps.exp())
-            pair_pos = []
-
-        pair_j, pair_k, pair_logw, log_den = [], [], [], []
+            log_num = log_num + torch.log1p(-log_eps.exp())
+            without_v = base_pos.index_select(0, jj) + gaussian_log_likelihood(
+                white[:, :p_dim].pow(2).sum(-1), log_det_from_cholesky(gain_p.chol).index_select(0, jj), p_dim)
+            use_pos = without_v > log_num                   # pairs whose velocity is more likely an outlier
+            log_num = torch.logaddexp(log_num, without_v)
+        if pair_loglik is not None:
+            log_num = log_num + pair_loglik(jj, kk)
+        log_den_t = log_normaliser(kk, log_num, log_kappa)
+        det_logw = log_num - log_den_t.index_select(0, kk)
         support = None
         if label_index is not None:
-            support = torch.zeros(label_index[1], dtype=live_w.dtype, device=live_w.device)
-        M, C = z.shape[0], min(self.options.chunk, max(1, PAIR_BLOCK // max(state.size, 1)))
-        for start in range(0, M, C):
-            zc, kc = z[start:start + C], log_kappa[start:start + C]
-            nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
-            nis, loglik = innovations_likelihood(gain, nu)      # (J, C)  νᵀ S⁻¹ ν, log N(ν; 0, S)
-            if robust:
-                nis_p, loglik_p = innovations_likelihood(gain_p, nu[..., :p_dim])
-                gated = (nis_p <= gate) & state.mask.unsqueeze(1)
-                with_v, without_v = base.unsqueeze(1) + loglik, base_pos.unsqueeze(1) + loglik_p
-                log_num = torch.where(gated, torch.logaddexp(with_v, without_v), neg_inf)
-            else:
-                gated = (nis <= gate) & state.mask.unsqueeze(1)
-                log_num = torch.where(gated, base.unsqueeze(1) + loglik, neg_inf)
-            if pair_loglik is not None:
-                log_num = log_num + pair_loglik[:, start:start + C]
-            den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
-            if support is not None and state.size:
-                support = support.index_add(0, label_index[0], (log_num - kc.unsqueeze(0)).exp().sum(1))
-            jj, kk = gated.nonzero().unbind(1)
-            if robust:
-                pair_pos.append((without_v > with_v)[jj, kk])
-            pair_j.append(jj)
-            pair_k.append(kk + start if start else kk)
-            pair_logw.append(log_num[jj, kk] - den[kk])
-            log_den.append(den)
-        if log_den:
-            log_den_t, jj, kk, det_logw = (torch.cat(x) for x in (log_den, pair_j, pair_k, pair_logw))
-        else:
-            jj = kk = torch.empty(0, dtype=torch.long, device=z.device)
-            log_den_t, det_logw = log_kappa, live_w[:0]
-        nu_sel = z.index_select(0, kk) - z_hat.index_select(0, jj)          # (G, m)
+            support = torch.zeros(label_index[1], dtype=live_w.dtype, device=live_w.device).index_add(
+                0, label_index[0].index_select(0, jj), (log_num - log_kappa.index_select(0, kk)).exp())
         det_mean = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K.index_select(0, jj),
-                                 nu_sel.unsqueeze(-1)).squeeze(-1)          # m + K ν per gated pair
+                                 nu.unsqueeze(-1)).squeeze(-1)              # m + K ν per gated pair
         det_cov = P_upd.index_select(0, jj)
-        if robust:                                # pairs whose velocity is more likely an outlier
-            use_pos = torch.cat(pair_pos) if pair_pos else torch.zeros(0, dtype=torch.bool, device=z.device)
+        if robust:
             mean_pos = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K_p.index_select(0, jj),
-                                     nu_sel[:, :p_dim].unsqueeze(-1)).squeeze(-1)
+                                     nu[:, :p_dim].unsqueeze(-1)).squeeze(-1)
             det_mean = torch.where(use_pos.unsqueeze(-1), mean_pos, det_mean)
             det_cov = torch.where(use_pos.view(-1, 1, 1), P_upd_p.index_select(0, jj), det_cov)
 
@@ -380,6 +364,55 @@ class GMPHD(nn.Module):
         """Bool mask ``(J,)`` of components reported as targets (weight above ``extract_threshold``)."""
         lw = state.log_weight
         return state.mask & (lw > scalar(math.log(self.options.extract_threshold), lw))
+
+
+def gated_pairs(z_hat: Tensor, S: Tensor, chol_inv: Tensor, z: Tensor, gate: float, mask: Tensor,
+                gate_dim: int) -> tuple[Tensor, Tensor]:
+    """The (component, measurement) pairs inside the gate, ``(jj, kk)`` two ``(G,)`` long tensors ordered by
+    component, then measurement (a stop-gradient selection).
+
+    ``z_hat (J, m)`` predicted measurements, ``S (J, m, m)`` their covariances, ``chol_inv (J, m, m)`` the
+    inverses of the Cholesky factors ``L`` of ``S``, ``z (M, m)``, ``mask (J,)`` live components. A pair is
+    inside the gate when ``ν_gᵀ S_g⁻¹ ν_g ≤ γ`` for the leading ``gate_dim`` coordinates ``g`` of ``ν = z_k − ẑ_j``
+    (the whole ``ν``, or its position alone); that NIS is ``‖(L⁻¹ ν)_g‖²``, ``L⁻¹`` being lower triangular.
+
+    Candidates come from a grid index of the measurements (:func:`~torchtrack.association.grid.disc_candidates`)
+    with the radius ``r_j = √(γ λ_max(S_j,pp))``, ``pp`` the leading ``min(m, 2)`` coordinates (the position):
+    the marginal NIS of a sub-vector is at most the whole's (Schur complement), and ``ν_pᵀ S_pp⁻¹ ν_p ≥ ‖ν_p‖² /
+    λ_max(S_pp)``, so an in-gate pair has ``‖ν_p‖ ≤ r_j`` and no in-gate pair is missed. Only the candidates
+    within ``r_j`` are tested exactly; memory follows the candidates, not ``J M``.
+    """
+    p = min(z.shape[1], 2)
+    with torch.no_grad():
+        a, c = S[:, 0, 0], S[:, p - 1, p - 1]
+        b = S[:, p - 1, 0] if p == 2 else torch.zeros_like(a)             # the lower triangle, as Cholesky's
+        lam = (a + c) * 0.5 + torch.sqrt(((a - c) * 0.5).pow(2) + b.pow(2))    # λ_max of the 2 × 2 block
+        radius = torch.where(mask, torch.sqrt(lam * gate) * (1 + 1e-6), torch.full_like(lam, -1.0))
+        pos_hat, pos = _plane(z_hat[:, :p]), _plane(z[:, :p])
+        jj, kk = disc_candidates(pos_hat, radius, pos)
+        near = ((pos.index_select(0, kk) - pos_hat.index_select(0, jj)).pow(2).sum(-1)
+                <= radius.index_select(0, jj).pow(2)).nonzero().squeeze(1)
+        jj, kk = jj.index_select(0, near), kk.index_select(0, near)
+        nu = z[kk, :gate_dim] - z_hat[jj, :gate_dim]
+        white = (chol_inv[:, :gate_dim, :gate_dim].index_select(0, jj) * nu.unsqueeze(-2)).sum(-1)
+        inside = (white.pow(2).sum(-1) <= gate).nonzero().squeeze(1)
+        jj, kk = jj.index_select(0, inside), kk.index_select(0, inside)
+        order = torch.argsort(jj * z.shape[0] + kk)
+        return jj.index_select(0, order), kk.index_select(0, order)
+
+
+def _plane(x: Tensor) -> Tensor:
+    """``x (K, 1 or 2)`` as points of the plane (a 1-D coordinate on the line ``y = 0``)."""
+    return x if x.shape[1] == 2 else torch.cat([x, torch.zeros_like(x)], 1)
+
+
+def log_normaliser(index: Tensor, log_term: Tensor, log_kappa: Tensor) -> Tensor:
+    """``log(κ_k + Σ_{pairs of k} exp(log_term))`` per measurement ``k``, ``(M,)``: the update's denominator as a
+    segment sum over the gated pairs, ``index (G,)`` their measurements, ``log_term (G,)``, ``log_kappa (M,)``.
+    Each segment is shifted by its (detached) maximum, so nothing overflows and the gradient is exact."""
+    shift = torch.scatter_reduce(log_kappa.detach().contiguous(), 0, index, log_term.detach(), "amax")
+    total = torch.exp(log_kappa - shift).index_add(0, index, torch.exp(log_term - shift.index_select(0, index)))
+    return shift + torch.log(total)
 
 
 def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
@@ -529,12 +562,6 @@ def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> 
         if not bool(alive.any()):
             break
     return owner
-
-
-PAIR_BLOCK = 4096 * 1024
-"""Most (component, measurement) pairs in one block of the update: with a mixture larger than the default
-capacity a block holds fewer than ``chunk`` measurements, so the update's memory stays that of the default
-capacity's full chunk however far the scene-sized mixture grows (blocks give the same result)."""
 
 
 SCENE_COMPONENTS = 2

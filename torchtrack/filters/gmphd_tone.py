@@ -51,9 +51,10 @@ def lookup(tones: LabelTones, label: Tensor) -> Tensor:
 
 def tone_log_ratio(component_tone: Tensor, detection_tone: Tensor, sigma: float, outlier: float,
                    levels: float = 256.0) -> Tensor:
-    """``log r(t_k | a_j)`` ``(J, M)`` for component tones ``(J,)`` (NaN: unknown, ratio 1) and detection tones
-    ``(M,)``; ``σ_t = sigma``, outlier probability ``ε = outlier``, clutter density ``u = 1/levels``."""
-    d = detection_tone.unsqueeze(0) - component_tone.unsqueeze(1)
+    """``log r(t | a)`` for component tones ``a`` (NaN: unknown, ratio 1) and detection tones ``t`` (shapes
+    broadcast: ``(G,)`` and ``(G,)`` for pairs, ``(J, 1)`` and ``(M,)`` for every pair); ``σ_t = sigma``, outlier
+    probability ``ε = outlier``, clutter density ``u = 1/levels``."""
+    d = detection_tone - component_tone
     log_gauss = -0.5 * (d / sigma).pow(2) - math.log(sigma * math.sqrt(2.0 * math.pi)) + math.log(levels)
     log_r = torch.logaddexp(log_gauss + math.log1p(-outlier), torch.full_like(log_gauss, math.log(outlier)))
     return torch.nan_to_num(log_r, nan=0.0)
