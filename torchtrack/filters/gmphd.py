@@ -420,52 +420,24 @@ def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, 
 
     Pairs are first screened on the position block (the first ``min(n, 2)`` coordinates): the full
     Mahalanobis distance is at least ``‖Δp‖² / λ_max(P_i,pos) ≥ ‖Δp‖² / tr(P_i,pos)``, so only pairs
-    passing that bound are solved exactly (through Cholesky factors), keeping the exact test sparse. In 2-D
-    the screen looks only at the neighbouring cells of a grid (:func:`_grid_pairs`), so its memory follows
-    the pairs that are near, not ``J²``.
+    passing that bound are solved exactly (through Cholesky factors), keeping the exact test sparse. The screen
+    looks only at the grid cells near each component (:func:`~torchtrack.association.grid.disc_candidates`),
+    so its memory follows the pairs that are near, not ``J²``.
     """
-    J, n = mean.shape
-    k = min(n, 2)
+    k = min(mean.shape[1], 2)
     lam = torch.diagonal(cov[:, :k, :k], dim1=-2, dim2=-1).sum(-1)
-    pos = mean[:, :k]
+    pos = _plane(mean[:, :k])
     bound = lam * scalar(threshold, lam) * scalar(1 + 1e-4, lam)              # squared screening radius of i
-    if k == 2:
-        ii, jj = _grid_pairs(pos, bound.sqrt())
-        d2 = (pos[ii] - pos[jj]).pow(2).sum(-1)
-        near = ((jj < ii) & (d2 <= bound[ii])).nonzero().squeeze(1)
-        ii, jj = ii[near], jj[near]
-    else:
-        d2 = (pos.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)             # [i, j]
-        ii, jj = torch.tril(d2 <= bound.unsqueeze(1), diagonal=-1).nonzero().unbind(1)
+    ii, jj = disc_candidates(pos, bound.sqrt(), pos)
+    d2 = (pos[ii] - pos[jj]).pow(2).sum(-1)
+    near = ((jj < ii) & (d2 <= bound[ii])).nonzero().squeeze(1)
+    ii, jj = ii[near], jj[near]
     if ii.numel():
         L, _ = torch.linalg.cholesky_ex(cov[ii])
         y = torch.linalg.solve_triangular(L, (mean[jj] - mean[ii]).unsqueeze(-1), upper=False)
         ok = (y.pow(2).sum((-1, -2)) <= scalar(threshold, y)).nonzero().squeeze(1)
         ii, jj = ii[ok], jj[ok]
     return ii, jj
-
-
-def _grid_pairs(pos: Tensor, radius: Tensor) -> tuple[Tensor, Tensor]:
-    """Every pair ``(i, j)`` of points ``pos (J, 2)`` whose grid cells touch, on square cells of side
-    ``max radius``: a superset of the pairs with ``‖p_i − p_j‖ ≤ radius_i``. Points are sorted by cell
-    (row-major), so the three cells of a neighbouring row are one run of the order, found by two binary
-    searches; memory ``O(pairs in neighbouring cells)``."""
-    lo_xy = pos.min(0).values
-    extent = float((pos.max(0).values - lo_xy).max())
-    cell = max(float(radius.max()), extent / 2**20, 1e-12)          # at most 2^20 cells a side: keys fit int64
-    g = torch.floor((pos - lo_xy) / cell).long() + 1                # a margin cell on each side
-    cols = int(g[:, 0].max()) + 2
-    key = g[:, 1] * cols + g[:, 0]
-    order = torch.argsort(key)
-    sorted_key = key[order]
-    first = key.unsqueeze(1) + torch.tensor([-cols - 1, -1, cols - 1], device=key.device)   # (J, 3) rows' first cells
-    start = torch.searchsorted(sorted_key, first)
-    count = (torch.searchsorted(sorted_key, first + 2, right=True) - start).reshape(-1)
-    start = start.reshape(-1)
-    ii = torch.arange(pos.shape[0], device=pos.device).repeat_interleave(3).repeat_interleave(count)
-    run_start = (torch.cumsum(count, 0) - count).repeat_interleave(count)
-    offset = torch.arange(int(count.sum()), device=pos.device) - run_start          # position within each run
-    return ii, order[start.repeat_interleave(count) + offset]
 
 
 def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Tensor | None = None) -> MixtureState:
