@@ -113,6 +113,15 @@ CASES = {
 }
 
 
+@pytest.fixture(params=["every pair", "grid"])
+def pairs_from(request, monkeypatch) -> str:
+    """Both ways to the gated pairs: every pair tested at once (a small problem) and the grid index."""
+    limit = 10**12 if request.param == "every pair" else 0
+    monkeypatch.setattr("torchtrack.filters.gmphd.DENSE_PAIRS", limit)
+    monkeypatch.setattr("torchtrack.filters.gmphd_birth.DENSE_PAIRS", limit)
+    return request.param
+
+
 def assert_same(a: tuple[MixtureState, UpdateInfo], b: tuple[MixtureState, UpdateInfo]) -> None:
     (pa, ia), (pb, ib) = a, b
     assert ia.gated_pairs == ib.gated_pairs
@@ -126,7 +135,7 @@ def assert_same(a: tuple[MixtureState, UpdateInfo], b: tuple[MixtureState, Updat
 
 @pytest.mark.parametrize("case", list(CASES))
 @pytest.mark.parametrize("seed", [0, 1])
-def test_the_sparse_update_equals_the_dense_one(case, seed):
+def test_the_sparse_update_equals_the_dense_one(case, seed, pairs_from):
     options, with_velocity = CASES[case]
     phd = make_phd(**options)
     state, z, v = random_scene(seed)
@@ -139,7 +148,7 @@ def test_the_sparse_update_equals_the_dense_one(case, seed):
     assert_same(got, want)
 
 
-def test_pair_ratios_and_label_support_follow_the_dense_update():
+def test_pair_ratios_and_label_support_follow_the_dense_update(pairs_from):
     """The per-pair log-ratio (a tone) enters each gated pair, the label support sums over the same pairs."""
     phd = make_phd()
     state, z, _ = random_scene(2)
@@ -154,7 +163,7 @@ def test_pair_ratios_and_label_support_follow_the_dense_update():
     assert_same(got, want)
 
 
-def test_one_dimensional_measurements_use_the_same_grid():
+def test_one_dimensional_measurements_use_the_same_grid(pairs_from):
     phd = make_phd(dims=1, velocity_sigma=None)
     state, z, _ = random_scene(4, dims=1)
     with torch.no_grad():
@@ -165,7 +174,7 @@ def test_one_dimensional_measurements_use_the_same_grid():
 
 
 @pytest.mark.parametrize("case", ["position", "velocity outlier"])
-def test_gradients_equal_those_of_the_dense_update(case):
+def test_gradients_equal_those_of_the_dense_update(case, pairs_from):
     """Through the gated pairs, the segment sums and the scatter of the label support: the gradients of the
     parameters and of the predicted mixture equal the dense update's."""
     options, with_velocity = CASES[case]
@@ -205,7 +214,7 @@ def test_disc_candidates_hold_every_pair_within_the_radius():
     assert torch.equal(qq, torch.sort(qq).values)
 
 
-def test_birth_measurements_equal_the_distance_to_every_heavy_prediction():
+def test_birth_measurements_equal_the_distance_to_every_heavy_prediction(pairs_from):
     birth = AdaptiveBirth(GMPHDBirthOptions(distance_threshold=5.0, suppress_weight=0.1))
     g = torch.Generator().manual_seed(8)
     pos = torch.rand(2000, 2, generator=g, dtype=F64) * 500

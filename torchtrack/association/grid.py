@@ -14,6 +14,10 @@ import math
 import torch
 from torch import Tensor
 
+DENSE_PAIRS = 65536
+"""Up to this many query × point pairs, callers test every pair at once instead: a small problem costs fewer
+operations that way than through the grid (whose fixed cost is some 40 tensor operations)."""
+
 CELLS_PER_POINT = 16
 """Most cells of the grid per point (a finer cell is widened): the table of cell starts stays ``O(points)``."""
 

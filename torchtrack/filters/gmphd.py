@@ -61,10 +61,11 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchtrack.association.grid import disc_candidates
+from torchtrack.association.grid import DENSE_PAIRS, disc_candidates
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.tracker_config import GMPHDFilterOptions
 from torchtrack.gaussian import (
+    batched_matmul,
     chi2_quantile,
     gain_from_cholesky,
     gaussian_log_likelihood,
@@ -380,10 +381,15 @@ def gated_pairs(z_hat: Tensor, S: Tensor, chol_inv: Tensor, z: Tensor, gate: flo
     with the radius ``r_j = √(γ λ_max(S_j,pp))``, ``pp`` the leading ``min(m, 2)`` coordinates (the position):
     the marginal NIS of a sub-vector is at most the whole's (Schur complement), and ``ν_pᵀ S_pp⁻¹ ν_p ≥ ‖ν_p‖² /
     λ_max(S_pp)``, so an in-gate pair has ``‖ν_p‖ ≤ r_j`` and no in-gate pair is missed. Only the candidates
-    within ``r_j`` are tested exactly; memory follows the candidates, not ``J M``.
+    within ``r_j`` are tested exactly; memory follows the candidates, not ``J M``. Up to
+    :data:`~torchtrack.association.grid.DENSE_PAIRS` pairs, every pair is tested at once instead.
     """
     p = min(z.shape[1], 2)
     with torch.no_grad():
+        if z_hat.shape[0] * z.shape[0] <= DENSE_PAIRS:                  # small: every pair at once
+            nu = z[:, :gate_dim].unsqueeze(0) - z_hat[:, :gate_dim].unsqueeze(1)                   # (J, M, g)
+            white = batched_matmul(nu, chol_inv[:, :gate_dim, :gate_dim].transpose(-1, -2))
+            return ((white.pow(2).sum(-1) <= gate) & mask.unsqueeze(1)).nonzero().unbind(1)
         a, c = S[:, 0, 0], S[:, p - 1, p - 1]
         b = S[:, p - 1, 0] if p == 2 else torch.zeros_like(a)             # the lower triangle, as Cholesky's
         lam = (a + c) * 0.5 + torch.sqrt(((a - c) * 0.5).pow(2) + b.pow(2))    # λ_max of the 2 × 2 block

@@ -30,7 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
-from torchtrack.association.grid import disc_candidates
+from torchtrack.association.grid import DENSE_PAIRS, disc_candidates
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.tracker_config import GMPHDBirthOptions, VelocityMapOptions
 from torchtrack.gaussian import scalar
@@ -128,7 +128,8 @@ class AdaptiveBirth(nn.Module):
         ``pred_pos (J, 2)`` predicted positions ``H F x_i``, ``pred_log_w (J,)`` their log-weights. The
         predictions within ``T_B`` of a measurement are found on a grid of the measurements
         (:func:`~torchtrack.association.grid.disc_candidates`, cells of side ``T_B``): memory and time follow the
-        pairs that are near, not ``J M``.
+        pairs that are near, not ``J M`` (up to :data:`~torchtrack.association.grid.DENSE_PAIRS` pairs, every
+        distance at once).
         """
         if pred_pos.shape[0] == 0 or z.shape[0] == 0:
             return torch.ones(z.shape[0], dtype=torch.bool, device=z.device)
@@ -136,6 +137,9 @@ class AdaptiveBirth(nn.Module):
         reach = self.options.distance_threshold
         heavy = pred_log_w.detach() > scalar(math.log(self.options.suppress_weight), pred_log_w)
         pos, z = pred_pos.detach(), z.detach()
+        if pos.shape[0] * z.shape[0] <= DENSE_PAIRS:
+            d2 = (z.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)                  # (M, J)
+            return torch.where(heavy, d2, scalar(math.inf, d2)).amin(1) > scalar(reach**2, d2)
         radius = torch.where(heavy, scalar(reach, pos), scalar(-1.0, pos))
         jj, kk = disc_candidates(pos, radius, z, cell=reach)
         near = (z.index_select(0, kk) - pos.index_select(0, jj)).pow(2).sum(-1) <= scalar(reach**2, z)
