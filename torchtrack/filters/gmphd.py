@@ -65,10 +65,11 @@ from torchtrack.association.grid import DENSE_PAIRS, disc_candidates
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.tracker_config import GMPHDFilterOptions
 from torchtrack.gaussian import (
-    batched_matmul,
+    KalmanGain,
     chi2_quantile,
     gain_from_cholesky,
     gaussian_log_likelihood,
+    innovations_likelihood,
     kalman_gain,
     log_det_from_cholesky,
     posterior_cov,
@@ -229,7 +230,7 @@ class GMPHD(nn.Module):
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
     def update(self, state: MixtureState, z: Tensor, mats: Matrices, velocity: Tensor | None = None,
-               likelihood: bool = True, pair_loglik: Callable[[Tensor, Tensor], Tensor] | None = None,
+               likelihood: bool = True, pair_loglik: PairLogLik | None = None,
                label_index: tuple[Tensor, int] | None = None) -> tuple[MixtureState, UpdateInfo]:
         """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
 
@@ -279,31 +280,18 @@ class GMPHD(nn.Module):
         # and P − W Wᵀ; per gated (component, measurement) pair the whitened innovation gives NIS and log ℓ
         gain = kalman_gain(S, PHt, "GMPHD update: innovation covariance S")
         K, P_upd = gain.gain, posterior_cov(state.cov, gain)
-        base = log_pd + live_w                                       # (J,)
         p_dim = H.shape[0]
-        jj, kk = gated_pairs(z_hat, S, gain.chol_inv, z, gate, state.mask, p_dim if robust else m_dim)
-        nu = z.index_select(0, kk) - z_hat.index_select(0, jj)           # (G, m)
-        white = (gain.chol_inv.index_select(0, jj) * nu.unsqueeze(-2)).sum(-1)      # L⁻¹ ν
-        log_num = base.index_select(0, jj) + gaussian_log_likelihood(
-            white.pow(2).sum(-1), log_det_from_cholesky(gain.chol).index_select(0, jj), m_dim)
+        base, base_pos, gain_p = log_pd + live_w, None, None                  # (J,) log p_D w_j
         if robust:         # the leading block of L is the factor of S's position block, that of L⁻¹ its inverse
             gain_p = gain_from_cholesky(gain.chol[:, :p_dim, :p_dim], PHt[:, :, :p_dim])
             K_p, P_upd_p = gain_p.gain, posterior_cov(state.cov, gain_p)
             log_eps = mats.log_velocity_outlier
-            base_pos = log_pd + live_w + log_eps + mats.log_clutter_velocity
-            log_num = log_num + torch.log1p(-log_eps.exp())
-            without_v = base_pos.index_select(0, jj) + gaussian_log_likelihood(
-                white[:, :p_dim].pow(2).sum(-1), log_det_from_cholesky(gain_p.chol).index_select(0, jj), p_dim)
-            use_pos = without_v > log_num                   # pairs whose velocity is more likely an outlier
-            log_num = torch.logaddexp(log_num, without_v)
-        if pair_loglik is not None:
-            log_num = log_num + pair_loglik(jj, kk)
-        log_den_t = log_normaliser(kk, log_num, log_kappa)
-        det_logw = log_num - log_den_t.index_select(0, kk)
-        support = None
-        if label_index is not None:
-            support = torch.zeros(label_index[1], dtype=live_w.dtype, device=live_w.device).index_add(
-                0, label_index[0].index_select(0, jj), (log_num - log_kappa.index_select(0, kk)).exp())
+            base_pos = base + log_eps + mats.log_clutter_velocity
+            base = base + torch.log1p(-log_eps.exp())
+        parts = _Components(z_hat, S, gain, gain_p, base, base_pos, state.mask, gate)
+        weigh = _dense_pairs if state.size * z.shape[0] <= DENSE_PAIRS else _sparse_pairs
+        jj, kk, det_logw, use_pos, log_den_t, support = weigh(parts, z, log_kappa, pair_loglik, label_index)
+        nu = z.index_select(0, kk) - z_hat.index_select(0, jj)           # (G, m)
         det_mean = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K.index_select(0, jj),
                                  nu.unsqueeze(-1)).squeeze(-1)              # m + K ν per gated pair
         det_cov = P_upd.index_select(0, jj)
@@ -367,6 +355,100 @@ class GMPHD(nn.Module):
         return state.mask & (lw > scalar(math.log(self.options.extract_threshold), lw))
 
 
+PairLogLik = Callable[[Tensor, Tensor], Tensor]
+"""``pair_loglik(jj, kk) → (G,)`` of :meth:`GMPHD.update`: a log-likelihood ratio per (component, measurement) pair."""
+
+
+class _Components(NamedTuple):
+    """What :meth:`GMPHD.update` weighs each pair with, per component (``J``): ``z_hat (J, m)``, ``S (J, m, m)``,
+    the Kalman factors ``gain`` of ``S`` and ``gain_pos`` of its position block (the robust velocity: else None),
+    ``base (J,)`` ``log p_D w_j`` (times ``1 − ε`` with velocity outliers), ``base_pos (J,)`` the position-only
+    term's ``log p_D w_j ε κ_v`` (or None), ``mask (J,)`` and the gate ``γ``."""
+
+    z_hat: Tensor
+    S: Tensor
+    gain: KalmanGain
+    gain_pos: KalmanGain | None
+    base: Tensor
+    base_pos: Tensor | None
+    mask: Tensor
+    gate: float
+
+
+class _PairWeights(NamedTuple):
+    """The gated pairs ``(jj, kk) (G,)`` ordered by component, then measurement, their posterior log-weights
+    ``(G,)``, ``use_pos (G,)`` (the position-only update wins; None without velocity outliers), the
+    denominators ``log_den (M,)`` and the label support ``(L,)`` (None unless asked)."""
+
+    jj: Tensor
+    kk: Tensor
+    log_weight: Tensor
+    use_pos: Tensor | None
+    log_den: Tensor
+    support: Tensor | None
+
+
+def _dense_pairs(c: _Components, z: Tensor, log_kappa: Tensor, pair_loglik: PairLogLik | None,
+                 label_index: tuple[Tensor, int] | None) -> _PairWeights:
+    """Every (component, measurement) pair at once, ``(J, M)`` (a small frame: fewer operations than the grid)."""
+    J, M = c.z_hat.shape[0], z.shape[0]
+    neg_inf = scalar(NEG_INF, c.base)
+    gate = scalar(c.gate, c.base)
+    nu = z.unsqueeze(0) - c.z_hat.unsqueeze(1)                                 # (J, M, m)
+    nis, loglik = innovations_likelihood(c.gain, nu)          # (J, M)  νᵀ S⁻¹ ν, log N(ν; 0, S)
+    use_pos = None
+    if c.gain_pos is not None:
+        p = c.gain_pos.chol.shape[-1]
+        nis_p, loglik_p = innovations_likelihood(c.gain_pos, nu[..., :p])
+        gated = (nis_p <= gate) & c.mask.unsqueeze(1)
+        with_v, without_v = c.base.unsqueeze(1) + loglik, c.base_pos.unsqueeze(1) + loglik_p
+        log_num = torch.where(gated, torch.logaddexp(with_v, without_v), neg_inf)
+    else:
+        gated = (nis <= gate) & c.mask.unsqueeze(1)
+        log_num = torch.where(gated, c.base.unsqueeze(1) + loglik, neg_inf)
+    if pair_loglik is not None:
+        every_j = torch.arange(J, device=z.device).repeat_interleave(M)
+        log_num = log_num + pair_loglik(every_j, torch.arange(M, device=z.device).repeat(J)).view(J, M)
+    den = torch.logaddexp(log_kappa, torch.logsumexp(log_num, 0)) if J else log_kappa
+    support = None
+    if label_index is not None:
+        support = torch.zeros(label_index[1], dtype=c.base.dtype, device=c.base.device)
+        if J:
+            support = support.index_add(0, label_index[0], (log_num - log_kappa.unsqueeze(0)).exp().sum(1))
+    jj, kk = gated.nonzero().unbind(1)
+    if c.gain_pos is not None:
+        use_pos = (without_v > with_v)[jj, kk]
+    return _PairWeights(jj, kk, log_num[jj, kk] - den[kk], use_pos, den, support)
+
+
+def _sparse_pairs(c: _Components, z: Tensor, log_kappa: Tensor, pair_loglik: PairLogLik | None,
+                 label_index: tuple[Tensor, int] | None) -> _PairWeights:
+    """The gated pairs from the grid index (:func:`gated_pairs`), weighed pair by pair; each measurement's
+    denominator a segment sum over its pairs (:func:`log_normaliser`)."""
+    m = z.shape[1]
+    robust = c.gain_pos is not None
+    p = c.gain_pos.chol.shape[-1] if robust else m
+    jj, kk = gated_pairs(c.z_hat, c.S, c.gain.chol_inv, z, c.gate, c.mask, p)
+    nu = z.index_select(0, kk) - c.z_hat.index_select(0, jj)             # (G, m)
+    white = (c.gain.chol_inv.index_select(0, jj) * nu.unsqueeze(-2)).sum(-1)      # L⁻¹ ν
+    log_num = c.base.index_select(0, jj) + gaussian_log_likelihood(
+        white.pow(2).sum(-1), log_det_from_cholesky(c.gain.chol).index_select(0, jj), m)
+    use_pos = None
+    if robust:                        # (L⁻¹ ν)_pos = L_pos⁻¹ ν_pos: L⁻¹ is lower triangular
+        without_v = c.base_pos.index_select(0, jj) + gaussian_log_likelihood(
+            white[:, :p].pow(2).sum(-1), log_det_from_cholesky(c.gain_pos.chol).index_select(0, jj), p)
+        use_pos = without_v > log_num
+        log_num = torch.logaddexp(log_num, without_v)
+    if pair_loglik is not None:
+        log_num = log_num + pair_loglik(jj, kk)
+    den = log_normaliser(kk, log_num, log_kappa)
+    support = None
+    if label_index is not None:
+        support = torch.zeros(label_index[1], dtype=c.base.dtype, device=c.base.device).index_add(
+            0, label_index[0].index_select(0, jj), (log_num - log_kappa.index_select(0, kk)).exp())
+    return _PairWeights(jj, kk, log_num - den.index_select(0, kk), use_pos, den, support)
+
+
 def gated_pairs(z_hat: Tensor, S: Tensor, chol_inv: Tensor, z: Tensor, gate: float, mask: Tensor,
                 gate_dim: int) -> tuple[Tensor, Tensor]:
     """The (component, measurement) pairs inside the gate, ``(jj, kk)`` two ``(G,)`` long tensors ordered by
@@ -381,15 +463,10 @@ def gated_pairs(z_hat: Tensor, S: Tensor, chol_inv: Tensor, z: Tensor, gate: flo
     with the radius ``r_j = √(γ λ_max(S_j,pp))``, ``pp`` the leading ``min(m, 2)`` coordinates (the position):
     the marginal NIS of a sub-vector is at most the whole's (Schur complement), and ``ν_pᵀ S_pp⁻¹ ν_p ≥ ‖ν_p‖² /
     λ_max(S_pp)``, so an in-gate pair has ``‖ν_p‖ ≤ r_j`` and no in-gate pair is missed. Only the candidates
-    within ``r_j`` are tested exactly; memory follows the candidates, not ``J M``. Up to
-    :data:`~torchtrack.association.grid.DENSE_PAIRS` pairs, every pair is tested at once instead.
+    within ``r_j`` are tested exactly; memory follows the candidates, not ``J M``.
     """
     p = min(z.shape[1], 2)
     with torch.no_grad():
-        if z_hat.shape[0] * z.shape[0] <= DENSE_PAIRS:                  # small: every pair at once
-            nu = z[:, :gate_dim].unsqueeze(0) - z_hat[:, :gate_dim].unsqueeze(1)                   # (J, M, g)
-            white = batched_matmul(nu, chol_inv[:, :gate_dim, :gate_dim].transpose(-1, -2))
-            return ((white.pow(2).sum(-1) <= gate) & mask.unsqueeze(1)).nonzero().unbind(1)
         a, c = S[:, 0, 0], S[:, p - 1, p - 1]
         b = S[:, p - 1, 0] if p == 2 else torch.zeros_like(a)             # the lower triangle, as Cholesky's
         lam = (a + c) * 0.5 + torch.sqrt(((a - c) * 0.5).pow(2) + b.pow(2))    # λ_max of the 2 × 2 block
