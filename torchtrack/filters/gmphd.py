@@ -33,10 +33,12 @@ gated on the position alone; the pair's posterior takes the update of the larger
 (with or without the velocity), its weight the whole mixture.
 
 ``S`` is factored once per component (it does not depend on the measurement); pairs outside the gate
-get weight zero and are never formed: the gated pairs come from a grid index of the measurements searched
-with a radius per component that no in-gate pair exceeds (:func:`gated_pairs`), and the denominator of each
-measurement is a segment sum over its pairs (:func:`log_normaliser`), so the update's time and memory follow
-the gated pairs — about the number of targets at a constant density — not ``J × M``.
+get weight zero. A small frame (at most :data:`~torchtrack.association.grid.DENSE_PAIRS` pairs) tests every
+pair at once; a larger one never forms the pairs outside the gate: they come from a grid index of the
+measurements searched with a radius per component that no in-gate pair exceeds (:func:`gated_pairs`), and
+the denominator of each measurement is a segment sum over its pairs (:func:`log_normaliser`), so the
+update's time and memory follow the gated pairs — about the number of targets at a constant density — not
+``J × M``. Both give the same result.
 
 The PHD predictive log-likelihood of a measurement set (Mahler 2007, the Poisson form used for
 parameter learning) is returned by :meth:`GMPHD.update`::
