@@ -243,3 +243,20 @@ def test_trackers_report_what_the_dense_update_reports(name, monkeypatch):
         assert torch.equal(ids_a, ids_b)
         torch.testing.assert_close(pos_a, pos_b, rtol=0, atol=1e-8)
     assert sum(ids.numel() for ids, _ in runs[0]) > 300 * 5
+
+
+@pytest.mark.cuda
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device (runs where a GPU exists)")
+@pytest.mark.parametrize("name", ["gmphd", "labelled-gmphd"])
+def test_the_grid_path_on_cuda_gives_the_cpu_tracks(name, monkeypatch):
+    monkeypatch.setattr("torchtrack.filters.gmphd.DENSE_PAIRS", 0)
+    monkeypatch.setattr("torchtrack.filters.gmphd_birth.DENSE_PAIRS", 0)
+    scene = scale.simulate(300, 6, seed=3)
+    runs = {}
+    for device in ("cpu", "cuda"):
+        tracker = make_tracker(name, {"dtype": "float64"})
+        runs[device] = [tracker.step(frame, z.to(device), v.to(device)) for frame, z, v in scene.detections]
+    for (ids_cpu, pos_cpu), (ids_gpu, pos_gpu) in zip(runs["cpu"], runs["cuda"]):
+        assert ids_gpu.device.type == "cuda"
+        assert torch.equal(ids_cpu, ids_gpu.cpu())
+        torch.testing.assert_close(pos_gpu.cpu(), pos_cpu, rtol=0, atol=1e-6)
