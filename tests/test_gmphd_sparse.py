@@ -15,6 +15,7 @@ from torchtrack.association.grid import disc_candidates
 from torchtrack.bench import scale
 from torchtrack.filters.gmphd import GMPHD, MixtureState, UpdateInfo
 from torchtrack.filters.gmphd_birth import AdaptiveBirth
+from torchtrack.filters.gmphd_tone import nearest_detection
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.filters.tracker_config import GMPHDBirthOptions, GMPHDFilterOptions
 from torchtrack.models import ConstantVelocity, LinearPosition
@@ -119,6 +120,7 @@ def pairs_from(request, monkeypatch) -> str:
     limit = 10**12 if request.param == "every pair" else 0
     monkeypatch.setattr("torchtrack.filters.gmphd.DENSE_PAIRS", limit)
     monkeypatch.setattr("torchtrack.filters.gmphd_birth.DENSE_PAIRS", limit)
+    monkeypatch.setattr("torchtrack.filters.gmphd_tone.DENSE_PAIRS", limit)
     return request.param
 
 
@@ -225,6 +227,20 @@ def test_birth_measurements_equal_the_distance_to_every_heavy_prediction(pairs_f
     want = d.min(1).values > 5.0
     assert 50 < int(want.sum()) < 550
     assert torch.equal(birth.birth_measurements(pos, log_w, z), want)
+
+
+def test_the_nearest_detection_is_that_of_every_distance(pairs_from):
+    """The tone update's nearest detection within 3 px (the lowest index among equals)."""
+    g = torch.Generator().manual_seed(9)
+    z = torch.rand(800, 2, generator=g, dtype=F64) * 400
+    z[1] = z[0]                                                                   # equal distances
+    pos = torch.cat([z[:400] + torch.randn(400, 2, generator=g, dtype=F64) * 2,
+                     torch.rand(200, 2, generator=g, dtype=F64) * 400])
+    hit, k = nearest_detection(pos, z, 3.0)
+    d = torch.cdist(pos, z)
+    near, want = d.min(1)
+    assert torch.equal(hit, near <= 3.0) and 200 < int(hit.sum()) < 590
+    assert torch.equal(k[hit], want[hit]) and not (k[hit] == 1).any()
 
 
 @pytest.mark.parametrize("name", ["gmphd", "labelled-gmphd"])
