@@ -15,7 +15,7 @@ def test_birth_measurements_are_those_far_from_every_heavy_prediction():
     pred_pos = torch.tensor([[0.0, 0.0], [100.0, 0.0], [50.0, 50.0]], dtype=F64)
     pred_logw = torch.tensor([0.0, 0.0, -5.0], dtype=F64)          # the third is too light to explain
     z = torch.tensor([[3.0, 4.0], [3.0, 4.1], [100.0, 6.0], [50.0, 50.0]], dtype=F64)
-    assert birth.birth_measurements(pred_pos, pred_logw, z, chunk=2).tolist() == [False, True, True, True]
+    assert birth.birth_measurements(pred_pos, pred_logw, z).tolist() == [False, True, True, True]
     assert birth.birth_measurements(pred_pos[:0], pred_logw[:0], z).all()
 
 

@@ -26,7 +26,7 @@ F64 = torch.float64
 def test_tone_log_ratio_is_the_robust_gaussian_over_the_uniform_clutter_density():
     a = torch.tensor([100.0, float("nan")], dtype=F64)
     t = torch.tensor([100.0, 104.0, 30.0], dtype=F64)
-    out = tone_log_ratio(a, t, sigma=4.0, outlier=0.1, levels=256.0)
+    out = tone_log_ratio(a.unsqueeze(1), t, sigma=4.0, outlier=0.1, levels=256.0)
     for k, tk in enumerate(t.tolist()):
         gauss = math.exp(-0.5 * ((tk - 100.0) / 4.0) ** 2) / (4.0 * math.sqrt(2 * math.pi))
         assert float(out[0, k]) == pytest.approx(math.log((0.9 * gauss + 0.1 / 256.0) * 256.0), rel=1e-12)
@@ -67,7 +67,7 @@ def test_update_multiplies_each_pairs_likelihood_by_the_given_ratio():
     z = torch.tensor([[1.0, 0.5], [2.5, -0.5]], dtype=F64)
     ratio = torch.tensor([[2.0, 0.1], [0.5, 3.0]], dtype=F64)
     with torch.no_grad():
-        post, _ = phd.update(state, z, mats, pair_loglik=ratio.log())
+        post, _ = phd.update(state, z, mats, pair_loglik=lambda jj, kk: ratio.log()[jj, kk])
     # brute force: q_jk = p_D w_j N(z_k; m_j, P_j + R) r_jk, weight q_jk / (κ + Σ_j q_jk)
     pd, kappa = float(mats.p_detection), float(mats.clutter_density)
     S = cov[:, :2, :2] + torch.eye(2, dtype=F64)

@@ -13,7 +13,7 @@ Prediction (eq. 3; Vo & Ma 2006 eq. 21–24)::
 
     w⁻ = p_S w,   m⁻ = F m,   P⁻ = F P Fᵀ + Q          (birth components are added by the caller)
 
-Update of every component against every measurement in one batched operation (eq. 25–29)::
+Update of every component against every measurement in its gate (eq. 25–29)::
 
     ẑ_j = H m_j,  S_j = H P_j Hᵀ + R,  K_j = P_j Hᵀ S_j⁻¹,  P_j⁺ = P_j − K_j S_j K_jᵀ
     missed:    w = (1 − p_D) w_j,                         m = m_j,                P = P_j
@@ -33,9 +33,12 @@ gated on the position alone; the pair's posterior takes the update of the larger
 (with or without the velocity), its weight the whole mixture.
 
 ``S`` is factored once per component (it does not depend on the measurement); pairs outside the gate
-get weight zero and are not materialised. The measurement axis is processed in chunks (at most ``chunk``
-measurements and :data:`PAIR_BLOCK` pairs each) so that tens of thousands of measurements in one frame keep
-memory bounded.
+get weight zero. A small frame (at most :data:`~torchtrack.association.grid.DENSE_PAIRS` pairs) tests every
+pair at once; a larger one never forms the pairs outside the gate: they come from a grid index of the
+measurements searched with a radius per component that no in-gate pair exceeds (:func:`gated_pairs`), and
+the denominator of each measurement is a segment sum over its pairs (:func:`log_normaliser`), so the
+update's time and memory follow the gated pairs — about the number of targets at a constant density — not
+``J × M``. Both give the same result.
 
 The PHD predictive log-likelihood of a measurement set (Mahler 2007, the Poisson form used for
 parameter learning) is returned by :meth:`GMPHD.update`::
@@ -54,18 +57,23 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
 from torch import Tensor, nn
 
+from torchtrack.association.grid import DENSE_PAIRS, disc_candidates
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.tracker_config import GMPHDFilterOptions
 from torchtrack.gaussian import (
+    KalmanGain,
     chi2_quantile,
     gain_from_cholesky,
+    gaussian_log_likelihood,
     innovations_likelihood,
     kalman_gain,
+    log_det_from_cholesky,
     posterior_cov,
     scalar,
 )
@@ -157,8 +165,8 @@ class GMPHD(nn.Module):
         options: :class:`~torchtrack.filters.tracker_config.GMPHDFilterOptions` (their meaning and bounds there):
             ``p_S``, ``p_D``, ``κ`` (learnable), ``area`` of the log-likelihood's ``−λ_c`` term (None: dropped),
             the χ² gate's probability (``γ`` its quantile, ``m`` dof), prune threshold ``T``, merge threshold
-            ``U`` and rounds (see :func:`merge`), ``capacity`` ``J_max``, extraction threshold, ``chunk`` (the
-            update's measurements per block) and the detector's velocity: with ``velocity_sigma`` ``σ_v``
+            ``U`` and rounds (see :func:`merge`), ``capacity`` ``J_max``, extraction threshold and the detector's
+            velocity: with ``velocity_sigma`` ``σ_v``
             (learnable) and velocities given to the update, each detection is the 4-vector ``[z, v]`` measured
             through ``H = I_4`` with ``R_4 = blockdiag(R, σ_v² I)``, the clutter intensity of ``[z, v]`` is
             ``κ(z) κ_v`` (``velocity_clutter_density``, learnable) and ``velocity_outlier`` is ``ε`` of the
@@ -224,18 +232,20 @@ class GMPHD(nn.Module):
         return MixtureState(log_w, mean, cov, state.label, state.mask)
 
     def update(self, state: MixtureState, z: Tensor, mats: Matrices, velocity: Tensor | None = None,
-               likelihood: bool = True, pair_loglik: Tensor | None = None,
+               likelihood: bool = True, pair_loglik: PairLogLik | None = None,
                label_index: tuple[Tensor, int] | None = None) -> tuple[MixtureState, UpdateInfo]:
         """The full GM-PHD update of ``state`` (predicted, ``J`` components) with ``z (M, m)``.
 
         Clutter has the uniform intensity ``clutter_density``. ``velocity (M, 2)``: the detector's velocities,
         used as measurements (with ``H = I``, ``R_4 = blockdiag(R, σ_v² I)``, clutter ``κ κ_v``) when the filter
         has a ``velocity_sigma``, ignored otherwise. Returns the posterior (missed-detection components first,
-        then the gated detection components, ``J + G`` in all) and :class:`UpdateInfo` (its
-        ``log_likelihood`` is None with ``likelihood=False``, which saves its operations when streaming).
-        ``pair_loglik (J, M)``: a further log-likelihood ratio per (component, detection) pair, added to each
-        gated pair's weight — an attribute of the detection measured against the component's, over that
-        attribute's density under clutter (e.g. :mod:`torchtrack.filters.gmphd_tone`); None: none.
+        then the gated detection components ordered by component, then measurement, ``J + G`` in all) and
+        :class:`UpdateInfo` (its ``log_likelihood`` is None with ``likelihood=False``, which saves its operations
+        when streaming).
+        ``pair_loglik(jj, kk) → (G,)``: a further log-likelihood ratio of the gated (component, detection) pairs
+        ``(jj, kk)`` (two ``(G,)`` index tensors), added to each pair's weight — an attribute of the detection
+        measured against the component's, over that attribute's density under clutter (e.g.
+        :mod:`torchtrack.filters.gmphd_tone`); None: none.
         ``label_index = (index (J,), L)``: each component's label as an index in ``0 … L−1``; the result's
         ``label_support (L,)`` sums ``p_D w_j g_jk / κ(z_k)`` over each label's components and all detections
         (what a Bernoulli per label needs, :mod:`torchtrack.filters.gmphd_existence`).
@@ -269,62 +279,27 @@ class GMPHD(nn.Module):
             S = H @ PHt + R                      # (J, m, m); Cholesky reads its lower triangle only
             z_hat = state.mean @ H.transpose(-1, -2)                # (J, m)
         # the shared Kalman update of torchtrack.gaussian: per component (J) the factor L of S, the gain
-        # and P − W Wᵀ; per (component, measurement) pair the whitened innovation gives NIS and log ℓ
+        # and P − W Wᵀ; per gated (component, measurement) pair the whitened innovation gives NIS and log ℓ
         gain = kalman_gain(S, PHt, "GMPHD update: innovation covariance S")
         K, P_upd = gain.gain, posterior_cov(state.cov, gain)
-        base = log_pd + live_w                                       # (J,)
-        gate = scalar(gate, live_w)
-        if robust:         # the leading block of L is the factor of S's position block
-            p_dim = H.shape[0]
+        p_dim = H.shape[0]
+        base, base_pos, gain_p = log_pd + live_w, None, None                  # (J,) log p_D w_j
+        if robust:         # the leading block of L is the factor of S's position block, that of L⁻¹ its inverse
             gain_p = gain_from_cholesky(gain.chol[:, :p_dim, :p_dim], PHt[:, :, :p_dim])
             K_p, P_upd_p = gain_p.gain, posterior_cov(state.cov, gain_p)
             log_eps = mats.log_velocity_outlier
-            base_pos = log_pd + live_w + log_eps + mats.log_clutter_velocity
+            base_pos = base + log_eps + mats.log_clutter_velocity
             base = base + torch.log1p(-log_eps.exp())
-            pair_pos = []
-
-        pair_j, pair_k, pair_logw, log_den = [], [], [], []
-        support = None
-        if label_index is not None:
-            support = torch.zeros(label_index[1], dtype=live_w.dtype, device=live_w.device)
-        M, C = z.shape[0], min(self.options.chunk, max(1, PAIR_BLOCK // max(state.size, 1)))
-        for start in range(0, M, C):
-            zc, kc = z[start:start + C], log_kappa[start:start + C]
-            nu = zc.unsqueeze(0) - z_hat.unsqueeze(1)                # (J, C, m)
-            nis, loglik = innovations_likelihood(gain, nu)      # (J, C)  νᵀ S⁻¹ ν, log N(ν; 0, S)
-            if robust:
-                nis_p, loglik_p = innovations_likelihood(gain_p, nu[..., :p_dim])
-                gated = (nis_p <= gate) & state.mask.unsqueeze(1)
-                with_v, without_v = base.unsqueeze(1) + loglik, base_pos.unsqueeze(1) + loglik_p
-                log_num = torch.where(gated, torch.logaddexp(with_v, without_v), neg_inf)
-            else:
-                gated = (nis <= gate) & state.mask.unsqueeze(1)
-                log_num = torch.where(gated, base.unsqueeze(1) + loglik, neg_inf)
-            if pair_loglik is not None:
-                log_num = log_num + pair_loglik[:, start:start + C]
-            den = torch.logaddexp(kc, torch.logsumexp(log_num, 0)) if state.size else kc
-            if support is not None and state.size:
-                support = support.index_add(0, label_index[0], (log_num - kc.unsqueeze(0)).exp().sum(1))
-            jj, kk = gated.nonzero().unbind(1)
-            if robust:
-                pair_pos.append((without_v > with_v)[jj, kk])
-            pair_j.append(jj)
-            pair_k.append(kk + start if start else kk)
-            pair_logw.append(log_num[jj, kk] - den[kk])
-            log_den.append(den)
-        if log_den:
-            log_den_t, jj, kk, det_logw = (torch.cat(x) for x in (log_den, pair_j, pair_k, pair_logw))
-        else:
-            jj = kk = torch.empty(0, dtype=torch.long, device=z.device)
-            log_den_t, det_logw = log_kappa, live_w[:0]
-        nu_sel = z.index_select(0, kk) - z_hat.index_select(0, jj)          # (G, m)
+        parts = _Components(z_hat, S, gain, gain_p, base, base_pos, state.mask, gate)
+        weigh = _dense_pairs if state.size * z.shape[0] <= DENSE_PAIRS else _sparse_pairs
+        jj, kk, det_logw, use_pos, log_den_t, support = weigh(parts, z, log_kappa, pair_loglik, label_index)
+        nu = z.index_select(0, kk) - z_hat.index_select(0, jj)           # (G, m)
         det_mean = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K.index_select(0, jj),
-                                 nu_sel.unsqueeze(-1)).squeeze(-1)          # m + K ν per gated pair
+                                 nu.unsqueeze(-1)).squeeze(-1)              # m + K ν per gated pair
         det_cov = P_upd.index_select(0, jj)
-        if robust:                                # pairs whose velocity is more likely an outlier
-            use_pos = torch.cat(pair_pos) if pair_pos else torch.zeros(0, dtype=torch.bool, device=z.device)
+        if robust:
             mean_pos = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K_p.index_select(0, jj),
-                                     nu_sel[:, :p_dim].unsqueeze(-1)).squeeze(-1)
+                                     nu[:, :p_dim].unsqueeze(-1)).squeeze(-1)
             det_mean = torch.where(use_pos.unsqueeze(-1), mean_pos, det_mean)
             det_cov = torch.where(use_pos.view(-1, 1, 1), P_upd_p.index_select(0, jj), det_cov)
 
@@ -382,57 +357,172 @@ class GMPHD(nn.Module):
         return state.mask & (lw > scalar(math.log(self.options.extract_threshold), lw))
 
 
+PairLogLik = Callable[[Tensor, Tensor], Tensor]
+"""``pair_loglik(jj, kk) → (G,)`` of :meth:`GMPHD.update`: a log-likelihood ratio per (component, measurement) pair."""
+
+
+class _Components(NamedTuple):
+    """What :meth:`GMPHD.update` weighs each pair with, per component (``J``): ``z_hat (J, m)``, ``S (J, m, m)``,
+    the Kalman factors ``gain`` of ``S`` and ``gain_pos`` of its position block (the robust velocity: else None),
+    ``base (J,)`` ``log p_D w_j`` (times ``1 − ε`` with velocity outliers), ``base_pos (J,)`` the position-only
+    term's ``log p_D w_j ε κ_v`` (or None), ``mask (J,)`` and the gate ``γ``."""
+
+    z_hat: Tensor
+    S: Tensor
+    gain: KalmanGain
+    gain_pos: KalmanGain | None
+    base: Tensor
+    base_pos: Tensor | None
+    mask: Tensor
+    gate: float
+
+
+class _PairWeights(NamedTuple):
+    """The gated pairs ``(jj, kk) (G,)`` ordered by component, then measurement, their posterior log-weights
+    ``(G,)``, ``use_pos (G,)`` (the position-only update wins; None without velocity outliers), the
+    denominators ``log_den (M,)`` and the label support ``(L,)`` (None unless asked)."""
+
+    jj: Tensor
+    kk: Tensor
+    log_weight: Tensor
+    use_pos: Tensor | None
+    log_den: Tensor
+    support: Tensor | None
+
+
+def _dense_pairs(c: _Components, z: Tensor, log_kappa: Tensor, pair_loglik: PairLogLik | None,
+                 label_index: tuple[Tensor, int] | None) -> _PairWeights:
+    """Every (component, measurement) pair at once, ``(J, M)`` (a small frame: fewer operations than the grid)."""
+    J, M = c.z_hat.shape[0], z.shape[0]
+    neg_inf = scalar(NEG_INF, c.base)
+    gate = scalar(c.gate, c.base)
+    nu = z.unsqueeze(0) - c.z_hat.unsqueeze(1)                                 # (J, M, m)
+    nis, loglik = innovations_likelihood(c.gain, nu)          # (J, M)  νᵀ S⁻¹ ν, log N(ν; 0, S)
+    use_pos = None
+    if c.gain_pos is not None:
+        p = c.gain_pos.chol.shape[-1]
+        nis_p, loglik_p = innovations_likelihood(c.gain_pos, nu[..., :p])
+        gated = (nis_p <= gate) & c.mask.unsqueeze(1)
+        with_v, without_v = c.base.unsqueeze(1) + loglik, c.base_pos.unsqueeze(1) + loglik_p
+        log_num = torch.where(gated, torch.logaddexp(with_v, without_v), neg_inf)
+    else:
+        gated = (nis <= gate) & c.mask.unsqueeze(1)
+        log_num = torch.where(gated, c.base.unsqueeze(1) + loglik, neg_inf)
+    if pair_loglik is not None:
+        every_j = torch.arange(J, device=z.device).repeat_interleave(M)
+        log_num = log_num + pair_loglik(every_j, torch.arange(M, device=z.device).repeat(J)).view(J, M)
+    den = torch.logaddexp(log_kappa, torch.logsumexp(log_num, 0)) if J else log_kappa
+    support = None
+    if label_index is not None:
+        support = torch.zeros(label_index[1], dtype=c.base.dtype, device=c.base.device)
+        if J:
+            support = support.index_add(0, label_index[0], (log_num - log_kappa.unsqueeze(0)).exp().sum(1))
+    jj, kk = gated.nonzero().unbind(1)
+    if c.gain_pos is not None:
+        use_pos = (without_v > with_v)[jj, kk]
+    return _PairWeights(jj, kk, log_num[jj, kk] - den[kk], use_pos, den, support)
+
+
+def _sparse_pairs(c: _Components, z: Tensor, log_kappa: Tensor, pair_loglik: PairLogLik | None,
+                 label_index: tuple[Tensor, int] | None) -> _PairWeights:
+    """The gated pairs from the grid index (:func:`gated_pairs`), weighed pair by pair; each measurement's
+    denominator a segment sum over its pairs (:func:`log_normaliser`)."""
+    m = z.shape[1]
+    robust = c.gain_pos is not None
+    p = c.gain_pos.chol.shape[-1] if robust else m
+    jj, kk = gated_pairs(c.z_hat, c.S, c.gain.chol_inv, z, c.gate, c.mask, p)
+    nu = z.index_select(0, kk) - c.z_hat.index_select(0, jj)             # (G, m)
+    white = (c.gain.chol_inv.index_select(0, jj) * nu.unsqueeze(-2)).sum(-1)      # L⁻¹ ν
+    log_num = c.base.index_select(0, jj) + gaussian_log_likelihood(
+        white.pow(2).sum(-1), log_det_from_cholesky(c.gain.chol).index_select(0, jj), m)
+    use_pos = None
+    if robust:                        # (L⁻¹ ν)_pos = L_pos⁻¹ ν_pos: L⁻¹ is lower triangular
+        without_v = c.base_pos.index_select(0, jj) + gaussian_log_likelihood(
+            white[:, :p].pow(2).sum(-1), log_det_from_cholesky(c.gain_pos.chol).index_select(0, jj), p)
+        use_pos = without_v > log_num
+        log_num = torch.logaddexp(log_num, without_v)
+    if pair_loglik is not None:
+        log_num = log_num + pair_loglik(jj, kk)
+    den = log_normaliser(kk, log_num, log_kappa)
+    support = None
+    if label_index is not None:
+        support = torch.zeros(label_index[1], dtype=c.base.dtype, device=c.base.device).index_add(
+            0, label_index[0].index_select(0, jj), (log_num - log_kappa.index_select(0, kk)).exp())
+    return _PairWeights(jj, kk, log_num - den.index_select(0, kk), use_pos, den, support)
+
+
+def gated_pairs(z_hat: Tensor, S: Tensor, chol_inv: Tensor, z: Tensor, gate: float, mask: Tensor,
+                gate_dim: int) -> tuple[Tensor, Tensor]:
+    """The (component, measurement) pairs inside the gate, ``(jj, kk)`` two ``(G,)`` long tensors ordered by
+    component, then measurement (a stop-gradient selection).
+
+    ``z_hat (J, m)`` predicted measurements, ``S (J, m, m)`` their covariances, ``chol_inv (J, m, m)`` the
+    inverses of the Cholesky factors ``L`` of ``S``, ``z (M, m)``, ``mask (J,)`` live components. A pair is
+    inside the gate when ``ν_gᵀ S_g⁻¹ ν_g ≤ γ`` for the leading ``gate_dim`` coordinates ``g`` of ``ν = z_k − ẑ_j``
+    (the whole ``ν``, or its position alone); that NIS is ``‖(L⁻¹ ν)_g‖²``, ``L⁻¹`` being lower triangular.
+
+    Candidates come from a grid index of the measurements (:func:`~torchtrack.association.grid.disc_candidates`)
+    with the radius ``r_j = √(γ λ_max(S_j,pp))``, ``pp`` the leading ``min(m, 2)`` coordinates (the position):
+    the marginal NIS of a sub-vector is at most the whole's (Schur complement), and ``ν_pᵀ S_pp⁻¹ ν_p ≥ ‖ν_p‖² /
+    λ_max(S_pp)``, so an in-gate pair has ``‖ν_p‖ ≤ r_j`` and no in-gate pair is missed. Only the candidates
+    within ``r_j`` are tested exactly; memory follows the candidates, not ``J M``.
+    """
+    p = min(z.shape[1], 2)
+    with torch.no_grad():
+        a, c = S[:, 0, 0], S[:, p - 1, p - 1]
+        b = S[:, p - 1, 0] if p == 2 else torch.zeros_like(a)             # the lower triangle, as Cholesky's
+        lam = (a + c) * 0.5 + torch.sqrt(((a - c) * 0.5).pow(2) + b.pow(2))    # λ_max of the 2 × 2 block
+        radius = torch.where(mask, torch.sqrt(lam * gate) * (1 + 1e-6), torch.full_like(lam, -1.0))
+        pos_hat, pos = _plane(z_hat[:, :p]), _plane(z[:, :p])
+        jj, kk = disc_candidates(pos_hat, radius, pos)
+        near = ((pos.index_select(0, kk) - pos_hat.index_select(0, jj)).pow(2).sum(-1)
+                <= radius.index_select(0, jj).pow(2)).nonzero().squeeze(1)
+        jj, kk = jj.index_select(0, near), kk.index_select(0, near)
+        nu = z[kk, :gate_dim] - z_hat[jj, :gate_dim]
+        white = (chol_inv[:, :gate_dim, :gate_dim].index_select(0, jj) * nu.unsqueeze(-2)).sum(-1)
+        inside = (white.pow(2).sum(-1) <= gate).nonzero().squeeze(1)
+        jj, kk = jj.index_select(0, inside), kk.index_select(0, inside)
+        order = torch.argsort(jj * z.shape[0] + kk)
+        return jj.index_select(0, order), kk.index_select(0, order)
+
+
+def _plane(x: Tensor) -> Tensor:
+    """``x (K, 1 or 2)`` as points of the plane (a 1-D coordinate on the line ``y = 0``)."""
+    return x if x.shape[1] == 2 else torch.cat([x, torch.zeros_like(x)], 1)
+
+
+def log_normaliser(index: Tensor, log_term: Tensor, log_kappa: Tensor) -> Tensor:
+    """``log(κ_k + Σ_{pairs of k} exp(log_term))`` per measurement ``k``, ``(M,)``: the update's denominator as a
+    segment sum over the gated pairs, ``index (G,)`` their measurements, ``log_term (G,)``, ``log_kappa (M,)``.
+    Each segment is shifted by its (detached) maximum, so nothing overflows and the gradient is exact."""
+    shift = torch.scatter_reduce(log_kappa.detach().contiguous(), 0, index, log_term.detach(), "amax")
+    total = torch.exp(log_kappa - shift).index_add(0, index, torch.exp(log_term - shift.index_select(0, index)))
+    return shift + torch.log(total)
+
+
 def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, Tensor]:
     """Pairs ``(i, j)`` (two ``(K,)`` index tensors) with ``j < i`` and ``(m_i − m_j)ᵀ P_i⁻¹ (m_i − m_j) ≤ U``.
 
     Pairs are first screened on the position block (the first ``min(n, 2)`` coordinates): the full
     Mahalanobis distance is at least ``‖Δp‖² / λ_max(P_i,pos) ≥ ‖Δp‖² / tr(P_i,pos)``, so only pairs
-    passing that bound are solved exactly (through Cholesky factors), keeping the exact test sparse. In 2-D
-    the screen looks only at the neighbouring cells of a grid (:func:`_grid_pairs`), so its memory follows
-    the pairs that are near, not ``J²``.
+    passing that bound are solved exactly (through Cholesky factors), keeping the exact test sparse. The screen
+    looks only at the grid cells near each component (:func:`~torchtrack.association.grid.disc_candidates`),
+    so its memory follows the pairs that are near, not ``J²``.
     """
-    J, n = mean.shape
-    k = min(n, 2)
+    k = min(mean.shape[1], 2)
     lam = torch.diagonal(cov[:, :k, :k], dim1=-2, dim2=-1).sum(-1)
-    pos = mean[:, :k]
+    pos = _plane(mean[:, :k])
     bound = lam * scalar(threshold, lam) * scalar(1 + 1e-4, lam)              # squared screening radius of i
-    if k == 2:
-        ii, jj = _grid_pairs(pos, bound.sqrt())
-        d2 = (pos[ii] - pos[jj]).pow(2).sum(-1)
-        near = ((jj < ii) & (d2 <= bound[ii])).nonzero().squeeze(1)
-        ii, jj = ii[near], jj[near]
-    else:
-        d2 = (pos.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)             # [i, j]
-        ii, jj = torch.tril(d2 <= bound.unsqueeze(1), diagonal=-1).nonzero().unbind(1)
+    ii, jj = disc_candidates(pos, bound.sqrt(), pos)
+    d2 = (pos[ii] - pos[jj]).pow(2).sum(-1)
+    near = ((jj < ii) & (d2 <= bound[ii])).nonzero().squeeze(1)
+    ii, jj = ii[near], jj[near]
     if ii.numel():
         L, _ = torch.linalg.cholesky_ex(cov[ii])
         y = torch.linalg.solve_triangular(L, (mean[jj] - mean[ii]).unsqueeze(-1), upper=False)
         ok = (y.pow(2).sum((-1, -2)) <= scalar(threshold, y)).nonzero().squeeze(1)
         ii, jj = ii[ok], jj[ok]
     return ii, jj
-
-
-def _grid_pairs(pos: Tensor, radius: Tensor) -> tuple[Tensor, Tensor]:
-    """Every pair ``(i, j)`` of points ``pos (J, 2)`` whose grid cells touch, on square cells of side
-    ``max radius``: a superset of the pairs with ``‖p_i − p_j‖ ≤ radius_i``. Points are sorted by cell
-    (row-major), so the three cells of a neighbouring row are one run of the order, found by two binary
-    searches; memory ``O(pairs in neighbouring cells)``."""
-    lo_xy = pos.min(0).values
-    extent = float((pos.max(0).values - lo_xy).max())
-    cell = max(float(radius.max()), extent / 2**20, 1e-12)          # at most 2^20 cells a side: keys fit int64
-    g = torch.floor((pos - lo_xy) / cell).long() + 1                # a margin cell on each side
-    cols = int(g[:, 0].max()) + 2
-    key = g[:, 1] * cols + g[:, 0]
-    order = torch.argsort(key)
-    sorted_key = key[order]
-    first = key.unsqueeze(1) + torch.tensor([-cols - 1, -1, cols - 1], device=key.device)   # (J, 3) rows' first cells
-    start = torch.searchsorted(sorted_key, first)
-    count = (torch.searchsorted(sorted_key, first + 2, right=True) - start).reshape(-1)
-    start = start.reshape(-1)
-    ii = torch.arange(pos.shape[0], device=pos.device).repeat_interleave(3).repeat_interleave(count)
-    run_start = (torch.cumsum(count, 0) - count).repeat_interleave(count)
-    offset = torch.arange(int(count.sum()), device=pos.device) - run_start          # position within each run
-    return ii, order[start.repeat_interleave(count) + offset]
 
 
 def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Tensor | None = None) -> MixtureState:
@@ -529,12 +619,6 @@ def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> 
         if not bool(alive.any()):
             break
     return owner
-
-
-PAIR_BLOCK = 4096 * 1024
-"""Most (component, measurement) pairs in one block of the update: with a mixture larger than the default
-capacity a block holds fewer than ``chunk`` measurements, so the update's memory stays that of the default
-capacity's full chunk however far the scene-sized mixture grows (blocks give the same result)."""
 
 
 SCENE_COMPONENTS = 2

@@ -30,6 +30,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from torchtrack.association.grid import DENSE_PAIRS, disc_candidates
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.tracker_config import GMPHDBirthOptions, VelocityMapOptions
 from torchtrack.gaussian import scalar
@@ -121,22 +122,29 @@ class AdaptiveBirth(nn.Module):
     def new_velocity_map(self, dtype: torch.dtype, device=None) -> VelocityMap | None:
         return VelocityMap(self.options.velocity_map, dtype, device) if self.options.use_velocity_map else None
 
-    def birth_measurements(self, pred_pos: Tensor, pred_log_w: Tensor, z: Tensor, chunk: int = 4096) -> Tensor:
+    def birth_measurements(self, pred_pos: Tensor, pred_log_w: Tensor, z: Tensor) -> Tensor:
         """Bool ``(M,)``: measurements farther than ``T_B`` from every predicted position (eq. 4).
 
-        ``pred_pos (J, 2)`` predicted positions ``H F x_i``, ``pred_log_w (J,)`` their log-weights.
+        ``pred_pos (J, 2)`` predicted positions ``H F x_i``, ``pred_log_w (J,)`` their log-weights. The
+        predictions within ``T_B`` of a measurement are found on a grid of the measurements
+        (:func:`~torchtrack.association.grid.disc_candidates`, cells of side ``T_B``): memory and time follow the
+        pairs that are near, not ``J M`` (up to :data:`~torchtrack.association.grid.DENSE_PAIRS` pairs, every
+        distance at once).
         """
         if pred_pos.shape[0] == 0 or z.shape[0] == 0:
             return torch.ones(z.shape[0], dtype=torch.bool, device=z.device)
-        # a component below the suppression weight is infinitely far (same minimum as dropping it)
-        far = pred_log_w <= scalar(math.log(self.options.suppress_weight), pred_log_w)
-        inf, reach = scalar(float("inf"), z), scalar(self.options.distance_threshold ** 2, z)
-        p = pred_pos.detach().unsqueeze(0)      # a selection: no gradient (cheaper than a no_grad block)
-        out = []
-        for start in range(0, z.shape[0], chunk):
-            d2 = (z[start:start + chunk].unsqueeze(1) - p).pow(2).sum(-1)   # (C, J)
-            out.append(torch.where(far, inf, d2).amin(1) > reach)
-        return torch.cat(out)
+        # a selection: no gradient. A component below the suppression weight explains nothing (radius −1).
+        reach = self.options.distance_threshold
+        heavy = pred_log_w.detach() > scalar(math.log(self.options.suppress_weight), pred_log_w)
+        pos, z = pred_pos.detach(), z.detach()
+        if pos.shape[0] * z.shape[0] <= DENSE_PAIRS:
+            d2 = (z.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)                  # (M, J)
+            return torch.where(heavy, d2, scalar(math.inf, d2)).amin(1) > scalar(reach**2, d2)
+        radius = torch.where(heavy, scalar(reach, pos), scalar(-1.0, pos))
+        jj, kk = disc_candidates(pos, radius, z, cell=reach)
+        near = (z.index_select(0, kk) - pos.index_select(0, jj)).pow(2).sum(-1) <= scalar(reach**2, z)
+        explained = torch.zeros(z.shape[0], dtype=torch.bool, device=z.device).index_fill_(0, kk[near], True)
+        return ~explained
 
     def constants(self) -> BirthConstants:
         """The constrained parameters (compute once per step; differentiable)."""

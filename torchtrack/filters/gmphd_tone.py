@@ -23,6 +23,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
+from torchtrack.association.grid import DENSE_PAIRS, disc_candidates
 from torchtrack.filters.gmphd_labels import value_of_labels
 
 TONE_MATCH_DISTANCE = 3.0
@@ -51,9 +52,10 @@ def lookup(tones: LabelTones, label: Tensor) -> Tensor:
 
 def tone_log_ratio(component_tone: Tensor, detection_tone: Tensor, sigma: float, outlier: float,
                    levels: float = 256.0) -> Tensor:
-    """``log r(t_k | a_j)`` ``(J, M)`` for component tones ``(J,)`` (NaN: unknown, ratio 1) and detection tones
-    ``(M,)``; ``σ_t = sigma``, outlier probability ``ε = outlier``, clutter density ``u = 1/levels``."""
-    d = detection_tone.unsqueeze(0) - component_tone.unsqueeze(1)
+    """``log r(t | a)`` for component tones ``a`` (NaN: unknown, ratio 1) and detection tones ``t`` (shapes
+    broadcast: ``(G,)`` and ``(G,)`` for pairs, ``(J, 1)`` and ``(M,)`` for every pair); ``σ_t = sigma``, outlier
+    probability ``ε = outlier``, clutter density ``u = 1/levels``."""
+    d = detection_tone - component_tone
     log_gauss = -0.5 * (d / sigma).pow(2) - math.log(sigma * math.sqrt(2.0 * math.pi)) + math.log(levels)
     log_r = torch.logaddexp(log_gauss + math.log1p(-outlier), torch.full_like(log_gauss, math.log(outlier)))
     return torch.nan_to_num(log_r, nan=0.0)
@@ -67,9 +69,7 @@ def update_tones(tones: LabelTones, label: Tensor, position: Tensor, z: Tensor, 
     labels no longer in ``alive`` are forgotten."""
     known = tones
     if label.numel() and z.shape[0]:
-        dist = torch.cdist(position.to(z.dtype), z)
-        near, k = dist.min(dim=1)
-        hit = near <= max_distance
+        hit, k = nearest_detection(position.to(z.dtype), z, max_distance)
         lab, t = label[hit], z_tone[k[hit]].to(tones.tone.dtype)
         old, n = lookup(tones, lab), value_of_labels(tones.label, tones.count, lab, torch.zeros_like(lab))
         step = torch.clamp(1.0 / (n + 1).to(t.dtype), min=rate)
@@ -79,6 +79,24 @@ def update_tones(tones: LabelTones, label: Tensor, position: Tensor, z: Tensor, 
                            torch.cat([tones.count[keep], n + 1]))
     alive_mask = torch.isin(known.label, alive)
     return LabelTones(known.label[alive_mask], known.tone[alive_mask], known.count[alive_mask])
+
+
+def nearest_detection(position: Tensor, z: Tensor, max_distance: float) -> tuple[Tensor, Tensor]:
+    """For each of ``position (E, 2)`` the nearest detection of ``z (M, 2)`` (the lowest index among equals):
+    ``hit (E,)`` bool, one within ``max_distance``, and its index ``(E,)`` (meaningful where ``hit``). Beyond
+    :data:`~torchtrack.association.grid.DENSE_PAIRS` pairs only the detections in the grid cells near each
+    position are measured (:func:`~torchtrack.association.grid.disc_candidates`)."""
+    E, M = position.shape[0], z.shape[0]
+    if E * M <= DENSE_PAIRS:
+        near, k = torch.cdist(position, z).min(dim=1)
+        return near <= max_distance, k
+    ee, kk = disc_candidates(position, torch.full((E,), max_distance, dtype=z.dtype, device=z.device), z,
+                             cell=max_distance)
+    d = (z.index_select(0, kk) - position.index_select(0, ee)).norm(dim=-1)
+    best = torch.full((E,), math.inf, dtype=d.dtype, device=d.device).scatter_reduce(0, ee, d, "amin")
+    tie = d == best.index_select(0, ee)
+    first = torch.full((E,), M, dtype=kk.dtype, device=kk.device).scatter_reduce(0, ee[tie], kk[tie], "amin")
+    return best <= max_distance, first.clamp(max=M - 1)
 
 
 def add_births(tones: LabelTones, label: Tensor, tone: Tensor) -> LabelTones:

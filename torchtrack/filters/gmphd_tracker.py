@@ -157,9 +157,14 @@ class GMPHDTracker(nn.Module):
         phd, birth, o = self.phd, self.birth, self.options
         pred = phd.predict(state, mats)
         use_tone = tone is not None and o.tone_sigma is not None
-        is_birth = birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z, phd.options.chunk)
-        pair = (tone_log_ratio(lookup(memory.tones, pred.label), tone.to(z.dtype), o.tone_sigma, o.tone_outlier)
-                if use_tone else None)
+        is_birth = birth.birth_measurements(pred.mean[:, :2], pred.log_weight, z)
+        pair = None
+        if use_tone:
+            component_tone, detection_tone = lookup(memory.tones, pred.label), tone.to(z.dtype)
+
+            def pair(jj: Tensor, kk: Tensor) -> Tensor:
+                return tone_log_ratio(component_tone.index_select(0, jj), detection_tone.index_select(0, kk),
+                                      o.tone_sigma, o.tone_outlier)
         groups = label_groups(pred) if likelihood and bernoulli else None
         post, info = phd.update(pred, z, mats, velocity=velocity, likelihood=likelihood, pair_loglik=pair,
                                 label_index=None if groups is None else (groups.inverse, groups.labels.shape[0]))

@@ -34,7 +34,8 @@ class GMPHDFilterOptions(Checked):
     merge_threshold: squared Mahalanobis distance ``U`` within which components merge; merge_rounds: passes.
     capacity: the floor of the component cap, which follows the scene: ``max(capacity, 2 (measurements + live
     labels))`` per step (:meth:`~torchtrack.filters.gmphd.GMPHD.capacity_for`; hits are logged and counted).
-    extract_threshold: weight above which a component is an estimate. chunk: measurements per block of the update.
+    extract_threshold: weight above which a component is an estimate. chunk: unused since the update forms only
+    the gated pairs (docs/scale.md); accepted so that configs naming it still load.
     velocity_sigma: the detector's velocity noise std (px/frame): with velocities given, ``[z, v]`` is the
     measurement (ours, not the paper's); None: position-only update. velocity_clutter_density: density of a
     clutter detection's velocity (1/400: uniform over ±10 px/frame). velocity_outlier: probability that a
