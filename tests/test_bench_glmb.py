@@ -88,7 +88,7 @@ def test_reference_equals_our_filter_with_every_assignment_enumerated(monkeypatc
     reference = ReferenceGLMB(tracker_config("glmb", CONFIG), enumerate_all=True)
     for frame, z in enumerate(_frames(), start=1):
         ids, positions = ours.step(frame, torch.tensor(z))
-        ref_labels, ref_means, ref_used = reference.step(frame, z)
+        ref_labels, ref_means, _ = reference.step(frame, z)
         state = ours.state
         assert int(state.group.max()) == 0                     # one group: the two filters define the same GLMB
         mine, theirs = _hypotheses(state), _reference_hypotheses(reference.state)

@@ -121,7 +121,8 @@ def gibbs_chain(eta_rows: list[np.ndarray], sweeps: int, rng: np.random.Generato
 
 class ReferenceGLMB:
     """The per-hypothesis δ-GLMB tracker (module docstring) with the options of ``config``; ``seed`` its random
-    stream; ``enumerate_all``: every feasible assignment instead of the Gibbs samples (tiny problems only)."""
+    stream; ``enumerate_all``: every feasible assignment instead of the Gibbs samples (tiny problems only);
+    ``velocities``: the measurement is ``[z, v]`` with the detector's velocity (needs ``config.velocity_sigma``)."""
 
     def __init__(self, config: GLMBConfig, seed: int = 0, enumerate_all: bool = False, velocities: bool = False):
         c = self.config = config
@@ -144,11 +145,11 @@ class ReferenceGLMB:
     # ------------------------------------------------------------------------------------------ one frame
     def step(self, frame: int, z: np.ndarray, v: np.ndarray | None = None) -> tuple[list[tuple[int, int]],
                                                                                       np.ndarray, np.ndarray]:
-        """One frame: ``z (M, 2)``, ``v (M, 2)`` or None → the estimate's labels, its means ``(E, 4)`` and the
-        probability that each measurement was assigned ``(M,)``."""
+        """One frame: ``z (M, 2)``, ``v (M, 2)`` (used with ``velocities``) → the estimate's labels, its means
+        ``(E, 4)`` and the probability that each measurement was assigned ``(M,)``."""
         c = self.config
-        meas = np.concatenate([z, v], 1) if self.with_velocity and v is not None else z
-        log_kappa = math.log(c.clutter_density) + (math.log(c.velocity_clutter_density) if meas.shape[1] == 4
+        meas = np.concatenate([z, v], 1) if self.with_velocity else z
+        log_kappa = math.log(c.clutter_density) + (math.log(c.velocity_clutter_density) if self.with_velocity
                                                     else 0.0)
         self.state, used, estimate = self._update(self.state, self.births, meas, log_kappa)
         self.births = self._births(z, v if self.with_velocity else None, used, frame)
