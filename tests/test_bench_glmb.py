@@ -107,6 +107,23 @@ def test_reference_equals_our_filter_with_every_assignment_enumerated(monkeypatc
     assert len(_reference_hypotheses(reference.state)) > 5     # a non-trivial density by the last frame
 
 
+def test_reference_with_gibbs_tracks_one_target_as_our_filter():
+    """One target, no clutter, p_D 1: a single hypothesis either way (the sampler's draws cannot differ), so the
+    reference's Gibbs path gives our filter's estimate, to 1e-9, frame by frame."""
+    cfg = {"q": 0.5, "sigma": 1.0, "velocity_sigma": None, "p_detection": 1.0, "clutter_density": 1e-12,
+           "confirm_frames": 1}
+    ours, reference = make_tracker("glmb", cfg), ReferenceGLMB(tracker_config("glmb", cfg), seed=5)
+    rng = np.random.default_rng(3)
+    zs = np.array([10.0, 20.0]) + np.outer(np.arange(1, 13), [1.5, -0.5]) + rng.normal(0, 1.0, (12, 2))
+    for frame, z in enumerate(zs, start=1):
+        ids, positions = ours.step(frame, torch.tensor(z[None]))
+        labels, means, used = reference.step(frame, z[None])
+        assert len(reference.state.hypotheses) == 1 and ids.tolist() == [lab[1] + 1 for lab in labels]
+        np.testing.assert_allclose(means[:, :2], positions.numpy(), atol=1e-9)
+        assert used.tolist() == ([1.0] if frame > 1 else [0.0])
+    assert ids.tolist() == [1] and reference.draws > 0
+
+
 def test_reference_gibbs_chain_samples_the_exact_posterior():
     """One long chain over 3 tracks and 2 measurements: frequencies of the 7 × 7 joint choices against
     π(γ) ∝ Π η_i(γ_i) enumerated; 20 000 sweeps, every probability within 0.015 (about 5 standard errors of a
