@@ -5,7 +5,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 mkdir -p out/bench
 TT=.venv/bin/torchtrack
-for w in kf imm gmphd pf pmb lbp clearmot registration; do
+for w in kf imm gmphd glmb pf pmb lbp clearmot registration; do
   echo "== torchtrack bench $w" >&2
   "$TT" bench "$w" --json "out/bench/$w.json"
 done
