@@ -11,11 +11,10 @@ import math
 import pytest
 import torch
 
-from torchtrack.association.grid import disc_candidates
+from torchtrack.association.grid import disc_candidates, nearest_within
 from torchtrack.bench import scale
 from torchtrack.filters.gmphd import GMPHD, MixtureState, UpdateInfo
 from torchtrack.filters.gmphd_birth import AdaptiveBirth
-from torchtrack.filters.gmphd_tone import nearest_detection
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.filters.tracker_config import GMPHDBirthOptions, GMPHDFilterOptions
 from torchtrack.models import ConstantVelocity, LinearPosition
@@ -236,7 +235,7 @@ def test_the_nearest_detection_is_that_of_every_distance(pairs_from):
     z[1] = z[0]                                                                   # equal distances
     pos = torch.cat([z[:400] + torch.randn(400, 2, generator=g, dtype=F64) * 2,
                      torch.rand(200, 2, generator=g, dtype=F64) * 400])
-    hit, k = nearest_detection(pos, z, 3.0)
+    hit, k = nearest_within(pos, z, 3.0)
     d = torch.cdist(pos, z)
     near, want = d.min(1)
     assert torch.equal(hit, near <= 3.0) and 200 < int(hit.sum()) < 590

@@ -67,3 +67,21 @@ def _position_in_runs(length: Tensor, total: int) -> Tensor:
     """``[0, 1, …, length[0] − 1, 0, 1, …, length[1] − 1, …]`` (``total = Σ length`` entries)."""
     run_start = torch.repeat_interleave(torch.cumsum(length, 0) - length, length, output_size=total)
     return torch.arange(total, device=length.device) - run_start
+
+
+def nearest_within(position: Tensor, z: Tensor, max_distance: float) -> tuple[Tensor, Tensor]:
+    """For each of ``position (E, 2)`` the nearest detection of ``z (M, 2)`` (the lowest index among equals):
+    ``hit (E,)`` bool, one within ``max_distance``, and its index ``(E,)`` (meaningful where ``hit``). Beyond
+    :data:`DENSE_PAIRS` pairs only the detections in the grid cells near each position are measured
+    (:func:`disc_candidates`)."""
+    E, M = position.shape[0], z.shape[0]
+    if E * M <= DENSE_PAIRS:
+        near, k = torch.cdist(position, z).min(dim=1)
+        return near <= max_distance, k
+    ee, kk = disc_candidates(position, torch.full((E,), max_distance, dtype=z.dtype, device=z.device), z,
+                             cell=max_distance)
+    d = (z.index_select(0, kk) - position.index_select(0, ee)).norm(dim=-1)
+    best = torch.full((E,), math.inf, dtype=d.dtype, device=d.device).scatter_reduce(0, ee, d, "amin")
+    tie = d == best.index_select(0, ee)
+    first = torch.full((E,), M, dtype=kk.dtype, device=kk.device).scatter_reduce(0, ee[tie], kk[tie], "amin")
+    return best <= max_distance, first.clamp(max=M - 1)

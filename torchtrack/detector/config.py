@@ -63,7 +63,7 @@ class DecodeConfig(Checked):
     refine_pull: float = option(0.002, ge=0)        # pull towards the network's velocity (see detector.refine)
     continuity_reach: float = option(20.0, ge=0)    # px, motion-continuity check with the previous velocities (0: off)
     tile: int = option(1024, ge=0)                  # px, core side of the tiles a larger frame runs in (0: whole)
-    tile_batch: int = option(2, ge=1)               # tiles of one shape per network call (memory: this many tiles)
+    tile_batch: int = option(1, ge=1)               # tiles of one shape per network call (memory: this many tiles)
 
     def peaks_for(self, height: int, width: int) -> int:
         """The most peaks decoded from a ``height × width`` frame: ``top_k`` up to 512 × 512 px, scaled with

@@ -21,6 +21,12 @@ from __future__ import annotations
 import torch
 from torch.nn import functional as F
 
+from torchtrack.association.grid import nearest_within
+
+MATCH_CHUNK = 2048
+"""Detections block-matched at once: the grouped convolution's workspace grows with their number (about
+45 kB each), so a wide-area frame's tens of thousands are matched in chunks (the same result)."""
+
 
 def _gather_windows(img: torch.Tensor, centre: torch.Tensor, half: int) -> torch.Tensor:
     """Windows ``(K, 2 half + 1, 2 half + 1)`` of ``img (H, W)`` centred on integer ``centre (K, 2)``
@@ -86,7 +92,8 @@ def refine_velocity(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, vel
     """
     if xy.shape[0] == 0:
         return velocity.clone()
-    return match_cost(cur, prev, xy, velocity, patch, radius, pull)[0]
+    return torch.cat([match_cost(cur, prev, p, v, patch, radius, pull)[0]
+                      for p, v in zip(xy.split(MATCH_CHUNK), velocity.split(MATCH_CHUNK))])
 
 
 def continuity_refine(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity: torch.Tensor,
@@ -105,14 +112,15 @@ def continuity_refine(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, v
     prev_points, prev_velocity = prev_points[keep].to(xy.dtype), prev_velocity[keep].to(xy.dtype)
     if xy.shape[0] == 0 or prev_points.shape[0] == 0:
         return velocity
-    dmin, k = torch.cdist(xy, prev_points + prev_velocity).min(1)
+    hit, k = nearest_within(xy, prev_points + prev_velocity, reach)
     cand = xy - prev_points[k]
-    near = torch.nonzero((dmin <= reach) & ((cand - velocity).norm(dim=1) > 1.5))[:, 0]   # a different answer
+    near = torch.nonzero(hit & ((cand - velocity).norm(dim=1) > 1.5))[:, 0]   # a different answer
     if near.numel() == 0:
         return velocity
-    _, c_now = match_cost(cur, prev, xy[near], velocity[near], patch, 2, 0.0)
-    v_new, c_new = match_cost(cur, prev, xy[near], cand[near], patch, 2, 0.0)
-    take = c_new <= c_now
     out = velocity.clone()
-    out[near[take]] = v_new[take]
+    for chunk in near.split(MATCH_CHUNK):
+        _, c_now = match_cost(cur, prev, xy[chunk], velocity[chunk], patch, 2, 0.0)
+        v_new, c_new = match_cost(cur, prev, xy[chunk], cand[chunk], patch, 2, 0.0)
+        take = c_new <= c_now
+        out[chunk[take]] = v_new[take]
     return out

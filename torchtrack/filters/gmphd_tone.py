@@ -23,7 +23,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.association.grid import DENSE_PAIRS, disc_candidates
+from torchtrack.association.grid import nearest_within
 from torchtrack.filters.gmphd_labels import value_of_labels
 
 TONE_MATCH_DISTANCE = 3.0
@@ -69,7 +69,7 @@ def update_tones(tones: LabelTones, label: Tensor, position: Tensor, z: Tensor, 
     labels no longer in ``alive`` are forgotten."""
     known = tones
     if label.numel() and z.shape[0]:
-        hit, k = nearest_detection(position.to(z.dtype), z, max_distance)
+        hit, k = nearest_within(position.to(z.dtype), z, max_distance)
         lab, t = label[hit], z_tone[k[hit]].to(tones.tone.dtype)
         old, n = lookup(tones, lab), value_of_labels(tones.label, tones.count, lab, torch.zeros_like(lab))
         step = torch.clamp(1.0 / (n + 1).to(t.dtype), min=rate)
@@ -79,24 +79,6 @@ def update_tones(tones: LabelTones, label: Tensor, position: Tensor, z: Tensor, 
                            torch.cat([tones.count[keep], n + 1]))
     alive_mask = torch.isin(known.label, alive)
     return LabelTones(known.label[alive_mask], known.tone[alive_mask], known.count[alive_mask])
-
-
-def nearest_detection(position: Tensor, z: Tensor, max_distance: float) -> tuple[Tensor, Tensor]:
-    """For each of ``position (E, 2)`` the nearest detection of ``z (M, 2)`` (the lowest index among equals):
-    ``hit (E,)`` bool, one within ``max_distance``, and its index ``(E,)`` (meaningful where ``hit``). Beyond
-    :data:`~torchtrack.association.grid.DENSE_PAIRS` pairs only the detections in the grid cells near each
-    position are measured (:func:`~torchtrack.association.grid.disc_candidates`)."""
-    E, M = position.shape[0], z.shape[0]
-    if E * M <= DENSE_PAIRS:
-        near, k = torch.cdist(position, z).min(dim=1)
-        return near <= max_distance, k
-    ee, kk = disc_candidates(position, torch.full((E,), max_distance, dtype=z.dtype, device=z.device), z,
-                             cell=max_distance)
-    d = (z.index_select(0, kk) - position.index_select(0, ee)).norm(dim=-1)
-    best = torch.full((E,), math.inf, dtype=d.dtype, device=d.device).scatter_reduce(0, ee, d, "amin")
-    tie = d == best.index_select(0, ee)
-    first = torch.full((E,), M, dtype=kk.dtype, device=kk.device).scatter_reduce(0, ee[tie], kk[tie], "amin")
-    return best <= max_distance, first.clamp(max=M - 1)
 
 
 def add_births(tones: LabelTones, label: Tensor, tone: Tensor) -> LabelTones:
