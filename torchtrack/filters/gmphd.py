@@ -59,6 +59,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor, nn
 
+from torchtrack.association.grid import grid_pairs as _grid_pairs
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.tracker_config import GMPHDFilterOptions
 from torchtrack.gaussian import (
@@ -410,29 +411,6 @@ def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, 
         ok = (y.pow(2).sum((-1, -2)) <= scalar(threshold, y)).nonzero().squeeze(1)
         ii, jj = ii[ok], jj[ok]
     return ii, jj
-
-
-def _grid_pairs(pos: Tensor, radius: Tensor) -> tuple[Tensor, Tensor]:
-    """Every pair ``(i, j)`` of points ``pos (J, 2)`` whose grid cells touch, on square cells of side
-    ``max radius``: a superset of the pairs with ``‖p_i − p_j‖ ≤ radius_i``. Points are sorted by cell
-    (row-major), so the three cells of a neighbouring row are one run of the order, found by two binary
-    searches; memory ``O(pairs in neighbouring cells)``."""
-    lo_xy = pos.min(0).values
-    extent = float((pos.max(0).values - lo_xy).max())
-    cell = max(float(radius.max()), extent / 2**20, 1e-12)          # at most 2^20 cells a side: keys fit int64
-    g = torch.floor((pos - lo_xy) / cell).long() + 1                # a margin cell on each side
-    cols = int(g[:, 0].max()) + 2
-    key = g[:, 1] * cols + g[:, 0]
-    order = torch.argsort(key)
-    sorted_key = key[order]
-    first = key.unsqueeze(1) + torch.tensor([-cols - 1, -1, cols - 1], device=key.device)   # (J, 3) rows' first cells
-    start = torch.searchsorted(sorted_key, first)
-    count = (torch.searchsorted(sorted_key, first + 2, right=True) - start).reshape(-1)
-    start = start.reshape(-1)
-    ii = torch.arange(pos.shape[0], device=pos.device).repeat_interleave(3).repeat_interleave(count)
-    run_start = (torch.cumsum(count, 0) - count).repeat_interleave(count)
-    offset = torch.arange(int(count.sum()), device=pos.device) - run_start          # position within each run
-    return ii, order[start.repeat_interleave(count) + offset]
 
 
 def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Tensor | None = None) -> MixtureState:

@@ -1,0 +1,34 @@
+"""Grid candidate pairs hold every pair within the radius (checked against all pairs, float64)."""
+
+from __future__ import annotations
+
+import torch
+
+from torchtrack.association.grid import grid_cross_pairs, grid_pairs
+
+
+def _as_set(ii: torch.Tensor, jj: torch.Tensor) -> set[tuple[int, int]]:
+    return set(zip(ii.tolist(), jj.tolist()))
+
+
+def test_cross_pairs_hold_every_pair_within_each_radius():
+    g = torch.Generator().manual_seed(2)
+    a = torch.rand(300, 2, generator=g, dtype=torch.float64) * 500
+    b = torch.rand(400, 2, generator=g, dtype=torch.float64) * 500 - 20
+    radius = 2.0 + 20.0 * torch.rand(300, generator=g, dtype=torch.float64)
+    ii, jj = grid_cross_pairs(a, radius, b)
+    near = _as_set(*(torch.cdist(a, b) <= radius.unsqueeze(1)).nonzero().unbind(1))
+    found = _as_set(ii, jj)
+    assert near <= found and len(found) == ii.numel()              # a superset, each pair once
+    assert ii.numel() < 0.2 * a.shape[0] * b.shape[0]              # not every pair
+    empty = grid_cross_pairs(a[:0], radius[:0], b)
+    assert empty[0].numel() == 0 and empty[1].numel() == 0
+
+
+def test_pairs_within_one_set_hold_every_pair_within_each_radius():
+    g = torch.Generator().manual_seed(3)
+    pos = torch.rand(500, 2, generator=g, dtype=torch.float64) * 1000
+    radius = 5.0 + 10.0 * torch.rand(500, generator=g, dtype=torch.float64)
+    ii, jj = grid_pairs(pos, radius)
+    near = _as_set(*(torch.cdist(pos, pos) <= radius.unsqueeze(1)).nonzero().unbind(1))
+    assert near <= _as_set(ii, jj)
