@@ -47,8 +47,8 @@ def test_a_configured_capacity_limit_is_an_error_naming_it():
     tracker.step(1, z[:30])                                             # 30 new Bernoullis: at the limit
     with pytest.raises(TorchtrackError, match="36 Bernoullis .* capacity_limit 30"):
         make_tracker("pmb", {"region": [0.0, 0.0, 300.0, 300.0], "capacity": 16, "capacity_limit": 30}).step(1, z)
-    with pytest.raises(TorchtrackError, match="capacity_limit"):
-        tracker_config("pmb", {"capacity": 64, "capacity_limit": 32})
+    with pytest.raises(TorchtrackError, match="capacity_limit must be >= 1"):
+        tracker_config("pmb", {"capacity_limit": 0})
 
 
 def test_a_limit_above_the_scene_changes_nothing():

@@ -176,8 +176,8 @@ class PMBFilter(nn.Module):
         capacity: the floor of the Bernoulli slots ``N``, which follow the scene: after each update ``N`` is
             the larger of ``capacity`` and the number of Bernoullis above ``prune_existence`` (grown between
             steps; a Bernoulli above the threshold is never dropped to fit).
-        capacity_limit: a hard limit on ``N`` (None: none); an update that would keep more Bernoullis raises
-            :class:`TorchtrackError` naming it.
+        capacity_limit: a hard limit on the Bernoullis kept (None: none); an update that would keep more
+            raises :class:`TorchtrackError` naming it.
         poisson_capacity: Poisson components ``K`` kept (the birth component is always added).
         gate: gate probability; pairs with ``ν ᵀ S⁻¹ ν`` above its chi-square quantile are not hypotheses.
         lbp_iterations, lbp_tol: LBP cap and tolerance (``lbp_tol=None``: fixed iterations, for autograd).
@@ -201,8 +201,6 @@ class PMBFilter(nn.Module):
         if capacity < 1 or poisson_capacity < 2:
             raise TorchtrackError(f"capacity must be >= 1 and poisson_capacity >= 2; got {capacity}, "
                                   f"{poisson_capacity}")
-        if capacity_limit is not None and capacity_limit < capacity:
-            raise TorchtrackError(f"capacity_limit must be >= capacity; got {capacity_limit} < {capacity}")
         if sparse and measurement.meas_dim != 2:
             raise TorchtrackError(f"PMB: sparse association needs 2-D measurements; got {measurement.meas_dim}-D")
         if not 0.0 < gate <= 1.0:

@@ -193,8 +193,8 @@ class PMBConfig(Checked):
     ``max(birth_weight, birth_density · area)``, so that births follow the region as clutter does; the default
     leaves a 1024² region at ``birth_weight``); sigma_vel: birth velocity std (px/frame);
     capacity: the floor of the Bernoulli slots, which follow the scene (every Bernoulli above the pruning
-    threshold is kept: ``max(capacity, kept)`` slots); capacity_limit: a hard limit on them (None: none), exceeded
-    only with an error naming it; estimate_threshold: existence above which a Bernoulli is reported; gate: gate
+    threshold is kept: ``max(capacity, kept)`` slots); capacity_limit: a hard limit on the Bernoullis kept (None: none),
+    more is an error naming it; estimate_threshold: existence above which a Bernoulli is reported; gate: gate
     probability; lbp_iterations: loopy belief propagation iterations (on the gated pairs only)."""
 
     q: float = option(1.0, gt=0)
@@ -217,8 +217,6 @@ class PMBConfig(Checked):
         x0, y0, x1, y1 = self.region
         if not (x0 < x1 and y0 < y1):
             raise self.refuse("region", f"must be [x0, y0, x1, y1] with x0 < x1 and y0 < y1; got {list(self.region)}")
-        if self.capacity_limit is not None and self.capacity_limit < self.capacity:
-            raise self.refuse("capacity_limit", f"must be >= capacity ({self.capacity}); got {self.capacity_limit}")
 
 
 @dataclass(frozen=True)
