@@ -9,7 +9,7 @@ The multi-target density is Poisson multi-Bernoulli (PMB):
 * **undetected targets**: a Poisson point process with Gaussian-mixture intensity
   ``D_u(x) = Σ_k w_k N(x; m_k, P_k)`` (fixed capacity ``K``; empty slots have ``log w = -inf``);
 * **detected targets**: ``N`` Bernoulli tracks with existence ``r_i``, Gaussian ``N(x; m_i, P_i)`` and
-  an integer label (``-1`` marks an empty slot).
+  an integer label (``-1`` marks an empty slot); ``N`` follows the scene (``max(capacity, kept)``).
 
 Prediction::
 
@@ -27,7 +27,8 @@ Update with measurements ``Z = {z_1 … z_M}``, ``z = H x + v, v ~ N(0, R)``, cl
 * the Poisson intensity becomes ``(1 − p_D) D_u``.
 
 The marginal association probabilities ``p_i(0), p_i(j), p_j(new)`` come from loopy belief
-propagation (:func:`torchtrack.association.lbp.lbp_marginals`) and the **track-oriented merge**
+propagation (:func:`torchtrack.association.lbp.lbp_marginals`, or on the gated pairs only with ``sparse``:
+:mod:`torchtrack.filters.pmb_sparse`) and the **track-oriented merge**
 (TOMB) collapses each track's hypotheses to one Bernoulli by moment matching::
 
     r_i' = p_i(0) r_i^miss + Σ_j p_i(j)
@@ -36,7 +37,7 @@ propagation (:func:`torchtrack.association.lbp.lbp_marginals`) and the **track-o
     r_j^new = p_j(new) e_j / λ_j
 
 Discrete steps — gating, pruning tracks with ``r < prune_existence`` and Poisson components with
-``w < prune_poisson``, keeping the ``capacity`` most likely Bernoullis — are stop-gradient selections;
+``w < prune_poisson``, ordering the kept Bernoullis by existence — are stop-gradient selections;
 everything else is differentiable. Estimates are the tracks with ``r > estimate_threshold``; labels
 are given once, when a measurement creates its Bernoulli, and follow that Bernoulli afterwards.
 """
