@@ -51,3 +51,17 @@ def test_sparse_association_needs_an_unbatched_state_and_planar_measurements():
         filt.update(filt.init_state((2,)), torch.zeros(2, 3, 2, dtype=torch.float64))
     with pytest.raises(TorchtrackError, match="2-D measurements"):
         _filter(True, dims=3)
+
+
+def test_sparse_update_takes_empty_scans_and_an_empty_state():
+    """No measurement, or no Bernoulli yet: the same as the dense path, no NaN; empty scans prune every track."""
+    dense, sparse = _filter(False), _filter(True)
+    z = torch.tensor([[50.0, 60.0], [120.0, 30.0]], dtype=torch.float64)
+    sd, ss = dense.step(dense.init_state(), z), sparse.step(sparse.init_state(), z)
+    sd, ss = sd[0], ss[0]
+    for _ in range(60):
+        sd, _ = dense.step(sd, z[:0])
+        ss, _ = sparse.step(ss, z[:0])
+        torch.testing.assert_close(ss.existence, sd.existence, rtol=1e-10, atol=1e-12)
+        assert bool(torch.isfinite(ss.mean).all() and torch.isfinite(ss.cov).all())
+    assert not bool(ss.valid.any())
