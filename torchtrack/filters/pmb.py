@@ -9,7 +9,7 @@ The multi-target density is Poisson multi-Bernoulli (PMB):
 * **undetected targets**: a Poisson point process with Gaussian-mixture intensity
   ``D_u(x) = Σ_k w_k N(x; m_k, P_k)`` (fixed capacity ``K``; empty slots have ``log w = -inf``);
 * **detected targets**: ``N`` Bernoulli tracks with existence ``r_i``, Gaussian ``N(x; m_i, P_i)`` and
-  an integer label (``-1`` marks an empty slot).
+  an integer label (``-1`` marks an empty slot); ``N`` follows the scene (``max(capacity, kept)``).
 
 Prediction::
 
@@ -27,7 +27,8 @@ Update with measurements ``Z = {z_1 … z_M}``, ``z = H x + v, v ~ N(0, R)``, cl
 * the Poisson intensity becomes ``(1 − p_D) D_u``.
 
 The marginal association probabilities ``p_i(0), p_i(j), p_j(new)`` come from loopy belief
-propagation (:func:`torchtrack.association.lbp.lbp_marginals`) and the **track-oriented merge**
+propagation (:func:`torchtrack.association.lbp.lbp_marginals`, or on the gated pairs only with ``sparse``:
+:mod:`torchtrack.filters.pmb_sparse`) and the **track-oriented merge**
 (TOMB) collapses each track's hypotheses to one Bernoulli by moment matching::
 
     r_i' = p_i(0) r_i^miss + Σ_j p_i(j)
@@ -36,7 +37,7 @@ propagation (:func:`torchtrack.association.lbp.lbp_marginals`) and the **track-o
     r_j^new = p_j(new) e_j / λ_j
 
 Discrete steps — gating, pruning tracks with ``r < prune_existence`` and Poisson components with
-``w < prune_poisson``, keeping the ``capacity`` most likely Bernoullis — are stop-gradient selections;
+``w < prune_poisson``, ordering the kept Bernoullis by existence — are stop-gradient selections;
 everything else is differentiable. Estimates are the tracks with ``r > estimate_threshold``; labels
 are given once, when a measurement creates its Bernoulli, and follow that Bernoulli afterwards.
 """
@@ -51,7 +52,9 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.association.lbp import LBPResult, lbp_marginals
+from torchtrack.association.lbp_sparse import SparseLBPResult, sparse_lbp_marginals
 from torchtrack.errors import TorchtrackError
+from torchtrack.filters.pmb_sparse import PairMoments, gated_pairs, pair_moments
 from torchtrack.gaussian import (
     chi2_quantile,
     innovation_cov,
@@ -93,7 +96,8 @@ class PMBState(NamedTuple):
 class PMBUpdateInfo(NamedTuple):
     """What an update reveals besides the new state."""
 
-    marginals: LBPResult       # association marginals of the existing tracks (*, N, M) and new targets (*, M)
+    marginals: LBPResult | SparseLBPResult   # association marginals of the existing tracks (*, N, M) and new
+    #                                          targets (*, M); with ``sparse``: per gated pair (E,) and (M,)
 
 
 class Estimates(NamedTuple):
@@ -170,12 +174,19 @@ class PMBFilter(nn.Module):
         clutter_intensity: ``κ``, expected clutter per unit measurement volume (>= 0; learnable when > 0).
         birth_weight, birth_mean, birth_cov: the birth intensity ``D_b = w_b N(m_b, P_b)`` (weight
             learnable; ``birth_weight=0`` for no birth).
-        capacity: Bernoulli slots ``N`` kept after each update (the most likely; a cap hit is logged).
+        capacity: the floor of the Bernoulli slots ``N``, which follow the scene: after each update ``N`` is
+            the larger of ``capacity`` and the number of Bernoullis above ``prune_existence`` (grown between
+            steps; a Bernoulli above the threshold is never dropped to fit).
+        capacity_limit: a hard limit on the Bernoullis kept (None: none); an update that would keep more
+            raises :class:`TorchtrackError` naming it.
         poisson_capacity: Poisson components ``K`` kept (the birth component is always added).
         gate: gate probability; pairs with ``ν ᵀ S⁻¹ ν`` above its chi-square quantile are not hypotheses.
         lbp_iterations, lbp_tol: LBP cap and tolerance (``lbp_tol=None``: fixed iterations, for autograd).
         prune_existence, prune_poisson: pruning thresholds for ``r`` and ``w_k``.
         estimate_threshold: a track is reported when ``r`` exceeds it.
+        sparse: the track part of the update on the gated (Bernoulli, measurement) pairs only
+            (:mod:`torchtrack.filters.pmb_sparse`; unbatched states, 2-D measurements); the same result as
+            the dense ``N × M`` path up to rounding.
     """
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, p_survival: float = 0.99,
@@ -183,13 +194,16 @@ class PMBFilter(nn.Module):
                  birth_mean: Tensor | None = None, birth_cov: Tensor | None = None, capacity: int = 64,
                  poisson_capacity: int = 8, gate: float = 0.9999, lbp_iterations: int = 50,
                  lbp_tol: float | None = 1e-7, prune_existence: float = 1e-4, prune_poisson: float = 1e-6,
-                 estimate_threshold: float = 0.5, learnable: bool = True):
+                 estimate_threshold: float = 0.5, learnable: bool = True, capacity_limit: int | None = None,
+                 sparse: bool = False):
         super().__init__()
         if not motion.is_linear:
             raise TorchtrackError("PMBFilter needs a linear motion model")
         if capacity < 1 or poisson_capacity < 2:
             raise TorchtrackError(f"capacity must be >= 1 and poisson_capacity >= 2; got {capacity}, "
                                   f"{poisson_capacity}")
+        if sparse and measurement.meas_dim != 2:
+            raise TorchtrackError(f"PMB: sparse association needs 2-D measurements; got {measurement.meas_dim}-D")
         if not 0.0 < gate <= 1.0:
             raise TorchtrackError(f"gate must be a probability in (0, 1]; got {gate!r}")
         if clutter_intensity < 0 or birth_weight < 0:
@@ -210,6 +224,8 @@ class PMBFilter(nn.Module):
         self.register_buffer("birth_mean", bm)
         self.register_buffer("birth_cov", bc)
         self.capacity = capacity
+        self.capacity_limit = capacity_limit
+        self.sparse = sparse
         self.poisson_capacity = poisson_capacity
         self.gate_d2 = chi2_quantile(gate, measurement.meas_dim)
         self.lbp_iterations = lbp_iterations
@@ -217,7 +233,6 @@ class PMBFilter(nn.Module):
         self.prune_existence = prune_existence
         self.prune_poisson = prune_poisson
         self.estimate_threshold = estimate_threshold
-        self._cap_logged = False
         self._cache: dict = {}
         self._tracked: list[Tensor] | None = None
 
@@ -318,13 +333,16 @@ class PMBFilter(nn.Module):
             extra_noise: ``(*, d, d)`` added to ``R`` (variance inflation by an uncertain sensor).
 
         Returns:
-            the updated state (pruned, at most ``capacity`` Bernoullis) and :class:`PMBUpdateInfo`.
+            the updated state (pruned; ``max(capacity, kept)`` Bernoulli slots) and :class:`PMBUpdateInfo`.
         """
         ref = state.mean
         d = self.measurement.meas_dim
         if z.shape[-1] != d or z.shape[:-2] != state.existence.shape[:-1]:
             raise TorchtrackError(f"PMB update: z must be (*, M, {d}) with batch {tuple(state.existence.shape[:-1])}; "
                                   f"got {tuple(z.shape)}")
+        if self.sparse and z.dim() != 2:
+            raise TorchtrackError(f"PMB update: sparse association needs an unbatched state; got batch "
+                                  f"{tuple(z.shape[:-2])}")
         z = z.to(ref)
         M = z.shape[-2]
         batch = z.shape[:-2]
@@ -338,19 +356,19 @@ class PMBFilter(nn.Module):
             R = R + extra_noise.to(ref)
         tiny = torch.finfo(ref.dtype).tiny
 
-        # single-target hypotheses of the existing Bernoullis
         valid = state.valid
         r = state.existence
-        # tracks and Poisson components in one batch of Kalman hypotheses
-        N = state.existence.shape[-1]
-        both = _kalman_all_pairs(torch.cat([state.mean, state.poisson_mean], -2),
-                                 torch.cat([state.cov, state.poisson_cov], -3), z, H, R,
-                                 "PMB: innovation covariance (track or Poisson component)")
-        trk = _Hypotheses(*(t[..., :N, :] if t.dim() == both.log_lik.dim() else t[..., :N, :, :] for t in both))
-        poi = _Hypotheses(*(t[..., N:, :] if t.dim() == both.log_lik.dim() else t[..., N:, :, :] for t in both))
-        gated = (trk.d2 < self.gate_d2) & valid.unsqueeze(-1) & zmask.unsqueeze(-2)
+        N = r.shape[-1]
+        if self.sparse:
+            poi = _kalman_all_pairs(state.poisson_mean, state.poisson_cov, z, H, R,
+                                    "PMB: innovation covariance (Poisson component)")
+        else:   # tracks and Poisson components in one batch of Kalman hypotheses
+            both = _kalman_all_pairs(torch.cat([state.mean, state.poisson_mean], -2),
+                                     torch.cat([state.cov, state.poisson_cov], -3), z, H, R,
+                                     "PMB: innovation covariance (track or Poisson component)")
+            trk = _Hypotheses(*(t[..., :N, :] if t.dim() == both.log_lik.dim() else t[..., :N, :, :] for t in both))
+            poi = _Hypotheses(*(t[..., N:, :] if t.dim() == both.log_lik.dim() else t[..., N:, :, :] for t in both))
         log_r = _log(torch.where(valid, r, torch.ones_like(r)))
-        log_w = torch.where(gated, log_r.unsqueeze(-1) + log_pd + trk.log_lik, torch.full_like(trk.log_lik, NEG_INF))
         log_miss = _log((1.0 - r * pd).clamp_min(0.0))
 
         # new-target hypotheses from the Poisson intensity and clutter
@@ -367,26 +385,37 @@ class PMBFilter(nn.Module):
         new_mean, new_cov = moment_match(l_safe, poi_mean.transpose(-2, -3),
                                          poi.cov.unsqueeze(-4).expand(*batch, M, K_, n, n))
 
-        # marginal association probabilities (Williams & Lau 2014)
-        marg = lbp_marginals(log_w, log_miss, log_new, iterations=self.lbp_iterations, tol=self.lbp_tol,
-                             check=False)
+        # marginal association probabilities (Williams & Lau 2014) and the innovation moments of the merge
+        if self.sparse:
+            pairs = gated_pairs(state.mean, state.cov, valid, z, zmask, H, R, self.gate_d2)
+            marg = sparse_lbp_marginals(pairs.row, pairs.col, log_r[pairs.row] + log_pd + pairs.log_lik, log_miss,
+                                        log_new, iterations=self.lbp_iterations, tol=self.lbp_tol, check=False)
+            moments = pair_moments(pairs.row, marg.assoc, pairs.innovation, N)
+            gain, cov_upd = pairs.gain, pairs.cov
+        else:
+            gated = (trk.d2 < self.gate_d2) & valid.unsqueeze(-1) & zmask.unsqueeze(-2)
+            log_w = torch.where(gated, log_r.unsqueeze(-1) + log_pd + trk.log_lik,
+                                torch.full_like(trk.log_lik, NEG_INF))
+            marg = lbp_marginals(log_w, log_miss, log_new, iterations=self.lbp_iterations, tol=self.lbp_tol,
+                                 check=False)
+            aj = marg.assoc                                                      # (*, N, M)
+            moments = PairMoments(aj.sum(-1), (aj.unsqueeze(-2) @ trk.innovation).squeeze(-2),
+                                  (aj.unsqueeze(-1) * trk.innovation).transpose(-1, -2) @ trk.innovation)
+            gain, cov_upd = trk.gain, trk.cov
 
         # track-oriented merge
         r_miss = r * (1.0 - pd) / (1.0 - r * pd).clamp_min(tiny)
         a0 = marg.miss * r_miss                                                  # (*, N)
-        aj = marg.assoc                                                          # (*, N, M)
-        a_det = aj.sum(-1)
+        a_det = moments.detected
         r_post = a0 + a_det
         denom = r_post.clamp_min(tiny)
         # with c = ν̄ / r', ν̄ = Σ_j p_i(j) ν_ij and V = Σ_j p_i(j) ν_ij ν_ijᵀ the merge is
         #   m' = m + K c,  P' = (p_i(0) r^miss P + Σ_j p_i(j) P⁺) / r' + K (V / r' − c cᵀ) Kᵀ
-        nu_bar = (aj.unsqueeze(-2) @ trk.innovation).squeeze(-2)               # (*, N, d)
-        V = (aj.unsqueeze(-1) * trk.innovation).transpose(-1, -2) @ trk.innovation  # (*, N, d, d)
-        c = nu_bar / denom.unsqueeze(-1)
-        inner = V / denom[..., None, None] - c.unsqueeze(-1) * c.unsqueeze(-2)
-        mean_post = state.mean + _small_mv(trk.gain, c.unsqueeze(-2)).squeeze(-2)
-        cov_post = ((a0[..., None, None] * state.cov + a_det[..., None, None] * trk.cov) / denom[..., None, None]
-                    + small_matmul(small_matmul(trk.gain, inner), trk.gain.transpose(-1, -2)))
+        c = moments.nu_bar / denom.unsqueeze(-1)
+        inner = moments.V / denom[..., None, None] - c.unsqueeze(-1) * c.unsqueeze(-2)
+        mean_post = state.mean + _small_mv(gain, c.unsqueeze(-2)).squeeze(-2)
+        cov_post = ((a0[..., None, None] * state.cov + a_det[..., None, None] * cov_upd) / denom[..., None, None]
+                    + small_matmul(small_matmul(gain, inner), gain.transpose(-1, -2)))
         r_new = torch.where(zmask, marg.new * r_new_hyp, torch.zeros_like(r_new_hyp))
         new_label = torch.where(zmask, state.next_label.unsqueeze(-1) + torch.cumsum(zmask.long(), -1) - 1,
                                 torch.full_like(zmask, -1, dtype=torch.long))
@@ -404,9 +433,14 @@ class PMBFilter(nn.Module):
         return new_state, PMBUpdateInfo(marg)
 
     def _compact(self, existence: Tensor, mean: Tensor, cov: Tensor, label: Tensor):
-        """Prune ``r < prune_existence`` and keep the ``capacity`` most likely slots (stop-gradient)."""
+        """Prune ``r < prune_existence`` and keep every other Bernoulli, most likely first, in
+        ``max(capacity, kept)`` slots (stop-gradient); more than ``capacity_limit`` kept is an error."""
         keep = (label >= 0) & (existence >= self.prune_existence)
-        N = self.capacity
+        kept = int(keep.sum(-1).max()) if keep.numel() else 0
+        if self.capacity_limit is not None and kept > self.capacity_limit:
+            raise TorchtrackError(f"PMB: {kept} Bernoullis above prune_existence exceed capacity_limit "
+                                  f"{self.capacity_limit} (raise capacity_limit, or prune_existence)")
+        N = max(self.capacity, kept)
         if existence.shape[-1] < N:
             pad = N - existence.shape[-1]
             n = mean.shape[-1]
@@ -417,10 +451,6 @@ class PMBFilter(nn.Module):
             keep = torch.cat([keep, keep.new_zeros(*keep.shape[:-1], pad)], -1)
         score = torch.where(keep, existence.detach(), torch.full_like(existence, -1.0))
         idx = torch.topk(score, N, dim=-1).indices
-        if not self._cap_logged and bool((keep.sum(-1) > N).any()):
-            log.warning("PMB: more than %d Bernoullis above the pruning threshold; the least likely were "
-                        "dropped (raise capacity)", N)
-            self._cap_logged = True
         n = mean.shape[-1]
         keep = keep.gather(-1, idx)
         existence = torch.where(keep, existence.gather(-1, idx), torch.zeros_like(keep, dtype=existence.dtype))

@@ -4,9 +4,11 @@
 :class:`~torchtrack.filters.tracker_config.PMBConfig`): point detections in pixels, a 2-D constant-velocity
 :class:`~torchtrack.filters.pmb.PMBFilter`, and per frame the Bernoullis with existence above
 ``estimate_threshold`` reported with their labels (``id = label + 1``). Births come
-from a broad Gaussian intensity covering ``region`` (centre, standard deviation of half its size);
-clutter is ``clutter_rate`` false detections per frame spread uniformly over ``region``. Detector
-velocities are not used.
+from a broad Gaussian intensity covering ``region`` (centre, standard deviation of half its size) with
+:func:`birth_weight` expected births per frame, which follows the region's area as the clutter does;
+clutter is ``clutter_rate`` false detections per frame spread uniformly over ``region``. The association runs
+on the gated pairs only (``sparse``) and the Bernoulli slots follow the scene (``capacity`` their floor,
+``capacity_limit`` an optional hard limit). Detector velocities are not used.
 """
 
 from __future__ import annotations
@@ -20,6 +22,12 @@ from torchtrack.filters.multitarget import frame_step
 from torchtrack.filters.pmb import PMBFilter, PMBState
 from torchtrack.filters.tracker_config import PMBConfig, tracker_config
 from torchtrack.models import ConstantVelocity, LinearPosition
+
+
+def birth_weight(config: PMBConfig) -> float:
+    """Expected births per frame over the region: ``max(birth_weight, birth_density · area [Mpx])``."""
+    x0, y0, x1, y1 = config.region
+    return max(config.birth_weight, config.birth_density * (x1 - x0) * (y1 - y0) / 1e6)
 
 
 class PMBTracker:
@@ -36,9 +44,10 @@ class PMBTracker:
         self.filter = PMBFilter(
             ConstantVelocity(2, q=c.q, learnable=False), LinearPosition(2, sigma=c.sigma, learnable=False),
             p_survival=c.p_survival, p_detection=c.p_detection, clutter_intensity=c.clutter_rate / area,
-            birth_weight=c.birth_weight, birth_mean=birth_mean, birth_cov=birth_cov, capacity=c.capacity,
+            birth_weight=birth_weight(c), birth_mean=birth_mean, birth_cov=birth_cov, capacity=c.capacity,
             poisson_capacity=4, gate=c.gate, lbp_iterations=c.lbp_iterations, lbp_tol=1e-6,
-            estimate_threshold=c.estimate_threshold, learnable=False).double()
+            estimate_threshold=c.estimate_threshold, learnable=False, capacity_limit=c.capacity_limit,
+            sparse=True).double()
         self.reset()
 
     def reset(self) -> None:

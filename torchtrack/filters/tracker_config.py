@@ -189,9 +189,14 @@ class GreedyConfig(Checked):
 class PMBConfig(Checked):
     """The TOMB/P tracker (:mod:`torchtrack.filters.pmb_tracker`): q, sigma: CV process noise and measurement
     std; p_survival, p_detection; clutter_rate: false detections per frame over ``region`` ``[x0, y0, x1, y1]``
-    (px), which the birth intensity also covers; birth_weight; sigma_vel: birth velocity std (px/frame);
-    capacity: Bernoulli cap; estimate_threshold: existence above which a Bernoulli is reported; gate: gate
-    probability; lbp_iterations: loopy belief propagation iterations."""
+    (px), which the birth intensity also covers; birth_weight: the least expected births per frame; birth_density:
+    expected births per frame per megapixel of ``region`` (the birth intensity's weight is
+    ``max(birth_weight, birth_density · area)``, so that births follow the region as clutter does; the default
+    leaves a 1024² region at ``birth_weight``); sigma_vel: birth velocity std (px/frame);
+    capacity: the floor of the Bernoulli slots, which follow the scene (every Bernoulli above the pruning
+    threshold is kept: ``max(capacity, kept)`` slots); capacity_limit: a hard limit on the Bernoullis kept (None: none),
+    more is an error naming it; estimate_threshold: existence above which a Bernoulli is reported; gate: gate
+    probability; lbp_iterations: loopy belief propagation iterations (on the gated pairs only)."""
 
     q: float = option(1.0, gt=0)
     sigma: float = option(2.0, gt=0)
@@ -200,8 +205,10 @@ class PMBConfig(Checked):
     clutter_rate: float = option(1.0, ge=0)
     region: tuple[float, float, float, float] = (0.0, 0.0, 1024.0, 1024.0)
     birth_weight: float = option(0.1, ge=0)
+    birth_density: float = option(0.09, ge=0)
     sigma_vel: float = option(5.0, gt=0)
     capacity: int = option(512, ge=1)
+    capacity_limit: int | None = option(None, ge=1)
     estimate_threshold: float = option(0.5, gt=0, lt=1)
     gate: float = option(0.9999, gt=0, le=1)
     lbp_iterations: int = option(30, ge=1)

@@ -1,0 +1,67 @@
+"""The PMB update on the gated pairs only equals the dense ``N × M`` update (float64, to 1e-10)."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.pmb import PMBFilter
+from torchtrack.models import ConstantVelocity, LinearPosition
+
+SIDE = 200.0
+
+
+def _filter(sparse: bool, dims: int = 2) -> PMBFilter:
+    return PMBFilter(ConstantVelocity(dims, q=1.0, learnable=False), LinearPosition(dims, sigma=1.0, learnable=False),
+                     clutter_intensity=20 / SIDE**2, birth_weight=0.5,
+                     birth_mean=torch.tensor([SIDE / 2] * dims + [0.0] * dims),
+                     birth_cov=torch.diag(torch.tensor([SIDE**2] * dims + [4.0] * dims)), capacity=16,
+                     lbp_tol=None, sparse=sparse, learnable=False).double()   # fixed iterations: the same in both
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_sparse_update_equals_the_dense_one_on_random_scenes(seed):
+    g = torch.Generator().manual_seed(seed)
+    f64 = {"dtype": torch.float64, "generator": g}
+    dense, sparse = _filter(False), _filter(True)
+    sd, ss = dense.init_state(), sparse.init_state()
+    x, v = torch.rand(30, 2, **f64) * SIDE, torch.randn(30, 2, **f64)
+    for _ in range(12):
+        x = x + v
+        seen = x[torch.rand(30, generator=g) < 0.9]
+        z = torch.cat([seen + torch.randn(seen.shape, **f64), torch.rand(20, 2, **f64) * SIDE])
+        z = z[torch.randperm(z.shape[0], generator=g)]
+        sd, info_d = dense.step(sd, z)
+        ss, info_s = sparse.step(ss, z)
+        assert torch.equal(sd.label, ss.label)
+        for a, b in ((sd.existence, ss.existence), (sd.mean, ss.mean), (sd.cov, ss.cov),
+                     (sd.poisson_log_weight, ss.poisson_log_weight)):
+            torch.testing.assert_close(b, a, rtol=1e-10, atol=1e-10)
+        md, ms = info_d.marginals, info_s.marginals
+        torch.testing.assert_close(ms.assoc, md.assoc[ms.row, ms.col], rtol=0, atol=1e-10)
+        torch.testing.assert_close(ms.new, md.new, rtol=0, atol=1e-10)
+        assert float(md.assoc.sum()) == pytest.approx(float(ms.assoc.sum()), abs=1e-9)   # no gated pair missed
+    assert int(sparse.estimate(ss).mask.sum()) >= 20                   # the scene has tracks to compare
+
+
+def test_sparse_association_needs_an_unbatched_state_and_planar_measurements():
+    filt = _filter(True)
+    with pytest.raises(TorchtrackError, match="unbatched"):
+        filt.update(filt.init_state((2,)), torch.zeros(2, 3, 2, dtype=torch.float64))
+    with pytest.raises(TorchtrackError, match="2-D measurements"):
+        _filter(True, dims=3)
+
+
+def test_sparse_update_takes_empty_scans_and_an_empty_state():
+    """No measurement, or no Bernoulli yet: the same as the dense path, no NaN; empty scans prune every track."""
+    dense, sparse = _filter(False), _filter(True)
+    z = torch.tensor([[50.0, 60.0], [120.0, 30.0]], dtype=torch.float64)
+    sd, ss = dense.step(dense.init_state(), z), sparse.step(sparse.init_state(), z)
+    sd, ss = sd[0], ss[0]
+    for _ in range(60):
+        sd, _ = dense.step(sd, z[:0])
+        ss, _ = sparse.step(ss, z[:0])
+        torch.testing.assert_close(ss.existence, sd.existence, rtol=1e-10, atol=1e-12)
+        assert bool(torch.isfinite(ss.mean).all() and torch.isfinite(ss.cov).all())
+    assert not bool(ss.valid.any())
