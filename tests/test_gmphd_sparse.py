@@ -119,7 +119,7 @@ def pairs_from(request, monkeypatch) -> str:
     limit = 10**12 if request.param == "every pair" else 0
     monkeypatch.setattr("torchtrack.filters.gmphd.DENSE_PAIRS", limit)
     monkeypatch.setattr("torchtrack.filters.gmphd_birth.DENSE_PAIRS", limit)
-    monkeypatch.setattr("torchtrack.filters.gmphd_tone.DENSE_PAIRS", limit)
+    monkeypatch.setattr("torchtrack.association.grid.DENSE_PAIRS", limit)
     return request.param
 
 
