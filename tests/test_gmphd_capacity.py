@@ -4,6 +4,7 @@ import pytest
 import torch
 
 from torchtrack.bench import scale
+from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd import GMPHD, SCENE_COMPONENTS
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.filters.tracker_config import GMPHDFilterOptions
@@ -13,6 +14,16 @@ def test_capacity_is_the_floor_of_a_cap_sized_from_the_scene():
     phd = GMPHD(options=GMPHDFilterOptions(capacity=100))
     assert phd.capacity_for(10, 20) == 100
     assert phd.capacity_for(300, 200) == SCENE_COMPONENTS * 500 == 1000
+
+
+def test_a_scene_past_the_configured_limit_is_an_error_naming_it():
+    tracker = make_tracker("gmphd", {"filter": {"capacity": 64, "capacity_limit": 500}})
+    scene = scale.simulate(300, 3, seed=1)                  # 300 vehicles: more than 250 measurements a frame
+    with pytest.raises(TorchtrackError, match="capacity_limit 500"):
+        for frame, z, v in scene.detections:
+            tracker.step(frame, z, v)
+    roomy = GMPHD(options=GMPHDFilterOptions(capacity=64, capacity_limit=10_000))
+    assert roomy.capacity_for(300, 200) == 1000              # a limit above the scene changes nothing
 
 
 @pytest.mark.parametrize("name", ["gmphd", "labelled-gmphd"])

@@ -327,8 +327,13 @@ class GMPHD(nn.Module):
         """The component cap of a step with ``measurements`` detections and ``labels`` live labels:
         ``max(capacity, k (measurements + labels))`` with ``k =`` :data:`SCENE_COMPONENTS`, so that the cap
         follows the scene and a live track's components are not dropped to fit a constant (``capacity`` is
-        the floor)."""
-        return max(self.options.capacity, SCENE_COMPONENTS * (measurements + labels))
+        the floor). Above ``capacity_limit``, where one is configured, it is an error."""
+        need = max(self.options.capacity, SCENE_COMPONENTS * (measurements + labels))
+        limit = self.options.capacity_limit
+        if limit is not None and need > limit:
+            raise TorchtrackError(f"GM-PHD: {measurements} measurements and {labels} live labels need {need} "
+                                  f"components, more than capacity_limit {limit} (raise capacity_limit)")
+        return need
 
     def cap(self, state: MixtureState, capacity: int | None = None) -> MixtureState:
         """Keep the ``capacity`` (default: the configured floor) highest-weight components; a hit cap is logged

@@ -33,7 +33,9 @@ class GMPHDFilterOptions(Checked):
     gate_probability: χ² gate. prune_threshold: components lighter than this are dropped.
     merge_threshold: squared Mahalanobis distance ``U`` within which components merge; merge_rounds: passes.
     capacity: the floor of the component cap, which follows the scene: ``max(capacity, 2 (measurements + live
-    labels))`` per step (:meth:`~torchtrack.filters.gmphd.GMPHD.capacity_for`; hits are logged and counted).
+    labels))`` per step (:meth:`~torchtrack.filters.gmphd.GMPHD.capacity_for`; hits are logged and counted);
+    capacity_limit: a hard limit on that cap (None: none): a scene that needs more is an error naming it, never
+    a silent truncation.
     extract_threshold: weight above which a component is an estimate. chunk: unused since the update forms only
     the gated pairs (docs/scale.md); accepted so that configs naming it still load.
     velocity_sigma: the detector's velocity noise std (px/frame): with velocities given, ``[z, v]`` is the
@@ -53,6 +55,7 @@ class GMPHDFilterOptions(Checked):
     merge_threshold: float = option(9.0, ge=0)
     merge_rounds: int = option(3, ge=1)
     capacity: int = option(1024, ge=1)
+    capacity_limit: int | None = option(None, ge=1)
     extract_threshold: float = option(0.5, gt=0)
     chunk: int = option(4096, ge=1)
     velocity_sigma: float | None = option(1.5, gt=0)
