@@ -11,6 +11,7 @@ the same staging folder, :func:`~torchtrack.pipeline.sequences.shared_output`).
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 from torchtrack.cli._common import config_file
@@ -124,6 +125,10 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
             gt, ignore = wpafb_truth(args.truth_csv, len(source))
         else:
             gt, ignore = (read_mot(args.gt) if args.gt else None), None
+            if args.gt and Path(args.gt).with_name("velocity.txt").is_file():
+                print(f"note: every vehicle of {args.gt} is a target, parked ones too, while the pipeline tracks "
+                      "moving objects; track --sequences on the sequence's folder scores the moving ones (the "
+                      "paper's protocol, with its velocity.txt)", file=sys.stderr)
         camera = read_camera(args.camera) if args.camera else None
         result = track_video(source, staging, config, gt=gt, gt_path=str(args.truth_csv or args.gt), ignore=ignore,
                              camera=camera, progress=not args.no_progress)
