@@ -27,10 +27,12 @@ measurements ``z'_i`` of frame ``k − 1`` within the maximum speed ``v_max`` (p
 fully explain, and each pair proposes a row
 
     N([z_j, z_j − z'_i], diag(σ_p², σ_p², σ_vp², σ_vp²)),
-    r_B(z_j, z'_i) = r_B(z_j) · (1 − r_U(z'_i)) / Σ_{i' paired with j} (1 − r_U(z'_{i'}))                  (B3)
+    r_B(z_j, z'_i) = r_B(z_j) · (1 − r_U(z'_i)) / max(1, Σ_{i' paired with j} (1 − r_U(z'_{i'})))          (B3)
 
-(``r_B(z_j)`` of (B1), shared among the pairs by how unexplained the partner was; ``σ_vp`` about the std of a
-difference of two detections, ``√2 σ``, plus a frame's acceleration). A measurement with no partner proposes
+(``r_B(z_j)`` of (B1), shared among the pairs by how unexplained the partner was; as in (B1), the ``max(1, ·)``
+keeps a partner that a track nearly explains from passing on all of ``r_B(z_j)``: such a pair is most likely a
+detection of a tracked vehicle and a new one, not one new vehicle. ``σ_vp`` about the std of a difference of two
+detections, ``√2 σ``, plus a frame's acceleration). A measurement with no partner proposes
 nothing: a track needs two consecutive detections to be born (the classic two-point initiation), which also
 keeps lone clutter points from proposing rows.
 """
@@ -94,7 +96,7 @@ def two_point_births(z: Tensor, used: Tensor, z_prev: Tensor, used_prev: Tensor,
     d, partner = dist.topk(min(pairs, z_prev.shape[0]), dim=1, largest=False)           # (M, K)
     paired = torch.isfinite(d)
     share = torch.where(paired, free_prev[partner], torch.zeros_like(d))
-    r_pair = r.unsqueeze(1) * share / share.sum(1, keepdim=True).clamp_min(torch.finfo(z.dtype).tiny)
+    r_pair = r.unsqueeze(1) * share / share.sum(1, keepdim=True).clamp_min(1.0)
     z_rep = z.unsqueeze(1).expand(-1, d.shape[1], -1)
     mean = torch.cat([z_rep, z_rep - z_prev[partner]], 2).reshape(-1, 4)
     std = torch.tensor([sigma_pos, sigma_pos, sigma_vel, sigma_vel], dtype=z.dtype, device=z.device)
