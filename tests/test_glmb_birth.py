@@ -1,5 +1,5 @@
 """The GLMB's adaptive birth: the existence of each birth row (B1), the birth rate that follows the area of the
-frame's detections (B2), and births that still happen in a scene of 1000 vehicles."""
+frame's detections (B2), births that still happen in a scene of 1000 vehicles, and the two-point birth (B3)."""
 
 import math
 
@@ -7,7 +7,7 @@ import numpy as np
 import torch
 
 from torchtrack.bench.scale import simulate
-from torchtrack.filters.glmb_birth import adaptive_births, scene_birth_rate
+from torchtrack.filters.glmb_birth import adaptive_births, scene_birth_rate, two_point_births
 from torchtrack.filters.multitarget import make_tracker
 
 
@@ -34,6 +34,37 @@ def test_birth_existence_is_b1_with_the_given_rate():
     np.testing.assert_allclose(births(3.0).log_r.exp().numpy(), [0.5, 0.5], rtol=1e-12)       # capped at r_max
     few = births(0.6, torch.tensor([0.9, 0.8, 1.0, 1.0], dtype=torch.float64))    # Σ (1 − r_U) < 1: not divided
     np.testing.assert_allclose(few.log_r.exp().numpy(), [0.06, 0.12], rtol=1e-12)
+
+
+def test_two_point_births_are_b3_written_out():
+    """Each measurement pairs with the nearest unexplained measurements of the previous frame within the maximum
+    speed; the pairs share its (B1) existence by how unexplained the partner was, never more than all of it."""
+    t = lambda a: torch.tensor(a, dtype=torch.float64)   # noqa: E731
+    z = t([[100.0, 100.0], [200.0, 200.0], [400.0, 50.0], [500.0, 400.0]])
+    used = t([0.0, 0.4, 0.9, 0.0])                       # Σ (1 − r_U) = 2.7
+    z_prev = t([[90.0, 95.0], [104.0, 100.0], [100.0, 80.0], [130.0, 100.0], [185.0, 200.0], [400.0, 50.0]])
+    # partners of z_0: [104, 100] (4 px, half explained), [90, 95] (11.2 px); [100, 80] (20 px) was explained,
+    # [130, 100] (30 px) is beyond the 25 px/frame; z_1: [185, 200]; z_2: [400, 50] (at rest, 0.2 explained);
+    # z_3: none
+    used_prev = t([0.0, 0.5, 1.0, 0.0, 0.0, 0.2])
+
+    def births(pairs):
+        return two_point_births(z, used, z_prev, used_prev, frame=4, next_index=10, birth_rate=0.6, r_max=0.5,
+                                r_min=1e-3, max_speed=25.0, pairs=pairs, sigma_pos=2.0, sigma_vel=1.5)
+
+    r = 0.6 * np.array([1.0, 0.6, 0.1]) / 2.7
+    b = births(3)
+    np.testing.assert_allclose(b.log_r.exp().numpy(), [r[0] * 0.5 / 1.5, r[0] * 1.0 / 1.5, r[1], r[2] * 0.8],
+                               rtol=1e-12)
+    np.testing.assert_array_equal(b.mean.numpy(), [[100, 100, -4, 0], [100, 100, 10, 5], [200, 200, 15, 0],
+                                                   [400, 50, 0, 0]])
+    np.testing.assert_array_equal(b.cov.numpy(), np.broadcast_to(np.diag([4.0, 4.0, 2.25, 2.25]), (4, 4, 4)))
+    assert b.label.tolist() == [[4, 10], [4, 11], [4, 12], [4, 13]]
+    one = births(1)                                       # only the nearest partner: (1 − r_U) of it
+    np.testing.assert_allclose(one.log_r.exp().numpy(), r * [0.5, 1.0, 0.8], rtol=1e-12)
+    np.testing.assert_array_equal(one.mean[:, 2:].numpy(), [[-4, 0], [15, 0], [0, 0]])
+    first = two_point_births(z, used, z_prev[:0], used_prev[:0], 1, 0, 0.6, 0.5, 1e-3, 25.0, 3, 2.0, 1.5)
+    assert first.mean.shape == (0, 4) and first.label.shape == (0, 2)        # no previous frame: no birth
 
 
 def test_tracks_start_in_a_scene_of_1000_vehicles():

@@ -19,9 +19,27 @@ detections span,
 (``ρ_B``: expected births per frame per megapixel; ``λ_0``: the least rate, for scenes of a few detections whose
 box is nearly empty). At constant density ``A`` grows with the number of measurements, so each unexplained
 measurement keeps the same ``r_B`` at any scene size.
+
+With positions only, a birth at rest is far from a moving vehicle (WPAFB's move at a median 15 px/frame): its
+first update gains little existence and its track starts frames late. The **two-point birth** takes the velocity
+from the previous frame instead: each measurement ``z_j`` of frame ``k`` pairs with the (at most ``K``) nearest
+measurements ``z'_i`` of frame ``k − 1`` within the maximum speed ``v_max`` (px/frame) that the tracks did not
+fully explain, and each pair proposes a row
+
+    N([z_j, z_j − z'_i], diag(σ_p², σ_p², σ_vp², σ_vp²)),
+    r_B(z_j, z'_i) = r_B(z_j) · (1 − r_U(z'_i)) / max(1, Σ_{i' paired with j} (1 − r_U(z'_{i'})))          (B3)
+
+(``r_B(z_j)`` of (B1), shared among the pairs by how unexplained the partner was; as in (B1), the ``max(1, ·)``
+keeps a partner that a track nearly explains from passing on all of ``r_B(z_j)``: such a pair is most likely a
+detection of a tracked vehicle and a new one, not one new vehicle. ``σ_vp`` about the std of a difference of two
+detections, ``√2 σ``, plus a frame's acceleration). A measurement with no partner proposes
+nothing: a track needs two consecutive detections to be born (the classic two-point initiation), which also
+keeps lone clutter points from proposing rows.
 """
 
 from __future__ import annotations
+
+import math
 
 import torch
 from torch import Tensor
@@ -37,24 +55,53 @@ def scene_birth_rate(z: Tensor, least_rate: float, rate_per_megapixel: float) ->
     return max(least_rate, rate_per_megapixel * float(extent[0] * extent[1]) * 1e-6)
 
 
+def birth_existence(used: Tensor, birth_rate: float, r_max: float) -> Tensor:
+    """``r_B (M,)`` of (B1) from ``used (M,)`` ``r_U`` (no gradient flows into ``used``: a selection)."""
+    free = (1.0 - used.detach()).clamp_min(0.0)
+    return (birth_rate * free / free.sum().clamp_min(1.0)).clamp_max(r_max)
+
+
+def _birth_rows(mean: Tensor, std: Tensor, r: Tensor, r_min: float, frame: int, next_index: int) -> Births:
+    """The rows ``mean (R, 4)``, ``std (R, 4)`` (diagonal), existence ``r (R,)`` that reach ``r_min``, labelled
+    ``(frame, next_index + b)`` in order."""
+    keep = r >= r_min
+    B = int(keep.sum())
+    label = torch.stack([torch.full((B,), frame, dtype=torch.long, device=mean.device),
+                         torch.arange(next_index, next_index + B, dtype=torch.long, device=mean.device)], 1)
+    return Births(mean[keep], torch.diag_embed(std[keep] ** 2), torch.log(r[keep]), label)
+
+
 def adaptive_births(z: Tensor, velocity: Tensor | None, used: Tensor, frame: int, next_index: int,
                     birth_rate: float, r_max: float, r_min: float, sigma_pos: float, sigma_vel: float,
                     sigma_vel_detector: float) -> Births:
     """The birth rows (B1) from ``z (M, 2)``, ``velocity (M, 2)`` or None and ``used (M,)`` ``r_U``; labels
-    ``(frame, next_index + b)``. No gradient flows into ``used`` (a selection)."""
-    free = (1.0 - used.detach()).clamp_min(0.0)
-    r = (birth_rate * free / free.sum().clamp_min(1.0)).clamp_max(r_max)
-    keep = r >= r_min
-    zb, r = z[keep], r[keep]
-    B = zb.shape[0]
-    if velocity is not None:
-        vb, sv = velocity[keep], sigma_vel_detector
-    else:
-        vb, sv = torch.zeros_like(zb), sigma_vel
-    std = torch.tensor([sigma_pos, sigma_pos, sv, sv], dtype=z.dtype, device=z.device)
-    label = torch.stack([torch.full((B,), frame, dtype=torch.long, device=z.device),
-                         torch.arange(next_index, next_index + B, dtype=torch.long, device=z.device)], 1)
-    return Births(torch.cat([zb, vb], 1), torch.diag(std**2).expand(B, 4, 4).clone(), torch.log(r), label)
+    ``(frame, next_index + b)``."""
+    r = birth_existence(used, birth_rate, r_max)
+    v, sv = (velocity, sigma_vel_detector) if velocity is not None else (torch.zeros_like(z), sigma_vel)
+    std = torch.tensor([sigma_pos, sigma_pos, sv, sv], dtype=z.dtype, device=z.device).expand(z.shape[0], 4)
+    return _birth_rows(torch.cat([z, v], 1), std, r, r_min, frame, next_index)
+
+
+def two_point_births(z: Tensor, used: Tensor, z_prev: Tensor, used_prev: Tensor, frame: int, next_index: int,
+                     birth_rate: float, r_max: float, r_min: float, max_speed: float, pairs: int, sigma_pos: float,
+                     sigma_vel: float) -> Births:
+    """The two-point birth rows (B3) for positions only: ``z (M, 2)`` and ``used (M,)`` ``r_U`` of frame ``k``,
+    ``z_prev (M', 2)`` and ``used_prev (M',)`` of frame ``k − 1``; ``sigma_vel`` the velocity std of a pair's
+    birth (px/frame). Rows ordered by measurement, then by distance to the partner; labels
+    ``(frame, next_index + b)``."""
+    r = birth_existence(used, birth_rate, r_max)
+    free_prev = (1.0 - used_prev.detach()).clamp_min(0.0)
+    dist = torch.cdist(z.detach(), z_prev.detach())                                       # (M, M')
+    dist = torch.where((dist <= max_speed) & (free_prev > 0), dist, torch.full_like(dist, math.inf))
+    d, partner = dist.topk(min(pairs, z_prev.shape[0]), dim=1, largest=False)           # (M, K)
+    paired = torch.isfinite(d)
+    share = torch.where(paired, free_prev[partner], torch.zeros_like(d))
+    r_pair = r.unsqueeze(1) * share / share.sum(1, keepdim=True).clamp_min(1.0)
+    z_rep = z.unsqueeze(1).expand(-1, d.shape[1], -1)
+    mean = torch.cat([z_rep, z_rep - z_prev[partner]], 2).reshape(-1, 4)
+    std = torch.tensor([sigma_pos, sigma_pos, sigma_vel, sigma_vel], dtype=z.dtype, device=z.device)
+    return _birth_rows(mean, std.expand(mean.shape[0], 4), torch.where(paired, r_pair, 0.0).reshape(-1), r_min,
+                       frame, next_index)
 
 
 def no_births(dtype: torch.dtype, device=None) -> Births:

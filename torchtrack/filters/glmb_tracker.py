@@ -8,8 +8,10 @@ hypothesis of the MAP cardinality), and the **confirmation**: a label is reporte
 consecutive frame in the estimate on, and afterwards whenever it is in the estimate. (The published GLMB reports
 every birth at once, which floods the output with one-frame tracks from clutter.) Reported ids are the labels'
 birth indices + 1. With the detector's velocities (and ``velocity_sigma``) the update uses ``[z, v]`` and births
-start at the detector's velocity; without, positions only and births at rest. The filter runs on the host:
-detections on another device are copied there and the estimates returned on their device.
+start at the detector's velocity; without, positions only and births from pairs of consecutive measurements
+(``birth_pairs`` > 0, (B3) of :mod:`~torchtrack.filters.glmb_birth`) or at rest (``birth_pairs: 0``, (B1)).
+The filter runs on the host: detections on another device are copied there and the estimates returned on their
+device.
 """
 
 from __future__ import annotations
@@ -22,7 +24,7 @@ from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.glmb import GLMBFilter, GLMBState, empty_state
-from torchtrack.filters.glmb_birth import adaptive_births, no_births, scene_birth_rate
+from torchtrack.filters.glmb_birth import adaptive_births, no_births, scene_birth_rate, two_point_births
 from torchtrack.filters.tracker_config import GLMBConfig, tracker_config
 from torchtrack.models import ConstantVelocity, LinearPosition
 
@@ -63,6 +65,7 @@ class GLMBTracker:
         self.filter.cap_hits = 0
         self.state: GLMBState = empty_state(4, self.dtype)
         self.births = no_births(self.dtype)
+        self.previous = (torch.empty(0, 2, dtype=self.dtype), torch.empty(0, dtype=self.dtype))   # z, r_U
         self.next_index = 0
         self.streak_labels = torch.empty(0, dtype=torch.long)   # birth indices in the previous estimate
         self.streak = torch.empty(0, dtype=torch.long)          # their consecutive frames in the estimate
@@ -93,8 +96,14 @@ class GLMBTracker:
         log_clutter = torch.full((z.shape[0],), log_kappa, dtype=self.dtype)
         self.state, info = self.filter.step(self.state, self.births, z, log_clutter, v)
         rate = scene_birth_rate(z, c.birth_rate, c.birth_density)
-        self.births = adaptive_births(z, v, info.used, frame, self.next_index, rate, c.birth_max, c.birth_min,
-                                      c.birth_sigma_pos, c.birth_sigma_vel, c.birth_sigma_vel_detector)
+        if v is None and c.birth_pairs > 0:
+            self.births = two_point_births(z, info.used, *self.previous, frame, self.next_index, rate, c.birth_max,
+                                           c.birth_min, c.birth_max_speed, c.birth_pairs, c.birth_sigma_pos,
+                                           c.birth_sigma_vel_pair)
+        else:
+            self.births = adaptive_births(z, v, info.used, frame, self.next_index, rate, c.birth_max, c.birth_min,
+                                          c.birth_sigma_pos, c.birth_sigma_vel, c.birth_sigma_vel_detector)
+        self.previous = (z, info.used)
         self.next_index += self.births.mean.shape[0]
         rows = info.estimate
         labels = self.state.label[rows, 1]

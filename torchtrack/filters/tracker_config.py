@@ -236,7 +236,10 @@ class GLMBConfig(Checked):
     the frame's detections' bounding box ρ_B (λ_B = max(λ_0, ρ_B A), docs/glmb.md (B2));
     birth_max, birth_min: cap and floor of a birth's existence;
     birth_sigma_pos (px), birth_sigma_vel (px/frame, births at rest), birth_sigma_vel_detector (from the
-    detector's velocity); confirm_frames: a label is reported from its n-th consecutive frame in the estimate;
+    detector's velocity); birth_pairs: positions only, each measurement's births pair it with at most this many
+    measurements of the previous frame within birth_max_speed (px/frame), velocity std birth_sigma_vel_pair
+    (px/frame) (docs/glmb.md (B3)); 0: births at rest (B1); confirm_frames: a label is reported from its n-th
+    consecutive frame in the estimate;
     seed: the sampler's random stream; dtype."""
 
     q: float = option(1.0, gt=0)
@@ -258,6 +261,9 @@ class GLMBConfig(Checked):
     birth_sigma_pos: float = option(2.0, gt=0)
     birth_sigma_vel: float = option(8.0, gt=0)
     birth_sigma_vel_detector: float = option(1.5, gt=0)
+    birth_pairs: int = option(3, ge=0)
+    birth_max_speed: float = option(25.0, gt=0)
+    birth_sigma_vel_pair: float = option(2.0, gt=0)
     confirm_frames: int = option(3, ge=1)
     seed: int = option(0, ge=0)
     dtype: str = option("float64", one_of=("float32", "float64"))
