@@ -59,7 +59,8 @@ def normalise(frame: torch.Tensor) -> torch.Tensor:
     """``(I - mean) / (std + 1)`` of a whole frame (H, W) -> float32; the same at training and inference.
     One frame-sized copy (the arithmetic is in place on it): a 66-megapixel frame costs 265 MB, not three times."""
     f = frame.to(torch.float32, copy=True)
-    return f.sub_(f.mean()).div_(f.std() + 1.0)
+    mean, std = f.mean(), f.std()
+    return f.sub_(mean).div_(std + 1.0)
 
 
 def split_seed(seed: int, split: str, index: int) -> int:
