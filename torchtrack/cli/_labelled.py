@@ -46,8 +46,9 @@ def load_labelled(args: argparse.Namespace, registration: str):
     frames = read_images(args.images)
     source = args.gt if args.gt is not None else args.truth_csv
     truth = read_mot(source) if args.gt is not None else read_wpafb_csv(source)
+    data = label_frames(frames, truth, str(source))              # checks the truth before registering
     region = check_region(args.region, frames.shape[1:])
     register = Registration(RegistrationConfig(method=registration))
     to_reference = [register(f).homography for f in frames]
     motions = [np.eye(3)] + [np.linalg.inv(a) @ b for a, b in zip(to_reference[:-1], to_reference[1:])]
-    return label_frames(frames, truth, str(source), motions), region
+    return data._replace(motions=motions), region
