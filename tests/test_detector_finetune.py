@@ -200,3 +200,19 @@ def test_finetune_and_eval_commands_run_as_documented(tmp_path, capsys):
     assert main(["train-detector", "--finetune", str(weights), "--images", str(images), "--gt", str(gt),
                  "--epochs", "3"]) == 2
     assert "--epochs does not apply to --finetune" in capsys.readouterr().err
+
+
+def test_labels_link_ids_mark_repeats_and_moving_vehicles():
+    frames = np.zeros((3, 20, 40), np.uint8)
+    frames[0, 0, 0] = frames[1, 0, 0] = 9                     # frame 2 repeats frame 1
+    # id 1 moves 3 px a frame (to frame 4, beyond the images); id 2 stays; id -1 (unlabelled) twice
+    ident = np.array([1, 1, 1, 1, 2, 2, 2, -1, -1])
+    frame = np.array([1, 2, 3, 4, 1, 2, 3, 2, 3])
+    x = np.array([5.0, 8, 11, 14, 20, 20, 20, 30, 35])
+    data = label_frames(frames, from_points(frame, ident, x, np.full(9, 10.0)), "gt.txt")
+    assert data.repeated.tolist() == [False, True, False]
+    # moving: more than 5 px from here at some later frame (9, 6, then only 3 px to go)
+    assert [d.tolist() for d in data.moving] == [[True, False], [True, False, False], [False, False, False]]
+    assert np.isnan(data.velocity[0]).all() and np.isnan(data.velocity[1]).all()      # first and repeated
+    np.testing.assert_array_equal(data.velocity[2][:2], [[3.0, 0.0], [0.0, 0.0]])
+    assert np.isnan(data.velocity[2][2]).all()                                         # id -1 never links

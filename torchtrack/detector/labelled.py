@@ -63,6 +63,13 @@ def read_images(folder: str | Path) -> np.ndarray:
     return frames
 
 
+def _link(ids: np.ndarray, other: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Indices into ``ids`` and ``other`` of the objects with the same id; unlabelled ids (< 0) never link."""
+    _, here, there = np.intersect1d(ids, other, return_indices=True)
+    known = ids[here] >= 0
+    return here[known], there[known]
+
+
 def label_frames(frames: np.ndarray, truth: MOTData, source: str,
                  motions: list[np.ndarray] | None = None) -> LabelledFrames:
     """Attach ``truth`` (frames from 1) to ``frames`` (T, H, W); ``source`` names the truth file in errors
@@ -88,12 +95,12 @@ def label_frames(frames: np.ndarray, truth: MOTData, source: str,
         pi, pp = at(k - 1)
         v = np.full_like(p, np.nan)
         if not repeated[k - 1]:
-            shared, here, there = np.intersect1d(i, pi, return_indices=True)
+            here, there = _link(i, pi)
             v[here] = p[here] - pp[there]
         disp = np.zeros(len(i))
         for j in range(k + 1, k + MOVING_WINDOW + 1):
             li, lp = at(j)
-            shared, here, there = np.intersect1d(i, li, return_indices=True)
+            here, there = _link(i, li)
             disp[here] = np.maximum(disp[here], np.linalg.norm(lp[there] - p[here], axis=1))
         ids.append(i)
         xy.append(p)
