@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from torchtrack.cli._common import add_common_options, bounded, config_file, positive_float, positive_int
+from torchtrack.cli._labelled import add_labelled_options, check_labelled_options, load_labelled
 from torchtrack.detector.evaluate import PRIORS
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
@@ -27,6 +28,13 @@ frames after the first). The WPAFB part runs where the WPAFB AOI 02 data
 set is found (data/wpafb-aoi02, $TORCHTRACK_WPAFB or ../shared/data/wpafb-aoi02; torchtrack data fetch
 wpafb gets it): all vehicles, and moving vehicles with detections on parked vehicles as don't-care.
 Example: torchtrack eval-detector --sequences 4 --frames 20 --json out/eval.json
+
+--images DIR with --gt or --truth-csv scores those labelled frames instead (only them), as a stream
+registered as the pipeline registers (finetune.registration of the weights' config), with the same
+two rows; --region X0 Y0 X1 Y1 counts only what lies inside (truth outside is don't-care, unmatched
+detections outside are no false positives). JSON: images: {all: {...}, moving: {...}}, region.
+Example: torchtrack eval-detector --images data/wpafb-aoi02/frames \
+  --truth-csv data/wpafb-aoi02/transformed_object_states.csv --region 300 0 585 496
 """
 
 COLUMNS = ("precision", "recall", "f1", "velocity_error_px", "frames", "fps")  # of each row, and the JSON's top level
@@ -49,6 +57,7 @@ def add_arguments(parser) -> None:
                              "(stream, default: as in use), the previous truth (truth: a perfect feedback) or "
                              "none (empty); velocities are continued only with stream; the real frames always "
                              "stream")
+    add_labelled_options(parser, "to score instead of the synthetic sequences and the WPAFB frames")
     parser.add_argument("--threads", type=positive_int, default=1,
                         help="torch intra-op threads (default 1: fastest when other processes load the CPU)")
     add_common_options(parser)
@@ -71,21 +80,19 @@ def wpafb_path(given: Path | None) -> tuple[Path | None, str | None]:
 
 
 def run(args) -> int:
-    import dataclasses
 
     from torchtrack.detector.dataset import split_seed
     from torchtrack.detector.evaluate import evaluate_synthetic
-    from torchtrack.detector.inference import load_detector
     from torchtrack.detector.wpafb import evaluate_wpafb
     from torchtrack.sim.video_config import from_dict, load_video_config
     from torchtrack.threads import torch_threads
 
+    check_labelled_options(args)
+    if args.images is not None:
+        return _score_images(args)
     path, absent = (None, None) if args.no_wpafb else wpafb_path(args.wpafb)
     with torch_threads(args.threads):
-        det = load_detector(args.weights)
-        if args.threshold is not None:
-            det.config = dataclasses.replace(det.config, decode=dataclasses.replace(det.config.decode,
-                                                                                     threshold=args.threshold))
+        det = _detector(args)
         video = load_video_config(args.config) if args.config else from_dict(dict(det.config.data.video))
         seeds = [split_seed(args.seed, "test", i) for i in range(args.sequences)]
         result = evaluate_synthetic(det, video.replace(frames=args.frames), seeds, args.radius, prior=args.prior)
@@ -100,4 +107,31 @@ def run(args) -> int:
     rows = [[name, *(r[k] for k in COLUMNS)] for name, r in scored.items()]
     print(format_table(["data", "precision", "recall", "F1", "vel err px/fr", "frames", "fps"], rows))
     write_json(args.json, payload)
+    return 0
+
+
+def _detector(args):
+    """The detector of ``--weights`` with ``--threshold`` where given."""
+    import dataclasses
+
+    from torchtrack.detector.inference import load_detector
+
+    det = load_detector(args.weights)
+    if args.threshold is not None:
+        det.config = dataclasses.replace(det.config, decode=dataclasses.replace(det.config.decode,
+                                                                                 threshold=args.threshold))
+    return det
+
+
+def _score_images(args) -> int:
+    from torchtrack.detector.labelled import evaluate_labelled
+    from torchtrack.threads import torch_threads
+
+    with torch_threads(args.threads):
+        det = _detector(args)
+        data, region = load_labelled(args, det.config.finetune.registration)
+        scores = evaluate_labelled(det, data, region, args.radius)
+    rows = [[f"images, {name} vehicles", *(scores[name][k] for k in COLUMNS)] for name in ("all", "moving")]
+    print(format_table(["data", "precision", "recall", "F1", "vel err px/fr", "frames", "fps"], rows))
+    write_json(args.json, {"images": scores, "region": list(region)})
     return 0

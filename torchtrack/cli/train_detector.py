@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from torchtrack.cli._common import add_common_options, config_file, nonnegative_int, positive_int
+from torchtrack.cli._labelled import add_labelled_options, check_labelled_options, load_labelled
 from torchtrack.io.outputs import write_json
 
 NAME = "train-detector"
@@ -16,6 +17,14 @@ validation F1 improves, OUT/best.pt. --resume continues from OUT/last.pt. Runs u
   torchrun --nproc_per_node N -m torchtrack train-detector --config configs/detector.yaml
 (gloo on CPU, NCCL on GPU; the global batch is split among the processes).
 Example: torchtrack train-detector --config configs/detector.yaml --seed 0
+
+--finetune WEIGHTS adapts trained weights to labelled real frames (--images with --gt or --truth-csv,
+optionally only inside --region), mixing in synthetic pairs; its settings are the finetune section of
+--config (defaults: torchtrack.detector.config.FinetuneConfig); it writes OUT/last.pt (default
+finetune.out) and, with --export, the weights as the shipped file is written (decoding threshold kept).
+Example: torchtrack train-detector --finetune torchtrack/detector/weights/centertrack_small.pt \
+  --images data/wpafb-aoi02/frames --truth-csv data/wpafb-aoi02/transformed_object_states.csv \
+  --region 0 0 284 496 --export out/finetuned.pt
 """
 
 
@@ -27,7 +36,11 @@ def add_arguments(parser) -> None:
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt")
     parser.add_argument("--export", type=Path, default=None, metavar="PT",
                         help="after training, write the best checkpoint's weights (no optimizer) to PT, with "
-                             "the decoding threshold calibrated on the validation sequences")
+                             "the decoding threshold calibrated on the validation sequences (with --finetune: "
+                             "the last weights, threshold of WEIGHTS)")
+    parser.add_argument("--finetune", type=Path, default=None, metavar="WEIGHTS",
+                        help="fine-tune these weights on the labelled frames of --images instead of training")
+    add_labelled_options(parser, "to fine-tune on")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--threads", type=positive_int, default=None,
                         help="torch intra-op threads per process (1 is fastest on a busy machine)")
@@ -47,6 +60,9 @@ def run(args) -> int:
     from torchtrack.detector.train import export_weights, train
     from torchtrack.threads import torch_threads
 
+    check_labelled_options(args)
+    if args.finetune is not None or args.images is not None:
+        return _finetune(args)
     cfg = load_config(args.config)
     changes = {"out": None if args.out is None else str(args.out), "epochs": args.epochs}
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **{k: v for k, v in changes.items() if v}))
@@ -61,5 +77,42 @@ def run(args) -> int:
             thr = load_checkpoint(path)["config"].decode.threshold
             print(f"exported {result['best']} to {args.export} (decoding threshold {thr} calibrated on the "
                   "validation sequences)")
+    write_json(args.json, result)
+    return 0
+
+
+def _finetune(args) -> int:
+    import dataclasses
+
+    from torchtrack.detector.checkpoint import load_checkpoint
+    from torchtrack.detector.config import load_config
+    from torchtrack.detector.finetune import finetune
+    from torchtrack.detector.train import export_weights
+    from torchtrack.errors import TorchtrackError
+    from torchtrack.threads import torch_threads
+
+    if args.finetune is None or args.images is None:
+        raise TorchtrackError("--finetune WEIGHTS and --images DIR go together")
+    clash = [name for name, on in (("--epochs", args.epochs), ("--resume", args.resume),
+                                   ("--workers", args.workers)) if on]
+    if clash:
+        raise TorchtrackError(f"{clash[0]} does not apply to --finetune (its settings: the finetune section of "
+                              "--config)")
+    base = load_checkpoint(args.finetune)
+    settings = load_config(args.config).finetune
+    if args.out is not None:
+        settings = dataclasses.replace(settings, out=str(args.out))
+    cfg = dataclasses.replace(base["config"], finetune=settings)
+    data, region = load_labelled(args, settings.registration)
+    with torch_threads(args.threads):
+        result = finetune(cfg, base["model"], data, region, seed=args.seed, progress=not args.no_progress)
+    if args.export is not None:
+        truth = args.gt if args.gt is not None else args.truth_csv
+        command = (f"torchtrack train-detector --finetune {args.finetune} --images {args.images} "
+                   f"--{'gt' if args.gt is not None else 'truth-csv'} {truth} --region {' '.join(map(str, region))} "
+                   f"--config {args.config} --seed {args.seed}")
+        export_weights(result["last"], args.export, {"seed": args.seed, "command": command,
+                                                      "finetuned_from": str(args.finetune)})
+        print(f"exported {result['last']} to {args.export}")
     write_json(args.json, result)
     return 0

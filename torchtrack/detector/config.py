@@ -1,4 +1,4 @@
-"""Detector training configuration (``configs/detector.yaml``): model, data, train and decode sections."""
+"""Detector training configuration (``configs/detector.yaml``): model, data, train, decode and finetune sections."""
 
 from __future__ import annotations
 
@@ -78,11 +78,27 @@ class DecodeConfig(Checked):
 
 
 @dataclass(frozen=True)
+class FinetuneConfig(Checked):
+    """``train-detector --finetune``: adapting trained weights to labelled real frames (docs/detector.md)."""
+
+    steps: int = option(300, ge=1)
+    batch: int = option(16, ge=1)
+    lr: float = option(5e-4, gt=0)                  # Adam, warm-up and cosine decay over the steps
+    synthetic_share: float = option(0.25, ge=0, le=1)   # probability that a training pair is synthetic
+    synthetic_sequences: int = option(8, ge=1)      # cached synthetic sequences the synthetic pairs come from
+    gain: float = option(0.2, ge=0, lt=1)           # real pairs: both frames scaled by U(1 - gain, 1 + gain)
+    noise: float = option(0.1, ge=0)                # real pairs: Gaussian noise, in units of the frame's std
+    registration: str = option("lk", one_of=("lk", "orb", "none"))   # as the pipeline's registration.method
+    out: str = "out/detector-finetune"
+
+
+@dataclass(frozen=True)
 class DetectorConfig(Checked):
     model: ModelConfig = field(default_factory=ModelConfig)
     data: DataConfig = field(default_factory=DataConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
     decode: DecodeConfig = field(default_factory=DecodeConfig)
+    finetune: FinetuneConfig = field(default_factory=FinetuneConfig)
 
 
 def config_from_dict(values: dict, source: str = "config") -> DetectorConfig:

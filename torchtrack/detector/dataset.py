@@ -29,6 +29,7 @@ from tqdm import tqdm
 from torchtrack.detector.config import DetectorConfig
 from torchtrack.detector.evaluate import ground_velocity
 from torchtrack.detector.network import STRIDE
+from torchtrack.detector.region import Region, crop_start
 from torchtrack.detector.targets import Targets, gaussian_heatmap, make_targets
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography, warp_previous
@@ -121,9 +122,15 @@ def _dihedral(img: torch.Tensor, pts: torch.Tensor, vec: torch.Tensor, code: int
 
 
 class PairDataset(Dataset):
-    """``len = steps_per_epoch * batch``; item ``i`` -> ``(input (3, c, c), Targets at stride 2)``."""
+    """``len = steps_per_epoch * batch``; item ``i`` -> ``(input (3, c, c), Targets at stride 2)``.
 
-    def __init__(self, cache: SequenceCache, cfg: DetectorConfig, seed: int) -> None:
+    ``region``: only its pixels are labelled (the crop is placed as much inside it as it fits and the
+    cells outside are masked out of the loss, :attr:`Targets.labelled`); ``augment``: both frames'
+    normalised values scaled by one gain ``U(1 - g, 1 + g)`` and each given Gaussian noise of std ``n``
+    (``finetune.gain``, ``finetune.noise``), for small labelled sets."""
+
+    def __init__(self, cache: SequenceCache, cfg: DetectorConfig, seed: int, region: Region | None = None,
+                 augment: bool = False) -> None:
         s, t, h, w = cache.frames.shape
         c = cfg.data.crop
         if t < 2:
@@ -131,6 +138,7 @@ class PairDataset(Dataset):
         if c > min(h, w):
             raise TorchtrackError(f"detector data: crop {c} is larger than the frames ({h}x{w})")
         self.cache, self.cfg, self.seed, self.epoch = cache, cfg, seed, 0
+        self.region, self.augment = region, augment
         fr = cache.frames.float()
         self.mean = fr.mean((2, 3))
         self.std = fr.std((2, 3)) + 1.0
@@ -149,7 +157,11 @@ class PairDataset(Dataset):
         same = rng.random() < d.same_frame
         tp = t if same else t - 1
         c = d.crop
-        y0, x0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+        if self.region is None:
+            y0, x0 = int(rng.integers(0, h - c + 1)), int(rng.integers(0, w - c + 1))
+        else:
+            r = self.region
+            y0, x0 = crop_start(rng, r.y0, r.y1, c, h), crop_start(rng, r.x0, r.x1, c, w)
         crop = cache.frames[s, t, y0:y0 + c, x0:x0 + c]
         cur = (crop.float() - self.mean[s, t]) / self.std[s, t]
         _, xy, vel = cache.truth(s, t)
@@ -174,13 +186,20 @@ class PairDataset(Dataset):
             false_near = pxy[near] + torch.from_numpy(rng.normal(0, 4.0, (int(near.sum()), 2))).float()
             clutter = torch.from_numpy(rng.uniform(0, c, (rng.poisson(d.prior_clutter), 2))).float()
             prior_xy = torch.cat([(pxy + jitter)[keep], false_near, clutter])
-        img = torch.stack([cur, prev])
+        labelled = None if self.region is None else self.region.mask((h, w))[y0:y0 + c, x0:x0 + c]
+        img = torch.stack([cur, prev] + ([] if labelled is None else [labelled.float()]))
         code = int(rng.integers(8))
         img, xy, vel = _dihedral(img, xy, vel, code, c)
         _, prior_xy, _ = _dihedral(img[:0], prior_xy, prior_xy, code, c)
+        if labelled is not None:
+            img, labelled = img[:2], img[2] > 0.5
+        if self.augment:
+            f = self.cfg.finetune
+            gain = rng.uniform(1 - f.gain, 1 + f.gain)
+            img = img * gain + torch.from_numpy(rng.normal(0, f.noise, img.shape)).float()
         prior = gaussian_heatmap(prior_xy, (c, c), d.prior_sigma)
         x = torch.cat([img, prior[None]]).contiguous()
-        return x, make_targets(xy, vel, (c, c), STRIDE, d.target_sigma)
+        return x, make_targets(xy, vel, (c, c), STRIDE, d.target_sigma, labelled)
 
 
 def collate(batch: list[tuple[torch.Tensor, Targets]]) -> tuple[torch.Tensor, Targets]:

@@ -43,20 +43,23 @@ class Scores:
     velocity_errors: list = field(default_factory=list)
 
     def add(self, det: Detections, truth_xy: np.ndarray, truth_velocity: np.ndarray | None = None,
-            care: np.ndarray | None = None) -> None:
+            care: np.ndarray | None = None, counted: np.ndarray | None = None) -> None:
         """Score one frame. Detections matched to don't-care truth (``care`` False) count neither as
-        true nor as false positives; unmatched don't-care truth is no miss."""
+        true nor as false positives; unmatched don't-care truth is no miss; an unmatched detection is a
+        false positive only where ``counted`` (per detection, default all: e.g. inside a scored region)."""
         pred = det.xy.numpy().astype(np.float64)
         care = np.ones(len(truth_xy), bool) if care is None else care
         i, j = match(pred, truth_xy, self.radius)
-        counted = care[j]
-        self.tp += int(counted.sum())
-        self.fn += int(care.sum() - counted.sum())
-        self.fp += len(pred) - len(i)
+        unmatched = np.ones(len(pred), bool)
+        unmatched[i] = False
+        self.fp += int((unmatched if counted is None else unmatched & counted).sum())
+        hit = care[j]
+        self.tp += int(hit.sum())
+        self.fn += int(care.sum() - hit.sum())
         self.frames += 1
         if truth_velocity is not None and len(i):
-            tv = truth_velocity[j[counted]]
-            pv = det.velocity.numpy()[i[counted]]
+            tv = truth_velocity[j[hit]]
+            pv = det.velocity.numpy()[i[hit]]
             known = ~np.isnan(tv).any(axis=1)
             self.velocity_errors += np.linalg.norm(pv[known] - tv[known], axis=1).tolist()
 

@@ -12,17 +12,21 @@ from torch.nn import functional as F
 from torchtrack.detector.targets import Targets
 
 
-def focal_loss(logits: torch.Tensor, target: torch.Tensor, alpha: float = 2.0, beta: float = 4.0) -> torch.Tensor:
+def focal_loss(logits: torch.Tensor, target: torch.Tensor, alpha: float = 2.0, beta: float = 4.0,
+               labelled: torch.Tensor | None = None) -> torch.Tensor:
     """CenterNet focal loss (Zhou et al. 2019, eq. (1)) per sample, ``(B,)``.
 
     ``L = -1/max(1, N) sum [ (1-p)^a log p  where y = 1 ;  (1-y)^b p^a log(1-p)  otherwise ]``,
-    ``N`` the number of cells with ``y = 1``; ``log p`` via ``logsigmoid`` for stability.
+    ``N`` the number of cells with ``y = 1``; ``log p`` via ``logsigmoid`` for stability. ``labelled``
+    (B, h, w) bool, optional: the sum and ``N`` run over these cells only (unlabelled cells are
+    neither positive nor negative).
     """
-    pos = target.eq(1).float()
+    keep = 1.0 if labelled is None else labelled[:, None].to(logits.dtype)
+    pos = target.eq(1).float() * keep
     p = torch.sigmoid(logits)
     log_p, log_1p = F.logsigmoid(logits), F.logsigmoid(-logits)
     pos_l = (1 - p) ** alpha * log_p * pos
-    neg_l = (1 - target) ** beta * p ** alpha * log_1p * (1 - pos)
+    neg_l = (1 - target) ** beta * p ** alpha * log_1p * (keep - pos)
     dims = tuple(range(1, logits.dim()))
     n = pos.sum(dims).clamp(min=1)
     return -(pos_l.sum(dims) + neg_l.sum(dims)) / n
@@ -76,7 +80,7 @@ def detection_loss(outputs: tuple[torch.Tensor, ...], targets: Targets, offset_w
     ``match_weight`` is added.
     """
     hm, off, vel = outputs[:3]
-    l_hm = focal_loss(hm, targets.heatmap)
+    l_hm = focal_loss(hm, targets.heatmap, labelled=targets.labelled)
     l_off = masked_l1(off, targets.offset, targets.centre)
     l_vel = masked_l1(vel, targets.velocity, targets.has_velocity)
     total = l_hm + offset_weight * l_off + velocity_weight * l_vel

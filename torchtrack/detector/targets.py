@@ -43,7 +43,9 @@ class Targets(NamedTuple):
     """Dense training targets at output resolution ``(h, w) = (H/s, W/s)``.
 
     heatmap (1, h, w); offset (2, h, w) in cells; velocity (2, h, w) px/frame; centre (h, w) bool: a
-    centre cell (offset supervised); has_velocity (h, w) bool: a centre cell with a known velocity.
+    centre cell (offset supervised); has_velocity (h, w) bool: a centre cell with a known velocity;
+    labelled (h, w) bool: a cell inside the labelled region (outside it a cell is neither positive nor
+    negative: no loss term of any head reaches it).
     """
 
     heatmap: torch.Tensor
@@ -51,12 +53,22 @@ class Targets(NamedTuple):
     velocity: torch.Tensor
     centre: torch.Tensor
     has_velocity: torch.Tensor
+    labelled: torch.Tensor
 
 
 def make_targets(xy: torch.Tensor, velocity: torch.Tensor, in_shape: tuple[int, int], stride: int,
-                 sigma: float) -> Targets:
-    """Targets for objects at ``xy`` (N, 2) px with ``velocity`` (N, 2) px/frame (NaN: unknown)."""
+                 sigma: float, labelled: torch.Tensor | None = None) -> Targets:
+    """Targets for objects at ``xy`` (N, 2) px with ``velocity`` (N, 2) px/frame (NaN: unknown).
+
+    ``labelled``: optional (H, W) bool at input resolution, the pixels whose truth is known (default: all);
+    an output cell counts as labelled when all of its ``stride x stride`` pixels are. Objects anywhere
+    shape the heatmap (a Gaussian tail reaches into the labelled cells), but the centre and velocity
+    masks keep only labelled cells."""
     h, w = in_shape[0] // stride, in_shape[1] // stride
+    if labelled is None:
+        cells = torch.ones(h, w, dtype=torch.bool)
+    else:
+        cells = labelled[: h * stride, : w * stride].reshape(h, stride, w, stride).all(3).all(1)
     c = xy.float() / stride
     cell = torch.floor(c)
     inside = (cell[:, 0] >= 0) & (cell[:, 0] < w) & (cell[:, 1] >= 0) & (cell[:, 1] < h)
@@ -68,7 +80,8 @@ def make_targets(xy: torch.Tensor, velocity: torch.Tensor, in_shape: tuple[int, 
     known = ~torch.isnan(vel).any(dim=1)
     v = torch.zeros(2, h * w)
     v[:, idx[known]] = vel[known].T
-    cells = torch.arange(h * w)
-    centre = torch.isin(cells, idx)
-    has_v = torch.isin(cells, idx[known])
-    return Targets(heat, offset.view(2, h, w), v.view(2, h, w), centre.view(h, w), has_v.view(h, w))
+    flat = torch.arange(h * w)
+    centre = torch.isin(flat, idx)
+    has_v = torch.isin(flat, idx[known])
+    return Targets(heat, offset.view(2, h, w), v.view(2, h, w), centre.view(h, w) & cells,
+                   has_v.view(h, w) & cells, cells)
