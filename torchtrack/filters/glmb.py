@@ -54,15 +54,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.association.gibbs import ABSENT, FIRST_MEASUREMENT, MISSED, gating_groups, gibbs_sample
-from torchtrack.gaussian import (
-    chi2_quantile,
-    innovation_cov,
-    innovations_likelihood,
-    kalman_gain,
-    kalman_update,
-    symmetrize,
-)
+from torchtrack.association.gibbs import ABSENT, FIRST_MEASUREMENT, MISSED, Groups, gating_groups, gibbs_sample
+from torchtrack.filters.glmb_gating import gated_candidates
+from torchtrack.gaussian import chi2_quantile, innovation_cov, kalman_gain, kalman_update, symmetrize
 
 log = logging.getLogger(__name__)
 
@@ -177,6 +171,7 @@ class GLMBFilter:
         self.H_pos, self.R_pos, self.H_full, self.R_full = H_pos, R_pos, H_full, R_full
         self.p_survival, self.p_detection = p_survival, p_detection
         self.gate = gate
+        self._gate_thresholds: dict[tuple[float, int], float] = {}
         self.chains, self.sweeps = chains, sweeps
         self.log_prune = _log(prune_threshold)
         self.max_hypotheses = max_hypotheses
@@ -205,12 +200,7 @@ class GLMBFilter:
         # (G2) gated likelihoods and the weights η
         C, S = innovation_cov(cov, H, R)
         gain = kalman_gain(S, C, "GLMB: innovation covariance S")
-        nu = meas.unsqueeze(0) - (mean @ H.T).unsqueeze(1)                     # (N, M, m)
-        nis, loglik = innovations_likelihood(gain, nu)
-        gated = nis.detach() <= chi2_quantile(self.gate, meas.shape[1])
-        K = int(gated.sum(1).max()) if N and M else 0
-        vals, cand = torch.where(gated, loglik, torch.full_like(loglik, -math.inf)).topk(K, dim=1)
-        cand = torch.where(torch.isfinite(vals.detach()), cand, torch.full_like(cand, -1))
+        cand, vals = gated_candidates(mean @ H.T, S, gain, meas, self._gate_threshold(meas.shape[1]))
         log_ps = torch.full((T,), _log(self.p_survival), dtype=mean.dtype, device=device)
         log_exist = torch.cat([log_ps, births.log_r])
         log_absent = torch.cat([torch.full_like(log_ps, _log(1 - self.p_survival)),
@@ -236,13 +226,11 @@ class GLMBFilter:
         order = torch.sort(chain_size, descending=True, stable=True).indices
         parent, chain_size = parent[order], chain_size[order]
         active = torch.searchsorted(-chain_size, -torch.arange(len(groups.widths), device=device), right=False)
-        row_of_h = torch.full((Hp, n_slots + 1), -1, dtype=torch.long, device=device)
-        held = prior_hyp >= 0
-        row_of_h.scatter_(1, torch.where(held, slot_of_row[prior_hyp.clamp_min(0)], n_slots), prior_hyp)
-        row_of_h[:, slot_of_row[T:]] = torch.arange(T, N, device=device)          # births: in every hypothesis
-        row_of_h[:, n_slots] = -1
-        rows = row_of_h[parent].gather(1, groups.slots[prior_group[parent]])     # (C, P)
-        choice = gibbs_sample(log_eta, cand, rows, groups.widths, M, self.sweeps, self.generator, active.tolist())
+        rows = self._chain_rows(prior_hyp, prior_group, parent, slot_of_row, groups, T, N)
+        # measurement indices local to each group: a chain's record of taken measurements is the group's size
+        local_cand = torch.where(cand >= 0, groups.local_meas[cand.clamp_min(0)], -1)
+        choice = gibbs_sample(log_eta, local_cand, rows, groups.widths, groups.group_meas, self.sweeps,
+                              self.generator, active.tolist())
         P = rows.shape[1]
         choice = choice.reshape(parent.shape[0] * self.sweeps, P)
         parent = parent.repeat_interleave(self.sweeps)
@@ -292,6 +280,31 @@ class GLMBFilter:
             table_mean, table_cov = table_mean.index_put(at, upd.mean), table_cov.index_put(at, upd.cov)
         new = GLMBState(table_mean, table_cov, label[row], new_meas, hyp, log_w, group)
         return new, self._info(new, M, n_groups, capped)
+
+    @staticmethod
+    def _chain_rows(prior_hyp: Tensor, prior_group: Tensor, parent: Tensor, slot_of_row: Tensor, groups: Groups,
+                    T: int, N: int) -> Tensor:
+        """The row each chain updates at each step of a sweep ``(C, P)`` (-1: none): its hypothesis's row of the
+        slot at that step of its group, and the group's birth rows (in every hypothesis). Memory ``O((Hp + C) P)``:
+        every row of a hypothesis lies in its group."""
+        P = groups.slots.shape[1]
+        held = prior_hyp >= 0
+        step = torch.where(held, groups.position[slot_of_row[prior_hyp.clamp_min(0)]], P)
+        row_at = torch.full((prior_hyp.shape[0], P + 1), -1, dtype=torch.long, device=prior_hyp.device)
+        row_at.scatter_(1, step, prior_hyp)
+        birth_slot = slot_of_row[T:]
+        birth_at = torch.full((groups.slots.shape[0], P), -1, dtype=torch.long, device=prior_hyp.device)
+        birth_at[groups.group_of_slot[birth_slot], groups.position[birth_slot]] = torch.arange(
+            T, N, device=prior_hyp.device)
+        births = birth_at[prior_group[parent]]
+        return torch.where(births >= 0, births, row_at[parent, :P])
+
+    def _gate_threshold(self, dof: int) -> float:
+        """χ²(gate) quantile of ``dof`` degrees of freedom (computed once per size)."""
+        key = (self.gate, dof)
+        if key not in self._gate_thresholds:
+            self._gate_thresholds[key] = chi2_quantile(self.gate, dof)
+        return self._gate_thresholds[key]
 
     def _cap_hit(self) -> None:
         self.cap_hits += 1
