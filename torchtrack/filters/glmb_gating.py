@@ -20,7 +20,6 @@ from torchtrack.filters.gmphd import gated_pairs
 from torchtrack.gaussian import (
     KalmanGain,
     gaussian_log_likelihood,
-    innovations_likelihood,
     log_det_from_cholesky,
 )
 
@@ -37,8 +36,7 @@ def gated_candidates(z_hat: Tensor, S: Tensor, gain: KalmanGain, meas: Tensor, g
     if dense is None:
         dense = N * M <= DENSE_PAIRS
     if dense:
-        nu = meas.unsqueeze(0) - z_hat.unsqueeze(1)                            # (N, M, m)
-        nis, loglik = innovations_likelihood(gain, nu)
+        nis, loglik = _all_pairs_likelihood(z_hat, gain, meas)
         gated = nis.detach() <= gate
         K = int(gated.sum(1).max()) if N and M else 0
         vals, cand = torch.where(gated, loglik, torch.full_like(loglik, -math.inf)).topk(K, dim=1)
@@ -60,3 +58,19 @@ def gated_candidates(z_hat: Tensor, S: Tensor, gain: KalmanGain, meas: Tensor, g
     cand[ii, col] = jj
     vals = torch.full((N, K), -math.inf, dtype=loglik.dtype, device=meas.device).index_put((ii, col), loglik)
     return cand, vals
+
+
+def _all_pairs_likelihood(z_hat: Tensor, gain: KalmanGain, meas: Tensor) -> tuple[Tensor, Tensor]:
+    """NIS and ``log N(z_j; ẑ_i, S_i)`` of every pair ``(N, M)``: the whitening ``L⁻¹ ν`` (lower triangular)
+    written out coordinate by coordinate over ``(N, M)`` planes — a batched GEMM of ``N`` tiny ``(M, m) × (m, m)``
+    products costs several times more."""
+    m = meas.shape[1]
+    nu = [meas[:, k].unsqueeze(0) - z_hat[:, k].unsqueeze(1) for k in range(m)]          # m × (N, M)
+    L_inv = gain.chol_inv.unsqueeze(1)                                                   # (N, 1, m, m)
+    nis = None
+    for k in range(m):
+        white = L_inv[..., k, 0] * nu[0]
+        for j in range(1, k + 1):
+            white = white + L_inv[..., k, j] * nu[j]
+        nis = white * white if nis is None else nis + white * white
+    return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol).unsqueeze(-1), m)
