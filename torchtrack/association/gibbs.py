@@ -122,14 +122,17 @@ def gibbs_sample(log_eta: Tensor, cand: Tensor, rows: Tensor, widths: list[int],
     choice = torch.zeros(C, P, dtype=torch.long, device=device)
     taken = torch.zeros(C, n_meas + 1, dtype=torch.bool, device=device)
     out = torch.empty(C, sweeps, P, dtype=torch.long, device=device)
+    # each step's rows are the same in every sweep: their weights and measurements are read once
+    steps = []
+    for p, w in enumerate(widths):
+        r = rows[:C if active is None else active[p], p]
+        steps.append((prob[:, :w].index_select(0, r), meas_of[:, :w].index_select(0, r)))
     for s in range(sweeps):
-        for p, w in enumerate(widths):
-            a = C if active is None else active[p]
-            r = rows[:a, p]                                      # (a,)
-            mo = meas_of[r, :w]                                  # (a, w)
+        for p, (pr, mo) in enumerate(steps):
+            a = mo.shape[0]                                      # pr, mo: (a, w)
             tk = taken[:a]
             tk.scatter_(1, mo.gather(1, choice[:a, p:p + 1]), False)          # release what the slot holds
-            cum = prob[r, :w].masked_fill(tk.gather(1, mo), 0.0).cumsum(-1)
+            cum = pr.masked_fill(tk.gather(1, mo), 0.0).cumsum(-1)
             # u < total: an option of probability 0 (cum equal to its predecessor's) is never chosen
             u = torch.rand(a, 1, generator=generator, dtype=cum.dtype, device=device) * cum[:, -1:]
             new = (cum < u).sum(-1, keepdim=True)
