@@ -345,23 +345,8 @@ class GLMBFilter:
         # new groups of one factor take it as it is; several factors: their product; none: the empty set
         factors = torch.bincount(pair_new, minlength=n_groups)
         single = factors[proj_new] == 1
-        hyps, weights, groups = [proj[single]], [proj_w[single]], [proj_new[single]]
-        capped = False
-        for g in torch.nonzero(factors > 1).squeeze(1).tolist():      # groups that join several old ones (few)
-            prod_h = torch.empty(1, 0, dtype=torch.long, device=device)
-            prod_w = torch.zeros(1, dtype=proj_w.dtype, device=device)
-            for qq in torch.nonzero(pair_new == g).squeeze(1).tolist():
-                sel = proj_q == qq
-                fh, fw = proj[sel], proj_w[sel]
-                prod_h = torch.cat([prod_h.repeat_interleave(fh.shape[0], 0), fh.repeat(prod_h.shape[0], 1)], 1)
-                prod_w = (prod_w.unsqueeze(1) + fw.unsqueeze(0)).reshape(-1)
-                if prod_w.shape[0] > self.max_hypotheses:
-                    capped = True
-                    top = prod_w.detach().topk(self.max_hypotheses).indices
-                    prod_h, prod_w = prod_h[top], prod_w[top]
-            hyps.append(_compact(prod_h))
-            weights.append(prod_w)
-            groups.append(torch.full((prod_w.shape[0],), g, dtype=torch.long, device=device))
+        prod_h, prod_w, prod_group, capped = _products(proj, proj_w, proj_q, pair_new, factors, self.max_hypotheses)
+        hyps, weights, groups = [proj[single], prod_h], [proj_w[single], prod_w], [proj_new[single], prod_group]
         empty = torch.nonzero(factors == 0).squeeze(1)
         hyps.append(torch.empty(empty.shape[0], 0, dtype=torch.long, device=device))
         weights.append(torch.zeros(empty.shape[0], dtype=proj_w.dtype, device=device))
@@ -391,6 +376,65 @@ class GLMBFilter:
         rank = _rank_in_group(torch.where(at_map, state.log_weight.detach(), -math.inf), state.group)
         best = state.hyp[(rank == 0) & at_map]
         return StepInfo(used.clamp(0.0, 1.0), best[best >= 0], existence, capped)
+
+
+def _products(proj: Tensor, proj_w: Tensor, proj_q: Tensor, pair_new: Tensor, factors: Tensor, cap: int
+              ) -> tuple[Tensor, Tensor, Tensor, bool]:
+    """The prior of each new group that joins several old ones (G3): the product of its factors' hypotheses,
+    all such groups at once. ``proj (R, L)``, ``proj_w (R,)``, ``proj_q (R,)``: the projected hypotheses, their
+    log-weights and (old, new) pairs; ``pair_new (Q,)`` the new group of each pair; ``factors (G,)`` pairs per
+    new group. Factors are multiplied in the order of their pairs, each product row ``a`` of the previous
+    factors against each row ``b`` of the next as ``a · n + b``; a group's product over ``cap`` rows keeps its
+    ``cap`` heaviest (in ``topk``'s order) before the next factor. Returns hypotheses, log-weights, groups (by
+    ascending group) and whether a product was capped."""
+    device = proj.device
+    joined_pair = factors[pair_new] > 1
+    pairs = torch.nonzero(joined_pair).squeeze(1)                      # ascending: a group's factors in order
+    if pairs.numel() == 0:
+        return proj[:0, :0], proj_w[:0], pair_new[:0], False
+    pair_group = pair_new[pairs]
+    by_group = torch.argsort(pair_group, stable=True)
+    pair_at = torch.full((factors.shape[0], int(factors.max())), -1, dtype=torch.long, device=device)
+    pair_at[pair_group[by_group], _position_in_group(pair_group[by_group])] = pairs[by_group]
+    # each factor's rows, contiguous and in their projection order
+    rows = torch.nonzero(joined_pair[proj_q]).squeeze(1)
+    rows = rows[torch.argsort(proj_q[rows], stable=True)]
+    f_count = torch.bincount(proj_q[rows], minlength=pair_new.shape[0])
+    f_start = torch.cumsum(f_count, 0) - f_count
+    group = torch.unique(pair_group)
+    log_w = torch.zeros(group.shape[0], dtype=proj_w.dtype, device=device)
+    hyp = torch.empty(group.shape[0], 0, dtype=torch.long, device=device)
+    capped = False
+    for i in range(pair_at.shape[1]):
+        q = pair_at[group, i]                                          # this factor of each row's group (-1: none)
+        n = torch.where(q >= 0, f_count[q.clamp_min(0)], 1)
+        rep = torch.repeat_interleave(torch.arange(group.shape[0], device=device), n)
+        q = q[rep]
+        b = rows[(f_start[q.clamp_min(0)] + torch.arange(rep.shape[0], device=device)
+                  - (torch.cumsum(n, 0) - n)[rep]).clamp_max(max(rows.shape[0] - 1, 0))]
+        has = q >= 0
+        hyp = torch.cat([hyp[rep], torch.where(has.unsqueeze(1), proj[b], -1)], 1)
+        log_w = torch.where(has, log_w[rep] + proj_w[b], log_w[rep])
+        group = group[rep]
+        over = torch.bincount(group)[group] > cap
+        if bool(over.any()):
+            capped = True
+            keep = [torch.nonzero(~over).squeeze(1)]
+            for g in torch.unique(group[over]).tolist():               # a group's heaviest, by topk (few groups)
+                at = torch.nonzero(group == g).squeeze(1)
+                keep.append(at[log_w[at].detach().topk(cap).indices])
+            keep = torch.cat(keep)
+            keep = keep[torch.argsort(group[keep], stable=True)]
+            hyp, log_w, group = hyp[keep], log_w[keep], group[keep]
+    return _compact(hyp), log_w, group, capped
+
+
+def _position_in_group(group: Tensor) -> Tensor:
+    """Each row's position among the rows of its group ``(R,)``, the rows of a group being contiguous."""
+    first = torch.ones_like(group, dtype=torch.bool)
+    first[1:] = group[1:] != group[:-1]
+    index = torch.arange(group.shape[0], device=group.device)
+    return index - torch.cummax(torch.where(first, index, 0), 0).values
 
 
 def _compact(rows: Tensor) -> Tensor:
