@@ -106,11 +106,14 @@ def _log(p: float) -> float:
 
 
 def _first_of_each(hashes: Tensor) -> tuple[Tensor, Tensor]:
-    """Distinct values of ``hashes (R,)``: the first row of each ``(U,)`` and each row's group ``(R,)``."""
-    uniq, inverse = torch.unique(hashes, return_inverse=True)
-    rows = torch.arange(hashes.shape[0], device=hashes.device)
-    first = torch.full((uniq.shape[0],), hashes.shape[0], dtype=torch.long, device=hashes.device)
-    return first.scatter_reduce(0, inverse, rows, "amin"), inverse
+    """Distinct values of ``hashes (R,)``, ascending: the first row of each ``(U,)`` and each row's group
+    ``(R,)`` (one stable sort)."""
+    srt, order = torch.sort(hashes, stable=True)
+    new = torch.ones_like(srt, dtype=torch.bool)
+    new[1:] = srt[1:] != srt[:-1]
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.cumsum(new, 0) - 1
+    return order[new], inverse
 
 
 def _hash_coefficients(n: int) -> Tensor:
@@ -121,11 +124,15 @@ def _hash_coefficients(n: int) -> Tensor:
 _HASH = _hash_coefficients(4096)
 
 
-def _row_hash(rows: Tensor) -> Tensor:
-    """A 64-bit hash of each row of ``rows (R, D)`` (small non-negative integers): a fixed random linear form
-    with wrap-around (two distinct rows collide with probability about 2⁻⁶⁴)."""
-    coef = _HASH if rows.shape[1] <= _HASH.shape[0] else _hash_coefficients(rows.shape[1])
-    return (rows * coef[:rows.shape[1]].to(rows.device)).sum(1)
+def _row_hash(rows: Tensor, lead: Tensor | None = None) -> Tensor:
+    """A 64-bit hash of each row of ``rows (R, D)`` (small non-negative integers), preceded by ``lead (R,)`` where
+    given: a fixed random linear form with wrap-around (two distinct rows collide with probability about 2⁻⁶⁴)."""
+    D = rows.shape[1] + (lead is not None)
+    coef = (_HASH if D <= _HASH.shape[0] else _hash_coefficients(D)).to(rows.device)
+    # an integer matrix–vector product where the device has one (the CPU), else products and a sum: the same value
+    c = coef[D - rows.shape[1]:D]
+    h = rows @ c if rows.device.type == "cpu" else (rows * c).sum(1)
+    return h if lead is None else lead * coef[0] + h
 
 
 def _logsumexp_by(log_w: Tensor, group: Tensor, n: int) -> Tensor:
@@ -233,11 +240,10 @@ class GLMBFilter:
                               self.generator, active.tolist())
         P = rows.shape[1]
         choice = choice.reshape(parent.shape[0] * self.sweeps, P)
-        parent = parent.repeat_interleave(self.sweeps)
-        rows = rows.repeat_interleave(self.sweeps, 0)
-        # (G4) distinct samples and their weights
-        first, _ = _first_of_each(_row_hash(torch.cat([parent.unsqueeze(1), choice], 1)))
-        choice, parent, rows = choice[first], parent[first], rows[first]
+        # (G4) distinct samples and their weights (sample s of chain c is row c · sweeps + s)
+        first, _ = _first_of_each(_row_hash(choice, parent.repeat_interleave(self.sweeps)))
+        chain = torch.div(first, self.sweeps, rounding_mode="floor")
+        choice, parent, rows = choice[first], parent[chain], rows[chain]
         has_row = rows >= 0
         contrib = log_eta[rows.clamp_min(0), choice] if N else torch.zeros(choice.shape, dtype=mean.dtype)
         log_w = prior_w[parent] + torch.where(has_row, contrib, torch.zeros_like(contrib)).sum(1)
@@ -250,7 +256,7 @@ class GLMBFilter:
         rows_new[exists] = new_index
         hyp = _compact(rows_new)
         # hypotheses of a group that are the same set of new rows merge
-        first, same = _first_of_each(_row_hash(torch.cat([group.unsqueeze(1), hyp + 1], 1)))
+        first, same = _first_of_each(_row_hash(hyp + 1, group))
         log_w = _logsumexp_by(log_w, same, first.shape[0])
         hyp, group = hyp[first], group[first]
         log_w = log_w - _logsumexp_by(log_w, group, n_groups)[group]
@@ -338,7 +344,7 @@ class GLMBFilter:
         rows = state.hyp[h_idx]
         inside = member[h_idx] & (group_of_row[entry[h_idx]] == pair_new[q].unsqueeze(1))
         proj = _compact(torch.where(inside, rows, -1))
-        first, same = _first_of_each(_row_hash(torch.cat([q.unsqueeze(1), proj + 1], 1)))
+        first, same = _first_of_each(_row_hash(proj + 1, q))
         proj_w = _logsumexp_by(state.log_weight[h_idx], same, first.shape[0])
         proj, proj_q = proj[first], q[first]
         proj_new = pair_new[proj_q]
