@@ -135,7 +135,7 @@ def gibbs_sample(log_eta: Tensor, cand: Tensor, rows: Tensor, widths: list[int],
             cum = pr.masked_fill(tk.gather(1, mo), 0.0).cumsum(-1)
             # u < total: an option of probability 0 (cum equal to its predecessor's) is never chosen
             u = torch.rand(a, 1, generator=generator, dtype=cum.dtype, device=device) * cum[:, -1:]
-            new = (cum < u).sum(-1, keepdim=True)
+            new = torch.searchsorted(cum, u)                     # the options with cum < u
             choice[:a, p:p + 1] = new
             tk.scatter_(1, mo.gather(1, new), True)
             tk[:, n_meas] = False
