@@ -223,15 +223,13 @@ class GLMBFilter:
         prior_hyp, prior_w, prior_group, product_capped = self._regroup(state, groups.group_of_slot[slot_of_row[:T]],
                                                                         n_groups)
         # (G3) Gibbs chains: `chains` per group, shared among its hypotheses in proportion to √w_h
-        Hp = prior_hyp.shape[0]
         half = 0.5 * prior_w.detach()
         share = torch.exp(half - _logsumexp_by(half, prior_group, n_groups)[prior_group])
-        counts = torch.ceil(share * self.chains).long()
-        parent = torch.repeat_interleave(torch.arange(Hp, device=device), counts.clamp_min(1))
-        size = (groups.slots < n_slots).sum(1)                     # slots per group; chains by decreasing size
-        chain_size = size[prior_group[parent]]
-        order = torch.sort(chain_size, descending=True, stable=True).indices
-        parent, chain_size = parent[order], chain_size[order]
+        counts = torch.ceil(share * self.chains).long().clamp_min(1)
+        size = (groups.slots < n_slots).sum(1)[prior_group]          # slots per hypothesis's group
+        by_size = torch.sort(size, descending=True, stable=True).indices        # chains by decreasing size
+        parent = torch.repeat_interleave(by_size, counts[by_size])
+        chain_size = torch.repeat_interleave(size[by_size], counts[by_size])
         active = torch.searchsorted(-chain_size, -torch.arange(len(groups.widths), device=device), right=False)
         rows = self._chain_rows(prior_hyp, prior_group, parent, slot_of_row, groups, T, N)
         # measurement indices local to each group: a chain's record of taken measurements is the group's size
