@@ -151,3 +151,49 @@ def test_tracker_with_grid_gating_reports_the_same_tracks(monkeypatch):
     for (ids_d, pos_d), (ids_s, pos_s) in zip(dense, sparse):
         assert torch.equal(ids_d, ids_s)
         torch.testing.assert_close(pos_s, pos_d, rtol=0, atol=1e-9)
+
+
+def _sequential_products(proj, proj_w, proj_q, pair_new, cap):
+    """Per joined group (ascending), its factors (pairs ascending) multiplied one after another in Python, the
+    product truncated to its ``cap`` heaviest (heaviest first) after each factor."""
+    out = []
+    for g in sorted(set(pair_new.tolist())):
+        pairs = [q for q in range(len(pair_new)) if pair_new[q] == g]
+        if len(pairs) < 2:
+            continue
+        prod = [((), 0.0)]
+        for q in pairs:
+            factor = [(tuple(int(x) for x in proj[r] if x >= 0), float(proj_w[r]))
+                      for r in range(len(proj_q)) if proj_q[r] == q]
+            prod = [(a + b, wa + wb) for a, wa in prod for b, wb in factor]
+            if len(prod) > cap:
+                prod = sorted(prod, key=lambda item: -item[1])[:cap]
+        out += [(g, tuple(sorted(rows)), w) for rows, w in prod]
+    return out
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_products_of_joined_groups_equal_sequential_products(seed):
+    from torchtrack.filters.glmb import _products
+
+    rng = np.random.default_rng(seed)
+    n_groups = 12
+    pair_new = torch.from_numpy(np.sort(rng.integers(0, n_groups, 25)))
+    proj_q, proj, next_row = [], [], 0
+    for q in range(pair_new.shape[0]):
+        for _ in range(rng.integers(1, 5)):                     # 1-4 hypotheses per factor, 0-2 rows each
+            k = int(rng.integers(0, 3))
+            proj.append(list(range(next_row, next_row + k)) + [-1] * (2 - k))
+            proj_q.append(q)
+            next_row += k
+    proj, proj_q = torch.tensor(proj), torch.tensor(proj_q)
+    proj_w = torch.from_numpy(rng.normal(0, 3, proj.shape[0]))
+    factors = torch.bincount(pair_new, minlength=n_groups)
+    for cap in (3, 8, 1000):
+        hyp, log_w, group, capped = _products(proj, proj_w, proj_q, pair_new, factors, cap)
+        truth = _sequential_products(proj, proj_w, proj_q, pair_new, cap)
+        assert len(truth) == hyp.shape[0] > 0
+        for (g, rows, w), h, lw, gg in zip(truth, hyp, log_w, group):
+            assert int(gg) == g and tuple(int(x) for x in h if x >= 0) == rows
+            assert float(lw) == pytest.approx(w, abs=1e-12)
+        assert capped == (cap < 1000)
