@@ -127,17 +127,24 @@ def gibbs_sample(log_eta: Tensor, cand: Tensor, rows: Tensor, widths: list[int],
     for p, w in enumerate(widths):
         r = rows[:C if active is None else active[p], p]
         steps.append((prob[:, :w].index_select(0, r), meas_of[:, :w].index_select(0, r)))
+    # chains of one-slot groups (a suffix of step 0's): nothing else takes a measurement, their conditional is
+    # their row's weights in every sweep
+    shared = 0 if P == 0 else steps[0][0].shape[0] if P == 1 else steps[1][0].shape[0]
+    solo_cum = steps[0][0][shared:].cumsum(-1) if P else prob[:0]
     for s in range(sweeps):
         for p, (pr, mo) in enumerate(steps):
             a = mo.shape[0]                                      # pr, mo: (a, w)
-            tk = taken[:a]
-            tk.scatter_(1, mo.gather(1, choice[:a, p:p + 1]), False)          # release what the slot holds
-            cum = pr.masked_fill(tk.gather(1, mo), 0.0).cumsum(-1)
+            u = torch.rand(a, 1, generator=generator, dtype=pr.dtype, device=device)
+            b = shared if p == 0 else a                          # chains whose slots compete for measurements
+            tk = taken[:b]
+            tk.scatter_(1, mo[:b].gather(1, choice[:b, p:p + 1]), False)          # release what the slot holds
+            cum = pr[:b].masked_fill(tk.gather(1, mo[:b]), 0.0).cumsum(-1)
             # u < total: an option of probability 0 (cum equal to its predecessor's) is never chosen
-            u = torch.rand(a, 1, generator=generator, dtype=cum.dtype, device=device) * cum[:, -1:]
-            new = torch.searchsorted(cum, u)                     # the options with cum < u
-            choice[:a, p:p + 1] = new
-            tk.scatter_(1, mo.gather(1, new), True)
+            new = torch.searchsorted(cum, u[:b] * cum[:, -1:])   # the options with cum < u
+            choice[:b, p:p + 1] = new
+            tk.scatter_(1, mo[:b].gather(1, new), True)
             tk[:, n_meas] = False
+            if b < a:
+                choice[b:a, 0:1] = torch.searchsorted(solo_cum, u[b:] * solo_cum[:, -1:])
         out[:, s] = choice
     return out
