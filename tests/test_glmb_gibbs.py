@@ -79,3 +79,24 @@ def test_same_seed_same_samples():
     a = gibbs_sample(log_eta, cand, rows, [6] * 4, 4, 3, torch.Generator().manual_seed(1))
     b = gibbs_sample(log_eta, cand, rows, [6] * 4, 4, 3, torch.Generator().manual_seed(1))
     assert torch.equal(a, b)
+
+
+def test_one_slot_chains_beside_larger_groups_match_enumeration():
+    """Chains of a 3-slot group (rows 0-2, competing for measurements) ahead of chains of one-slot groups (row 3,
+    its own measurements): the 3-slot chains follow the enumerated joint posterior, the one-slot chains their
+    row's normalised weights — the one-slot suffix is drawn without the bookkeeping of taken measurements."""
+    full, log_eta, cand = _problem(4, 4, 5)
+    chains, sweeps, burn = 4000, 6, 2
+    rows = torch.cat([torch.tensor([[0, 1, 2]]).expand(chains, -1), torch.tensor([[3, -1, -1]]).expand(chains, -1)])
+    out = gibbs_sample(log_eta, cand, rows, [6] * 3, 4, sweeps, torch.Generator().manual_seed(11),
+                       active=[2 * chains, chains, chains])
+    exact_joint = _enumerate(full[:3], torch.ones(3, dtype=torch.bool))
+    exact_solo = _enumerate(full[3:], torch.ones(1, dtype=torch.bool))
+    for exact, block, track_rows in ((exact_joint, out[:chains, burn:], [0, 1, 2]),
+                                     (exact_solo, out[chains:, burn:, :1], [3])):
+        samples = _as_measurements(block.reshape(-1, len(track_rows)), cand[track_rows])
+        total = len(samples)
+        for gamma, p in exact.items():
+            std = math.sqrt(p * (1 - p) / chains)
+            assert abs(samples.count(gamma) / total - p) <= 5 * std + 1e-3, (gamma, p)
+        assert set(samples) <= set(exact)

@@ -37,18 +37,35 @@ ABSENT, MISSED, FIRST_MEASUREMENT = 0, 1, 2
 
 class Groups(NamedTuple):
     """The connected components ("groups") of the slot–measurement gating graph: ``slots (K, P)`` the label slots
-    of each group in sweep order (padded with ``S``), ``group_of_slot (S,)``, ``widths[p]`` the choice columns
-    step ``p`` of a sweep needs (2 + the most candidates of the rows of the slots at that step)."""
+    of each group in sweep order (padded with ``S``), ``group_of_slot (S,)``, ``position (S,)`` each slot's step
+    in its group's sweep, ``widths[p]`` the choice columns step ``p`` of a sweep needs (2 + the most candidates
+    of the rows of the slots at that step), ``local_meas (M,)`` each measurement's index among its group's
+    measurements (ascending), ``group_meas`` the most measurements of a group."""
 
     slots: Tensor
     group_of_slot: Tensor
+    position: Tensor
     widths: list[int]
+    local_meas: Tensor
+    group_meas: int
+
+
+def _rank_within(label: np.ndarray) -> np.ndarray:
+    """Each entry's rank among the entries of the same ``label`` (ordered by index) ``(S,)``."""
+    size = np.bincount(label)
+    order = np.lexsort((np.arange(label.size), label))
+    rank = np.empty(label.size, np.int64)
+    rank[order] = np.arange(label.size) - np.repeat(np.cumsum(size) - size, size)
+    return rank
 
 
 def gating_groups(cand: Tensor, slot_of_row: Tensor, n_slots: int, n_meas: int) -> Groups:
     """The groups of label slots that share gated measurements (directly or through others). ``cand (N, K)``:
     gated measurement indices per row, ``-1`` padding (a row's candidates first); ``slot_of_row (N,)``: the
-    label slot of each row (a slot's rows are alternatives: a hypothesis holds at most one of them)."""
+    label slot of each row (a slot's rows are alternatives: a hypothesis holds at most one of them).
+
+    The components are found on the sparse graph of the gated pairs (``O(S + M + pairs)``, no dense
+    slot × measurement matrix), on the host."""
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -57,13 +74,10 @@ def gating_groups(cand: Tensor, slot_of_row: Tensor, n_slots: int, n_meas: int) 
     slot = slot_of_row.cpu().numpy()
     i, k = np.nonzero(c >= 0)
     graph = coo_matrix((np.ones(i.size), (slot[i], S + c[i, k])), shape=(S + n_meas, S + n_meas))
-    _, comp = connected_components(graph, directed=False)
-    _, comp = np.unique(comp[:S], return_inverse=True)
+    _, comp_all = connected_components(graph, directed=False)
+    _, comp = np.unique(comp_all[:S], return_inverse=True)
     size = np.bincount(comp)
-    order = np.lexsort((np.arange(S), comp))
-    starts = np.r_[0, np.cumsum(size)[:-1]]
-    position = np.empty(S, np.int64)
-    position[order] = np.arange(S) - np.repeat(starts, size)
+    position = _rank_within(comp)
     P = int(size.max(initial=0))
     slots = np.full((size.size, P), S, np.int64)
     slots[comp, position] = np.arange(S)
@@ -71,8 +85,11 @@ def gating_groups(cand: Tensor, slot_of_row: Tensor, n_slots: int, n_meas: int) 
     np.maximum.at(n_cand, slot, (c >= 0).sum(1) if c.size else np.zeros(slot.size, np.int64))
     widths = np.zeros(P, np.int64)
     np.maximum.at(widths, position, n_cand)
-    return Groups(torch.from_numpy(slots).to(cand.device), torch.from_numpy(comp).to(cand.device),
-                  [FIRST_MEASUREMENT + int(w) for w in widths])
+    local = _rank_within(comp_all[S:])
+    device = cand.device
+    return Groups(torch.from_numpy(slots).to(device), torch.from_numpy(comp).to(device),
+                  torch.from_numpy(position).to(device), [FIRST_MEASUREMENT + int(w) for w in widths],
+                  torch.from_numpy(local).to(device), int(local.max(initial=-1)) + 1)
 
 
 def gibbs_sample(log_eta: Tensor, cand: Tensor, rows: Tensor, widths: list[int], n_meas: int, sweeps: int,
@@ -105,19 +122,29 @@ def gibbs_sample(log_eta: Tensor, cand: Tensor, rows: Tensor, widths: list[int],
     choice = torch.zeros(C, P, dtype=torch.long, device=device)
     taken = torch.zeros(C, n_meas + 1, dtype=torch.bool, device=device)
     out = torch.empty(C, sweeps, P, dtype=torch.long, device=device)
+    # each step's rows are the same in every sweep: their weights and measurements are read once
+    steps = []
+    for p, w in enumerate(widths):
+        r = rows[:C if active is None else active[p], p]
+        steps.append((prob[:, :w].index_select(0, r), meas_of[:, :w].index_select(0, r)))
+    # chains of one-slot groups (a suffix of step 0's): nothing else takes a measurement, their conditional is
+    # their row's weights in every sweep
+    shared = 0 if P == 0 else steps[0][0].shape[0] if P == 1 else steps[1][0].shape[0]
+    solo_cum = steps[0][0][shared:].cumsum(-1) if P else prob[:0]
     for s in range(sweeps):
-        for p, w in enumerate(widths):
-            a = C if active is None else active[p]
-            r = rows[:a, p]                                      # (a,)
-            mo = meas_of[r, :w]                                  # (a, w)
-            tk = taken[:a]
-            tk.scatter_(1, mo.gather(1, choice[:a, p:p + 1]), False)          # release what the slot holds
-            cum = prob[r, :w].masked_fill(tk.gather(1, mo), 0.0).cumsum(-1)
+        for p, (pr, mo) in enumerate(steps):
+            a = mo.shape[0]                                      # pr, mo: (a, w)
+            u = torch.rand(a, 1, generator=generator, dtype=pr.dtype, device=device)
+            b = shared if p == 0 else a                          # chains whose slots compete for measurements
+            tk = taken[:b]
+            tk.scatter_(1, mo[:b].gather(1, choice[:b, p:p + 1]), False)          # release what the slot holds
+            cum = pr[:b].masked_fill(tk.gather(1, mo[:b]), 0.0).cumsum(-1)
             # u < total: an option of probability 0 (cum equal to its predecessor's) is never chosen
-            u = torch.rand(a, 1, generator=generator, dtype=cum.dtype, device=device) * cum[:, -1:]
-            new = (cum < u).sum(-1, keepdim=True)
-            choice[:a, p:p + 1] = new
-            tk.scatter_(1, mo.gather(1, new), True)
+            new = torch.searchsorted(cum, u[:b] * cum[:, -1:])   # the options with cum < u
+            choice[:b, p:p + 1] = new
+            tk.scatter_(1, mo[:b].gather(1, new), True)
             tk[:, n_meas] = False
+            if b < a:
+                choice[b:a, 0:1] = torch.searchsorted(solo_cum, u[b:] * solo_cum[:, -1:])
         out[:, s] = choice
     return out

@@ -54,15 +54,9 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.association.gibbs import ABSENT, FIRST_MEASUREMENT, MISSED, gating_groups, gibbs_sample
-from torchtrack.gaussian import (
-    chi2_quantile,
-    innovation_cov,
-    innovations_likelihood,
-    kalman_gain,
-    kalman_update,
-    symmetrize,
-)
+from torchtrack.association.gibbs import ABSENT, FIRST_MEASUREMENT, MISSED, Groups, gating_groups, gibbs_sample
+from torchtrack.filters.glmb_gating import gated_candidates
+from torchtrack.gaussian import chi2_quantile, innovation_cov, kalman_gain, kalman_update, symmetrize
 
 log = logging.getLogger(__name__)
 
@@ -112,11 +106,14 @@ def _log(p: float) -> float:
 
 
 def _first_of_each(hashes: Tensor) -> tuple[Tensor, Tensor]:
-    """Distinct values of ``hashes (R,)``: the first row of each ``(U,)`` and each row's group ``(R,)``."""
-    uniq, inverse = torch.unique(hashes, return_inverse=True)
-    rows = torch.arange(hashes.shape[0], device=hashes.device)
-    first = torch.full((uniq.shape[0],), hashes.shape[0], dtype=torch.long, device=hashes.device)
-    return first.scatter_reduce(0, inverse, rows, "amin"), inverse
+    """Distinct values of ``hashes (R,)``, ascending: the first row of each ``(U,)`` and each row's group
+    ``(R,)`` (one stable sort)."""
+    srt, order = torch.sort(hashes, stable=True)
+    new = torch.ones_like(srt, dtype=torch.bool)
+    new[1:] = srt[1:] != srt[:-1]
+    inverse = torch.empty_like(order)
+    inverse[order] = torch.cumsum(new, 0) - 1
+    return order[new], inverse
 
 
 def _hash_coefficients(n: int) -> Tensor:
@@ -127,11 +124,15 @@ def _hash_coefficients(n: int) -> Tensor:
 _HASH = _hash_coefficients(4096)
 
 
-def _row_hash(rows: Tensor) -> Tensor:
-    """A 64-bit hash of each row of ``rows (R, D)`` (small non-negative integers): a fixed random linear form
-    with wrap-around (two distinct rows collide with probability about 2⁻⁶⁴)."""
-    coef = _HASH if rows.shape[1] <= _HASH.shape[0] else _hash_coefficients(rows.shape[1])
-    return (rows * coef[:rows.shape[1]].to(rows.device)).sum(1)
+def _row_hash(rows: Tensor, lead: Tensor | None = None) -> Tensor:
+    """A 64-bit hash of each row of ``rows (R, D)`` (small non-negative integers), preceded by ``lead (R,)`` where
+    given: a fixed random linear form with wrap-around (two distinct rows collide with probability about 2⁻⁶⁴)."""
+    D = rows.shape[1] + (lead is not None)
+    coef = (_HASH if D <= _HASH.shape[0] else _hash_coefficients(D)).to(rows.device)
+    # an integer matrix–vector product where the device has one (the CPU), else products and a sum: the same value
+    c = coef[D - rows.shape[1]:D]
+    h = rows @ c if rows.device.type == "cpu" else (rows * c).sum(1)
+    return h if lead is None else lead * coef[0] + h
 
 
 def _logsumexp_by(log_w: Tensor, group: Tensor, n: int) -> Tensor:
@@ -177,6 +178,7 @@ class GLMBFilter:
         self.H_pos, self.R_pos, self.H_full, self.R_full = H_pos, R_pos, H_full, R_full
         self.p_survival, self.p_detection = p_survival, p_detection
         self.gate = gate
+        self._gate_thresholds: dict[tuple[float, int], float] = {}
         self.chains, self.sweeps = chains, sweeps
         self.log_prune = _log(prune_threshold)
         self.max_hypotheses = max_hypotheses
@@ -205,12 +207,7 @@ class GLMBFilter:
         # (G2) gated likelihoods and the weights η
         C, S = innovation_cov(cov, H, R)
         gain = kalman_gain(S, C, "GLMB: innovation covariance S")
-        nu = meas.unsqueeze(0) - (mean @ H.T).unsqueeze(1)                     # (N, M, m)
-        nis, loglik = innovations_likelihood(gain, nu)
-        gated = nis.detach() <= chi2_quantile(self.gate, meas.shape[1])
-        K = int(gated.sum(1).max()) if N and M else 0
-        vals, cand = torch.where(gated, loglik, torch.full_like(loglik, -math.inf)).topk(K, dim=1)
-        cand = torch.where(torch.isfinite(vals.detach()), cand, torch.full_like(cand, -1))
+        cand, vals = gated_candidates(mean @ H.T, S, gain, meas, self._gate_threshold(meas.shape[1]))
         log_ps = torch.full((T,), _log(self.p_survival), dtype=mean.dtype, device=device)
         log_exist = torch.cat([log_ps, births.log_r])
         log_absent = torch.cat([torch.full_like(log_ps, _log(1 - self.p_survival)),
@@ -226,30 +223,25 @@ class GLMBFilter:
         prior_hyp, prior_w, prior_group, product_capped = self._regroup(state, groups.group_of_slot[slot_of_row[:T]],
                                                                         n_groups)
         # (G3) Gibbs chains: `chains` per group, shared among its hypotheses in proportion to √w_h
-        Hp = prior_hyp.shape[0]
         half = 0.5 * prior_w.detach()
         share = torch.exp(half - _logsumexp_by(half, prior_group, n_groups)[prior_group])
-        counts = torch.ceil(share * self.chains).long()
-        parent = torch.repeat_interleave(torch.arange(Hp, device=device), counts.clamp_min(1))
-        size = (groups.slots < n_slots).sum(1)                     # slots per group; chains by decreasing size
-        chain_size = size[prior_group[parent]]
-        order = torch.sort(chain_size, descending=True, stable=True).indices
-        parent, chain_size = parent[order], chain_size[order]
+        counts = torch.ceil(share * self.chains).long().clamp_min(1)
+        size = (groups.slots < n_slots).sum(1)[prior_group]          # slots per hypothesis's group
+        by_size = torch.sort(size, descending=True, stable=True).indices        # chains by decreasing size
+        parent = torch.repeat_interleave(by_size, counts[by_size])
+        chain_size = torch.repeat_interleave(size[by_size], counts[by_size])
         active = torch.searchsorted(-chain_size, -torch.arange(len(groups.widths), device=device), right=False)
-        row_of_h = torch.full((Hp, n_slots + 1), -1, dtype=torch.long, device=device)
-        held = prior_hyp >= 0
-        row_of_h.scatter_(1, torch.where(held, slot_of_row[prior_hyp.clamp_min(0)], n_slots), prior_hyp)
-        row_of_h[:, slot_of_row[T:]] = torch.arange(T, N, device=device)          # births: in every hypothesis
-        row_of_h[:, n_slots] = -1
-        rows = row_of_h[parent].gather(1, groups.slots[prior_group[parent]])     # (C, P)
-        choice = gibbs_sample(log_eta, cand, rows, groups.widths, M, self.sweeps, self.generator, active.tolist())
+        rows = self._chain_rows(prior_hyp, prior_group, parent, slot_of_row, groups, T, N)
+        # measurement indices local to each group: a chain's record of taken measurements is the group's size
+        local_cand = torch.where(cand >= 0, groups.local_meas[cand.clamp_min(0)], -1)
+        choice = gibbs_sample(log_eta, local_cand, rows, groups.widths, groups.group_meas, self.sweeps,
+                              self.generator, active.tolist())
         P = rows.shape[1]
         choice = choice.reshape(parent.shape[0] * self.sweeps, P)
-        parent = parent.repeat_interleave(self.sweeps)
-        rows = rows.repeat_interleave(self.sweeps, 0)
-        # (G4) distinct samples and their weights
-        first, _ = _first_of_each(_row_hash(torch.cat([parent.unsqueeze(1), choice], 1)))
-        choice, parent, rows = choice[first], parent[first], rows[first]
+        # (G4) distinct samples and their weights (sample s of chain c is row c · sweeps + s)
+        first, _ = _first_of_each(_row_hash(choice, parent.repeat_interleave(self.sweeps)))
+        chain = torch.div(first, self.sweeps, rounding_mode="floor")
+        choice, parent, rows = choice[first], parent[chain], rows[chain]
         has_row = rows >= 0
         contrib = log_eta[rows.clamp_min(0), choice] if N else torch.zeros(choice.shape, dtype=mean.dtype)
         log_w = prior_w[parent] + torch.where(has_row, contrib, torch.zeros_like(contrib)).sum(1)
@@ -262,7 +254,7 @@ class GLMBFilter:
         rows_new[exists] = new_index
         hyp = _compact(rows_new)
         # hypotheses of a group that are the same set of new rows merge
-        first, same = _first_of_each(_row_hash(torch.cat([group.unsqueeze(1), hyp + 1], 1)))
+        first, same = _first_of_each(_row_hash(hyp + 1, group))
         log_w = _logsumexp_by(log_w, same, first.shape[0])
         hyp, group = hyp[first], group[first]
         log_w = log_w - _logsumexp_by(log_w, group, n_groups)[group]
@@ -292,6 +284,31 @@ class GLMBFilter:
             table_mean, table_cov = table_mean.index_put(at, upd.mean), table_cov.index_put(at, upd.cov)
         new = GLMBState(table_mean, table_cov, label[row], new_meas, hyp, log_w, group)
         return new, self._info(new, M, n_groups, capped)
+
+    @staticmethod
+    def _chain_rows(prior_hyp: Tensor, prior_group: Tensor, parent: Tensor, slot_of_row: Tensor, groups: Groups,
+                    T: int, N: int) -> Tensor:
+        """The row each chain updates at each step of a sweep ``(C, P)`` (-1: none): its hypothesis's row of the
+        slot at that step of its group, and the group's birth rows (in every hypothesis). Memory ``O((Hp + C) P)``:
+        every row of a hypothesis lies in its group."""
+        P = groups.slots.shape[1]
+        held = prior_hyp >= 0
+        step = torch.where(held, groups.position[slot_of_row[prior_hyp.clamp_min(0)]], P)
+        row_at = torch.full((prior_hyp.shape[0], P + 1), -1, dtype=torch.long, device=prior_hyp.device)
+        row_at.scatter_(1, step, prior_hyp)
+        birth_slot = slot_of_row[T:]
+        birth_at = torch.full((groups.slots.shape[0], P), -1, dtype=torch.long, device=prior_hyp.device)
+        birth_at[groups.group_of_slot[birth_slot], groups.position[birth_slot]] = torch.arange(
+            T, N, device=prior_hyp.device)
+        births = birth_at[prior_group[parent]]
+        return torch.where(births >= 0, births, row_at[parent, :P])
+
+    def _gate_threshold(self, dof: int) -> float:
+        """χ²(gate) quantile of ``dof`` degrees of freedom (computed once per size)."""
+        key = (self.gate, dof)
+        if key not in self._gate_thresholds:
+            self._gate_thresholds[key] = chi2_quantile(self.gate, dof)
+        return self._gate_thresholds[key]
 
     def _cap_hit(self) -> None:
         self.cap_hits += 1
@@ -325,30 +342,15 @@ class GLMBFilter:
         rows = state.hyp[h_idx]
         inside = member[h_idx] & (group_of_row[entry[h_idx]] == pair_new[q].unsqueeze(1))
         proj = _compact(torch.where(inside, rows, -1))
-        first, same = _first_of_each(_row_hash(torch.cat([q.unsqueeze(1), proj + 1], 1)))
+        first, same = _first_of_each(_row_hash(proj + 1, q))
         proj_w = _logsumexp_by(state.log_weight[h_idx], same, first.shape[0])
         proj, proj_q = proj[first], q[first]
         proj_new = pair_new[proj_q]
         # new groups of one factor take it as it is; several factors: their product; none: the empty set
         factors = torch.bincount(pair_new, minlength=n_groups)
         single = factors[proj_new] == 1
-        hyps, weights, groups = [proj[single]], [proj_w[single]], [proj_new[single]]
-        capped = False
-        for g in torch.nonzero(factors > 1).squeeze(1).tolist():      # groups that join several old ones (few)
-            prod_h = torch.empty(1, 0, dtype=torch.long, device=device)
-            prod_w = torch.zeros(1, dtype=proj_w.dtype, device=device)
-            for qq in torch.nonzero(pair_new == g).squeeze(1).tolist():
-                sel = proj_q == qq
-                fh, fw = proj[sel], proj_w[sel]
-                prod_h = torch.cat([prod_h.repeat_interleave(fh.shape[0], 0), fh.repeat(prod_h.shape[0], 1)], 1)
-                prod_w = (prod_w.unsqueeze(1) + fw.unsqueeze(0)).reshape(-1)
-                if prod_w.shape[0] > self.max_hypotheses:
-                    capped = True
-                    top = prod_w.detach().topk(self.max_hypotheses).indices
-                    prod_h, prod_w = prod_h[top], prod_w[top]
-            hyps.append(_compact(prod_h))
-            weights.append(prod_w)
-            groups.append(torch.full((prod_w.shape[0],), g, dtype=torch.long, device=device))
+        prod_h, prod_w, prod_group, capped = _products(proj, proj_w, proj_q, pair_new, factors, self.max_hypotheses)
+        hyps, weights, groups = [proj[single], prod_h], [proj_w[single], prod_w], [proj_new[single], prod_group]
         empty = torch.nonzero(factors == 0).squeeze(1)
         hyps.append(torch.empty(empty.shape[0], 0, dtype=torch.long, device=device))
         weights.append(torch.zeros(empty.shape[0], dtype=proj_w.dtype, device=device))
@@ -378,6 +380,65 @@ class GLMBFilter:
         rank = _rank_in_group(torch.where(at_map, state.log_weight.detach(), -math.inf), state.group)
         best = state.hyp[(rank == 0) & at_map]
         return StepInfo(used.clamp(0.0, 1.0), best[best >= 0], existence, capped)
+
+
+def _products(proj: Tensor, proj_w: Tensor, proj_q: Tensor, pair_new: Tensor, factors: Tensor, cap: int
+              ) -> tuple[Tensor, Tensor, Tensor, bool]:
+    """The prior of each new group that joins several old ones (G3): the product of its factors' hypotheses,
+    all such groups at once. ``proj (R, L)``, ``proj_w (R,)``, ``proj_q (R,)``: the projected hypotheses, their
+    log-weights and (old, new) pairs; ``pair_new (Q,)`` the new group of each pair; ``factors (G,)`` pairs per
+    new group. Factors are multiplied in the order of their pairs, each product row ``a`` of the previous
+    factors against each row ``b`` of the next as ``a · n + b``; a group's product over ``cap`` rows keeps its
+    ``cap`` heaviest (in ``topk``'s order) before the next factor. Returns hypotheses, log-weights, groups (by
+    ascending group) and whether a product was capped."""
+    device = proj.device
+    joined_pair = factors[pair_new] > 1
+    pairs = torch.nonzero(joined_pair).squeeze(1)                      # ascending: a group's factors in order
+    if pairs.numel() == 0:
+        return proj[:0, :0], proj_w[:0], pair_new[:0], False
+    pair_group = pair_new[pairs]
+    by_group = torch.argsort(pair_group, stable=True)
+    pair_at = torch.full((factors.shape[0], int(factors.max())), -1, dtype=torch.long, device=device)
+    pair_at[pair_group[by_group], _position_in_group(pair_group[by_group])] = pairs[by_group]
+    # each factor's rows, contiguous and in their projection order
+    rows = torch.nonzero(joined_pair[proj_q]).squeeze(1)
+    rows = rows[torch.argsort(proj_q[rows], stable=True)]
+    f_count = torch.bincount(proj_q[rows], minlength=pair_new.shape[0])
+    f_start = torch.cumsum(f_count, 0) - f_count
+    group = torch.unique(pair_group)
+    log_w = torch.zeros(group.shape[0], dtype=proj_w.dtype, device=device)
+    hyp = torch.empty(group.shape[0], 0, dtype=torch.long, device=device)
+    capped = False
+    for i in range(pair_at.shape[1]):
+        q = pair_at[group, i]                                          # this factor of each row's group (-1: none)
+        n = torch.where(q >= 0, f_count[q.clamp_min(0)], 1)
+        rep = torch.repeat_interleave(torch.arange(group.shape[0], device=device), n)
+        q = q[rep]
+        b = rows[(f_start[q.clamp_min(0)] + torch.arange(rep.shape[0], device=device)
+                  - (torch.cumsum(n, 0) - n)[rep]).clamp_max(max(rows.shape[0] - 1, 0))]
+        has = q >= 0
+        hyp = torch.cat([hyp[rep], torch.where(has.unsqueeze(1), proj[b], -1)], 1)
+        log_w = torch.where(has, log_w[rep] + proj_w[b], log_w[rep])
+        group = group[rep]
+        over = torch.bincount(group)[group] > cap
+        if bool(over.any()):
+            capped = True
+            keep = [torch.nonzero(~over).squeeze(1)]
+            for g in torch.unique(group[over]).tolist():               # a group's heaviest, by topk (few groups)
+                at = torch.nonzero(group == g).squeeze(1)
+                keep.append(at[log_w[at].detach().topk(cap).indices])
+            keep = torch.cat(keep)
+            keep = keep[torch.argsort(group[keep], stable=True)]
+            hyp, log_w, group = hyp[keep], log_w[keep], group[keep]
+    return _compact(hyp), log_w, group, capped
+
+
+def _position_in_group(group: Tensor) -> Tensor:
+    """Each row's position among the rows of its group ``(R,)``, the rows of a group being contiguous."""
+    first = torch.ones_like(group, dtype=torch.bool)
+    first[1:] = group[1:] != group[:-1]
+    index = torch.arange(group.shape[0], device=group.device)
+    return index - torch.cummax(torch.where(first, index, 0), 0).values
 
 
 def _compact(rows: Tensor) -> Tensor:
