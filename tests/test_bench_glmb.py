@@ -109,7 +109,8 @@ def test_reference_equals_our_filter_with_every_assignment_enumerated(monkeypatc
 
 def test_reference_with_gibbs_tracks_one_target_as_our_filter():
     """One target, no clutter, p_D 1: a single hypothesis either way (the sampler's draws cannot differ), so the
-    reference's Gibbs path gives our filter's estimate, to 1e-9, frame by frame."""
+    reference's Gibbs path gives our filter's estimate, to 1e-9, frame by frame (positions only: two-point
+    births (B3) on both sides)."""
     cfg = {"q": 0.5, "sigma": 1.0, "velocity_sigma": None, "p_detection": 1.0, "clutter_density": 1e-12,
            "confirm_frames": 1}
     ours, reference = make_tracker("glmb", cfg), ReferenceGLMB(tracker_config("glmb", cfg), seed=5)
@@ -120,7 +121,7 @@ def test_reference_with_gibbs_tracks_one_target_as_our_filter():
         labels, means, used = reference.step(frame, z[None])
         assert len(reference.state.hypotheses) == 1 and ids.tolist() == [lab[1] + 1 for lab in labels]
         np.testing.assert_allclose(means[:, :2], positions.numpy(), atol=1e-9)
-        assert used.tolist() == ([1.0] if frame > 1 else [0.0])
+        assert used.tolist() == ([1.0] if frame > 2 else [0.0])   # two-point births: the first from frames 1, 2
     assert ids.tolist() == [1] and reference.draws > 0
 
 

@@ -12,7 +12,8 @@ The same model and recursion as :mod:`torchtrack.filters.glmb` (equations (G1)�
   measurements other tracks hold locked out, the cumulative sum inverted with one uniform);
 - (G4)–(G7) distinct samples, their weights in the log domain, new tracks keyed by (predicted track, choice),
   hypotheses of the same track set merged, prune, cap, normalise, the MAP-cardinality estimate;
-- births (B1)–(B2) from the measurements' probability of having been assigned.
+- births (B1)–(B2) from the measurements' probability of having been assigned, and for positions only the
+  two-point births (B3) of the previous frame's unexplained measurements.
 
 What differs from :class:`~torchtrack.filters.glmb.GLMBFilter`: **no groups** — like the published code, one
 δ-GLMB over all tracks (a frame's hypotheses are joint: ``chains`` chains per frame, ``max_hypotheses`` hypotheses
@@ -139,6 +140,7 @@ class ReferenceGLMB:
         self.enumerate_all = enumerate_all
         self.state = ReferenceState()
         self.births: list[tuple[Track, float]] = []   # (density, log r_B) joining the next frame
+        self.previous = (np.zeros((0, 2)), np.zeros(0))  # the last frame's z and r_U, for (B3)
         self.next_index = 0
         self.draws = 0          # single Gibbs draws made (one track, one sweep)
 
@@ -152,7 +154,11 @@ class ReferenceGLMB:
         log_kappa = math.log(c.clutter_density) + (math.log(c.velocity_clutter_density) if self.with_velocity
                                                     else 0.0)
         self.state, used, estimate = self._update(self.state, self.births, meas, log_kappa)
-        self.births = self._births(z, v if self.with_velocity else None, used, frame)
+        if not self.with_velocity and c.birth_pairs > 0:
+            self.births = self._pair_births(z, used, frame)
+        else:
+            self.births = self._births(z, v if self.with_velocity else None, used, frame)
+        self.previous = (z, used)
         table = self.state.table
         return ([table[t].label for t in estimate], np.array([table[t].mean for t in estimate]).reshape(-1, 4),
                 used)
@@ -257,15 +263,43 @@ class ReferenceGLMB:
         n = max(sorted(card), key=lambda k: card[k])
         return list(max((h for h in state.hypotheses if len(h.tracks) == n), key=lambda h: h.log_weight).tracks)
 
-    def _births(self, z: np.ndarray, v: np.ndarray | None, used: np.ndarray, frame: int) -> list[tuple[Track, float]]:
-        """(B1), (B2): one birth per measurement whose ``r_B`` reaches ``birth_min``."""
+    def _birth_existence(self, z: np.ndarray, used: np.ndarray) -> np.ndarray:
+        """``r_B (M,)`` of (B1) with the rate of (B2)."""
         c = self.config
         rate = c.birth_rate
         if z.shape[0] >= 2:
             extent = z.max(0) - z.min(0)
             rate = max(c.birth_rate, c.birth_density * float(extent[0] * extent[1]) * 1e-6)
         free = np.clip(1.0 - used, 0.0, None)
-        r = np.minimum(rate * free / max(free.sum(), 1.0), c.birth_max)
+        return np.minimum(rate * free / max(free.sum(), 1.0), c.birth_max)
+
+    def _pair_births(self, z: np.ndarray, used: np.ndarray, frame: int) -> list[tuple[Track, float]]:
+        """(B3), positions only: measurement by measurement, its ``birth_pairs`` nearest unexplained measurements
+        of the previous frame within ``birth_max_speed`` each propose a birth at that displacement, sharing
+        the measurement's ``r_B`` in proportion to their ``1 − r_U`` (normalised by ``max(1, Σ)``)."""
+        c = self.config
+        r = self._birth_existence(z, used)
+        z_prev, used_prev = self.previous
+        free_prev = np.clip(1.0 - used_prev, 0.0, None)
+        cov = np.diag([c.birth_sigma_pos**2] * 2 + [c.birth_sigma_vel_pair**2] * 2)
+        out = []
+        for j in range(z.shape[0]):
+            dist = np.linalg.norm(z_prev - z[j], axis=1)
+            near = [i for i in np.argsort(dist, kind="stable")
+                    if dist[i] <= c.birth_max_speed and free_prev[i] > 0][: c.birth_pairs]
+            total = max(sum(free_prev[i] for i in near), 1.0)
+            for i in near:
+                r_pair = r[j] * free_prev[i] / total
+                if r_pair >= c.birth_min:
+                    out.append((Track(np.concatenate([z[j], z[j] - z_prev[i]]), cov.copy(), (frame, self.next_index),
+                                      -1), math.log(r_pair)))
+                    self.next_index += 1
+        return out
+
+    def _births(self, z: np.ndarray, v: np.ndarray | None, used: np.ndarray, frame: int) -> list[tuple[Track, float]]:
+        """(B1), (B2): one birth per measurement whose ``r_B`` reaches ``birth_min``."""
+        c = self.config
+        r = self._birth_existence(z, used)
         sv = c.birth_sigma_vel_detector if v is not None else c.birth_sigma_vel
         cov = np.diag([c.birth_sigma_pos**2] * 2 + [sv**2] * 2)
         out = []
