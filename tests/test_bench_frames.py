@@ -69,7 +69,7 @@ def test_rows_and_scores_recomputed_from_the_written_files(tmp_path):
 
 
 def test_default_sequences_give_each_size_the_pixels_of_the_largest():
-    assert frames.default_sequences([512, 1024, 2048, 4096]) == [8, 8, 4, 1]
+    assert frames.default_sequences([512, 1024, 2048, 4096]) == [32, 16, 4, 1]
     assert frames.default_sequences([300, 400]) == [2, 1]
 
 

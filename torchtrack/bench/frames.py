@@ -42,7 +42,7 @@ from torchtrack.sim.video_config import VideoConfig
 FRAMES = 10
 """Frames per sequence, the same at every size."""
 
-MAX_SEQUENCES = 8
+MAX_SEQUENCES = 32
 """The most sequences :func:`default_sequences` gives a size."""
 
 WARMUP_FRAMES = 3
@@ -54,7 +54,7 @@ STAGES = ("registration", "detection", "tracking", "io")
 
 def default_sequences(sizes: Sequence[int]) -> list[int]:
     """Sequences per size of ``sizes``: as many as give the pixels of one sequence of the largest size,
-    ``ceil((S_max / S)²)``, at most :data:`MAX_SEQUENCES` (512, 1024, 2048, 4096 → 8, 8, 4, 1)."""
+    ``ceil((S_max / S)²)``, at most :data:`MAX_SEQUENCES` (512, 1024, 2048, 4096 → 32, 16, 4, 1)."""
     largest = max(sizes)
     return [min(MAX_SEQUENCES, math.ceil((largest / s) ** 2)) for s in sizes]
 

@@ -51,7 +51,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                    help="sequences per frame size: one number for every size or one per size (default: the "
                         f"pixels of one sequence of the largest size, at most {frames.MAX_SEQUENCES})")
     g.add_argument("--out", type=Path, default=None,
-                   help="keep the sequences and the pipeline's outputs in this folder (default: a temporary one)")
+                   help="keep the sequences and the pipeline's outputs in this folder (default: a temporary one): "
+                        "OUT/S/sequences/seedN/ (the generator's folders), OUT/S/run/ (as track --sequences "
+                        "writes it), OUT/bench.json")
     add_force_option(parser)
 
 
