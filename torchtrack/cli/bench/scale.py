@@ -19,7 +19,7 @@ A quick run on a 2-core machine (about a minute): --vehicles 100 1000 --frames 2
 
 With --frame-sizes:
 """ + frames.__doc__ + """
-A quick run on a 2-core machine (about a minute): --frame-sizes 256 512 1024 --frames 6"""
+A quick run on a 2-core machine (about 15 s): --frame-sizes 256 512 1024 --frames 6"""
 
 VEHICLES = [100, 300, 1000, 3000, 10000]
 VEHICLE_FRAMES = 40
