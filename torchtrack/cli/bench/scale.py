@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--out", type=Path, default=None,
                    help="keep the sequences and the pipeline's outputs in this folder (default: a temporary one): "
                         "OUT/S/sequences/seedN/ (the generator's folders), OUT/S/run/ (as track --sequences "
-                        "writes it), OUT/bench.json")
+                        "writes it), OUT/warmup/ (the untimed first sequence), OUT/bench.json")
     add_force_option(parser)
 
 
