@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import logging
 import math
-import resource
 import sys
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -32,6 +31,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from torchtrack.bench._memory import PeakMemory
 from torchtrack.filters.multitarget import make_tracker, tracker_names
 from torchtrack.io.mot import MOTData
 from torchtrack.metrics.clear_mot import clear_mot
@@ -125,45 +125,6 @@ class ScaleRow:
     detections_per_frame: float | None = None
 
 
-class _PeakMemory:
-    """The peak memory of a block: CUDA's allocator peak on a CUDA device; on the CPU the growth of the peak
-    resident set (``VmHWM``, reset through ``/proc/self/clear_refs`` where Linux allows, else ``ru_maxrss``,
-    which only counts a peak above the process's earlier ones)."""
-
-    def __init__(self, device: torch.device):
-        self.device = device
-
-    def __enter__(self) -> _PeakMemory:
-        if self.device.type == "cuda":
-            torch.cuda.synchronize(self.device)
-            torch.cuda.reset_peak_memory_stats(self.device)
-            self.base = torch.cuda.memory_allocated(self.device)
-        else:
-            try:
-                Path("/proc/self/clear_refs").write_text("5")
-            except OSError:
-                pass
-            self.base = _resident_kb("VmRSS")
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self.device.type == "cuda":
-            self.mb = (torch.cuda.max_memory_allocated(self.device) - self.base) / 2**20
-        else:
-            self.mb = max(_resident_kb("VmHWM") - self.base, 0) / 1024
-
-
-def _resident_kb(key: str) -> float:
-    """``key`` (``VmRSS`` or ``VmHWM``) of ``/proc/self/status`` in kB (``ru_maxrss`` where there is none)."""
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith(key + ":"):
-                return float(line.split()[1])
-    except OSError:
-        pass
-    return float(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
-
-
 @contextmanager
 def _quiet_filters() -> Iterator[None]:
     """The filters' cap warnings (one per frame once a cap binds) are not printed during a run: the GM-PHD
@@ -198,7 +159,7 @@ def run_one(name: str, scene: Scene, device: torch.device, max_seconds: float,
     sync = (lambda: torch.cuda.synchronize(device)) if device.type == "cuda" else (lambda: None)
     out_frame, out_id, out_xy = [], [], []
     elapsed, cpu, done = 0.0, 0.0, 0
-    with _PeakMemory(device) as memory, _quiet_filters():
+    with PeakMemory(device) as memory, _quiet_filters():
         for frame, z, v in dets:
             sync()
             t0, c0 = time.perf_counter(), time.process_time()

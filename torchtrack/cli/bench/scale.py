@@ -1,40 +1,109 @@
-"""``torchtrack bench scale``: the options and the output of :mod:`torchtrack.bench.scale`."""
+"""``torchtrack bench scale``: the options and the output of :mod:`torchtrack.bench.scale` (vehicles per frame)
+and, with ``--frame-sizes``, of :mod:`torchtrack.bench.frames` (the pipeline over frame sizes)."""
 
 import argparse
+import tempfile
 from pathlib import Path
 
-from torchtrack.bench import scale
-from torchtrack.cli._common import positive_float, positive_int
+from torchtrack.bench import frames, scale
+from torchtrack.cli._common import add_force_option, bounded, positive_float, positive_int
+from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
-from torchtrack.io.outputs import write_json
+from torchtrack.io.outputs import OutputFolder, write_json
 
 NAME = "scale"
-HELP = "every tracker's frames/s, MOTA and peak memory as vehicles per frame grow at constant density"
+HELP = ("every tracker's frames/s, MOTA and peak memory as vehicles per frame grow at constant density; with "
+        "--frame-sizes the pipeline's megapixels/s, memory, MOTA and detection F1 as frames grow")
 DESCRIPTION = scale.__doc__ + """
-A quick run on a 2-core machine (about a minute): --vehicles 100 1000 --frames 20 --trackers gmphd sort"""
+A quick run on a 2-core machine (about a minute): --vehicles 100 1000 --frames 20 --trackers gmphd sort
+
+With --frame-sizes:
+""" + frames.__doc__ + """
+A quick run on a 2-core machine (about 15 s): --frame-sizes 256 512 1024 --frames 6"""
+
+VEHICLES = [100, 300, 1000, 3000, 10000]
+VEHICLE_FRAMES = 40
+MAX_SECONDS = 120.0
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--vehicles", type=positive_int, nargs="+", default=[100, 300, 1000, 3000, 10000],
-                        help="vehicles per frame N (default 100 300 1000 3000 10000)")
+    parser.add_argument("--vehicles", type=positive_int, nargs="+", default=None,
+                        help=f"vehicles per frame N (default {' '.join(map(str, VEHICLES))})")
     parser.add_argument("--trackers", nargs="+", choices=tracker_names(), default=None,
                         help="trackers to run (default: all)")
-    parser.add_argument("--frames", type=positive_int, default=40, help="frames per run (default 40)")
-    parser.add_argument("--device", default="cpu", help="torch device of the detections (default cpu)")
-    parser.add_argument("--max-seconds", type=positive_float, default=120.0,
+    parser.add_argument("--frames", type=positive_int, default=None,
+                        help=f"frames per run (default {VEHICLE_FRAMES}); with --frame-sizes frames per sequence, "
+                             f"the same at every size (default {frames.FRAMES})")
+    parser.add_argument("--device", default="cpu", help="torch device of the detections (default cpu); with "
+                        "--frame-sizes of the detector's network and the tracker")
+    parser.add_argument("--max-seconds", type=positive_float, default=None,
                         help="a run stops after this much tracker time and the tracker's larger N are skipped "
-                             "(default 120)")
+                             f"(default {MAX_SECONDS:g})")
     parser.add_argument("--threads", type=positive_int, default=1, help="torch intra-op threads (default 1)")
     parser.add_argument("--plot", type=Path, default=None, metavar="PNG",
-                        help="write frames/s and MOTA against N to this PNG")
+                        help="write frames/s and MOTA against N (with --frame-sizes: megapixels/s, peak memory, "
+                             "MOTA and detection F1 against the frame size) to this PNG")
+    g = parser.add_argument_group("frame sizes (the video pipeline end to end)")
+    g.add_argument("--frame-sizes", type=bounded(int, ge=32), nargs="+", default=None, metavar="S",
+                   help="run the pipeline (registration, detector, enhanced GM-PHD; no video) on synthetic "
+                        "S × S frames instead of the trackers over N, e.g. 512 1024 2048 4096")
+    g.add_argument("--sequences", type=positive_int, nargs="+", default=None, metavar="K",
+                   help="sequences per frame size: one number for every size or one per size (default: the "
+                        f"pixels of one sequence of the largest size, at most {frames.MAX_SEQUENCES})")
+    g.add_argument("--out", type=Path, default=None,
+                   help="keep the sequences and the pipeline's outputs in this folder (default: a temporary one): "
+                        "OUT/S/sequences/seedN/ (the generator's folders), OUT/S/run/ (as track --sequences "
+                        "writes it), OUT/warmup/ (the untimed first sequence), OUT/bench.json")
+    add_force_option(parser)
 
 
 def run(args) -> int:
-    rows = scale.measure(args.vehicles, args.trackers, args.frames, args.device, args.max_seconds, args.threads,
-                         args.seed, progress=scale.print_progress)
-    workload = scale.workload(args.frames, args.device, args.threads)
+    if args.frame_sizes is not None:
+        return run_frame_sizes(args)
+    given = [flag for flag, value in (("--sequences", args.sequences), ("--out", args.out)) if value is not None]
+    if given:
+        raise TorchtrackError(f"{', '.join(given)} apply to --frame-sizes only")
+    frames_run = args.frames or VEHICLE_FRAMES
+    rows = scale.measure(args.vehicles or VEHICLES, args.trackers, frames_run, args.device,
+                         args.max_seconds or MAX_SECONDS, args.threads, args.seed, progress=scale.print_progress)
+    workload = scale.workload(frames_run, args.device, args.threads)
     print(scale.format_report(rows, workload))
     write_json(args.json, scale.payload(rows, workload))
     if args.plot is not None:
         scale.plot(rows, args.plot, workload)
+    return 0
+
+
+def run_frame_sizes(args) -> int:
+    given = [flag for flag, value in (("--vehicles", args.vehicles), ("--trackers", args.trackers),
+                                      ("--max-seconds", args.max_seconds)) if value is not None]
+    if given:
+        raise TorchtrackError(f"{', '.join(given)} do not apply to --frame-sizes (the pipeline runs its enhanced "
+                              "GM-PHD over every frame)")
+    sizes = args.frame_sizes
+    if len(set(sizes)) < len(sizes):
+        raise TorchtrackError(f"--frame-sizes: each size once; got {' '.join(map(str, sizes))}")
+    counts = args.sequences
+    if counts is not None and len(counts) not in (1, len(sizes)):
+        raise TorchtrackError(f"--sequences: give one count or one per frame size ({len(sizes)}); got {len(counts)}")
+    if counts is not None and len(counts) == 1:
+        counts = counts * len(sizes)
+    frames_run = args.frames or frames.FRAMES
+    workload = frames.workload(frames_run, args.device, args.threads)
+
+    def measure(work: Path) -> list[frames.FrameSizeRow]:
+        return frames.measure(sizes, work, frames_run, counts, args.device, args.threads, args.seed,
+                              progress=frames.print_progress)
+
+    if args.out is None:
+        with tempfile.TemporaryDirectory(prefix="torchtrack-bench-frames-") as work:
+            rows = measure(Path(work))
+    else:
+        with OutputFolder(args.out, "torchtrack bench scale --frame-sizes", args.force) as staging:
+            rows = measure(staging)
+            write_json(staging / "bench.json", frames.payload(rows, workload))
+    print(frames.format_report(rows, workload))
+    write_json(args.json, frames.payload(rows, workload))
+    if args.plot is not None:
+        frames.plot(rows, args.plot, workload)
     return 0
