@@ -80,3 +80,21 @@ def test_tracks_start_in_a_scene_of_1000_vehicles():
     assert reported[0.0] == 0
     assert reported[1.0] > 500
     assert math.isclose(scene.side**2 * 1e-6, 3.6)
+
+
+def test_two_point_partners_from_the_grid_equal_every_pair_compared(monkeypatch):
+    """The two-point birth's nearest free partners within the maximum speed: the grid path (wide-area frames)
+    gives the distances and partners of comparing every pair (float64, random frames, ties impossible)."""
+    from torchtrack.filters import glmb_birth
+
+    g = torch.Generator().manual_seed(7)
+    z = torch.rand(400, 2, generator=g, dtype=torch.float64) * 300
+    z_prev = torch.rand(350, 2, generator=g, dtype=torch.float64) * 300
+    free = torch.rand(350, generator=g) > 0.3
+    dense = glmb_birth._nearest_partners(z, z_prev, free, 25.0, 3)
+    monkeypatch.setattr(glmb_birth, "DENSE_PAIRS", 0)
+    grid = glmb_birth._nearest_partners(z, z_prev, free, 25.0, 3)
+    assert torch.isfinite(dense[0]).sum() > 500 and (~torch.isfinite(dense[0])).any()
+    torch.testing.assert_close(grid[0], dense[0], rtol=0, atol=1e-12)
+    found = torch.isfinite(dense[0])
+    assert torch.equal(grid[1][found], dense[1][found])

@@ -44,6 +44,7 @@ import math
 import torch
 from torch import Tensor
 
+from torchtrack.association.grid import DENSE_PAIRS, disc_candidates
 from torchtrack.filters.glmb import Births
 
 
@@ -91,9 +92,7 @@ def two_point_births(z: Tensor, used: Tensor, z_prev: Tensor, used_prev: Tensor,
     ``(frame, next_index + b)``."""
     r = birth_existence(used, birth_rate, r_max)
     free_prev = (1.0 - used_prev.detach()).clamp_min(0.0)
-    dist = torch.cdist(z.detach(), z_prev.detach())                                       # (M, M')
-    dist = torch.where((dist <= max_speed) & (free_prev > 0), dist, torch.full_like(dist, math.inf))
-    d, partner = dist.topk(min(pairs, z_prev.shape[0]), dim=1, largest=False)           # (M, K)
+    d, partner = _nearest_partners(z.detach(), z_prev.detach(), free_prev > 0, max_speed, pairs)   # (M, K)
     paired = torch.isfinite(d)
     share = torch.where(paired, free_prev[partner], torch.zeros_like(d))
     r_pair = r.unsqueeze(1) * share / share.sum(1, keepdim=True).clamp_min(1.0)
@@ -102,6 +101,32 @@ def two_point_births(z: Tensor, used: Tensor, z_prev: Tensor, used_prev: Tensor,
     std = torch.tensor([sigma_pos, sigma_pos, sigma_vel, sigma_vel], dtype=z.dtype, device=z.device)
     return _birth_rows(mean, std.expand(mean.shape[0], 4), torch.where(paired, r_pair, 0.0).reshape(-1), r_min,
                        frame, next_index)
+
+
+def _nearest_partners(z: Tensor, z_prev: Tensor, free: Tensor, max_speed: float, k: int) -> tuple[Tensor, Tensor]:
+    """Distances and indices ``(M, K)``, ``K = min(k, M')``, of each of ``z (M, 2)``'s ``K`` nearest points of
+    ``z_prev (M', 2)`` where ``free (M',)`` within ``max_speed``, nearest first (``inf`` where fewer). Beyond
+    :data:`~torchtrack.association.grid.DENSE_PAIRS` pairs only those from the grid's cells near each point
+    are measured, so a wide-area frame never forms the ``M × M'`` matrix."""
+    M, P = z.shape[0], z_prev.shape[0]
+    K = min(k, P)
+    if M * P <= DENSE_PAIRS:
+        dist = torch.cdist(z, z_prev)
+        dist = torch.where((dist <= max_speed) & free, dist, torch.full_like(dist, math.inf))
+        return dist.topk(K, dim=1, largest=False)
+    qq, pp = disc_candidates(z, torch.full((M,), max_speed, dtype=z.dtype, device=z.device), z_prev, cell=max_speed)
+    dd = (z_prev[pp] - z[qq]).norm(dim=-1)
+    ok = (dd <= max_speed) & free[pp]
+    qq, pp, dd = qq[ok], pp[ok], dd[ok]
+    order = torch.argsort(dd, stable=True)
+    order = order[torch.argsort(qq[order], stable=True)]                  # by point, then nearest first
+    qq, pp, dd = qq[order], pp[order], dd[order]
+    rank = torch.arange(qq.shape[0], device=z.device) - torch.searchsorted(qq, qq)
+    keep = rank < K
+    d = torch.full((M, K), math.inf, dtype=z.dtype, device=z.device)
+    partner = torch.zeros((M, K), dtype=torch.long, device=z.device)
+    d[qq[keep], rank[keep]], partner[qq[keep], rank[keep]] = dd[keep], pp[keep]
+    return d, partner
 
 
 def no_births(dtype: torch.dtype, device=None) -> Births:
