@@ -5,7 +5,7 @@ The workload (issue #28): for each frame side ``S``, ``n_S`` synthetic sequences
 512²), each of the same number of frames at every size (so that the start-up of tracks weighs the same),
 seeded by the held-out test seeds of the detector (:func:`torchtrack.detector.dataset.split_seed`, split
 ``test``, indices ``1 … n_S``). Fewer sequences for larger frames (:func:`default_sequences`: the same
-pixels per size as one sequence of the largest size, at most 8) keep a run within minutes.
+pixels per size as one sequence of the largest size, at most :data:`MAX_SEQUENCES`) keep a run within minutes.
 
 Each size's sequences are written as PNG folders and run through the pipeline as ``torchtrack track
 --sequences DIR --no-video`` runs them (:func:`torchtrack.pipeline.sequences.run_sequences`: registration,
