@@ -22,7 +22,8 @@ def test_online_yaml_differs_from_the_defaults_only_in_lag_gate_and_options():
 
 
 @pytest.mark.parametrize("key, value", [("output_lag", -1), ("output_lag", 2.5), ("weak_distance", 0.0),
-                                        ("lag_distance", -2.0), ("weak_threshold", 1.5)])
+                                        ("lag_distance", -2.0), ("weak_threshold", 1.5), ("detector_tile", 1000),
+                                        ("detector_tile", -16)])
 def test_bad_lag_and_weak_settings_are_named(key, value):
     with pytest.raises(TorchtrackError, match=key):
         PipelineConfig(**{key: value})

@@ -10,6 +10,7 @@ from pathlib import Path
 import torch
 
 from torchtrack.config import Checked, from_mapping, option, read_mapping
+from torchtrack.detector.network import MULTIPLE
 from torchtrack.filters.tracker_config import DEFAULTS, tracker_config
 from torchtrack.pipeline.registration import RegistrationConfig
 
@@ -105,6 +106,9 @@ class PipelineConfig(Checked):
         super().__post_init__()
         if isinstance(self.output_lag, bool) or not isinstance(self.output_lag, int):
             raise self.refuse("output_lag", f"must be a whole number of frames; got {self.output_lag!r}")
+        if self.detector_tile is not None and self.detector_tile % MULTIPLE:
+            raise self.refuse("detector_tile", f"must be a multiple of {MULTIPLE} (the network's stride); "
+                                               f"got {self.detector_tile}")
         try:
             device = torch.device(self.device)
         except (RuntimeError, TypeError):
