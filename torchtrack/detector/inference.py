@@ -43,7 +43,12 @@ class Detector(nn.Module):
     velocities (optional: enables the motion-continuity check of :func:`torchtrack.detector.refine.continuity_refine`;
     velocities are first refined by block matching, :func:`torchtrack.detector.refine.refine_velocity`). Returns the
     trimmed detections: ``xy``
-    (K, 2) px, ``score`` (K,), ``velocity`` (K, 2) px/frame, ``x_k - x_{k-1}``.
+    (K, 2) px, ``score`` (K,), ``velocity`` (K, 2) px/frame, ``x_k - x_{k-1}``, best score first.
+
+    ``rows = (y0, y1)`` (multiples of 16; ``y1`` may be the frame's height): only the detections whose cell
+    lies in those rows, computed from the frame rows ``y0 - HALO .. y1 + HALO`` (:meth:`strip_maps`), at most
+    ``peaks_for`` of the strip's area; velocities are refined on the whole frames. Strips that partition the
+    frame give, together, the whole frame's detections (where no strip reaches its cap).
     """
 
     def __init__(self, config: DetectorConfig | None = None) -> None:
@@ -113,15 +118,39 @@ class Detector(nn.Module):
                     out[:, cy: cy + ch, cx: cx + cw] = m[:, oy: oy + ch, ox: ox + cw]
         return out[:, : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
 
+    def strip_maps(self, cur: torch.Tensor, prev: torch.Tensor, pts: torch.Tensor,
+                   rows: tuple[int, int]) -> tuple[torch.Tensor, tuple[int, int], int]:
+        """The maps of the frame rows ``rows = (y0, y1)`` with one map row beyond each edge (the 3x3
+        neighbourhood of the decoding), computed from the window of frame rows ``y0 - HALO .. y1 + HALO`` only.
+
+        Returns the maps ``(5, m, ⌈W/2⌉)``, the map rows ``(a, b)`` among them that the strip owns, and the
+        frame's map row of their row 0. The window starts at a multiple of 16 and reaches :data:`HALO` px —
+        more than the receptive field — past the rows kept, so they equal the whole frame's maps of
+        :meth:`maps` (up to float rounding); a window that ends at the frame's bottom is padded as the frame."""
+        h = cur.shape[0]
+        y0, y1 = rows
+        if not (0 <= y0 < y1 <= h and y0 % MULTIPLE == 0 and (y1 % MULTIPLE == 0 or y1 == h)):
+            raise TorchtrackError(f"detector: rows {rows} must satisfy 0 <= y0 < y1 <= {h} (the frame's height), "
+                                  f"y0 and y1 multiples of {MULTIPLE} (y1 may be the height)")
+        r0, r1 = max(0, y0 - HALO), min(h, y1 + HALO)
+        window = self.maps(cur[r0:r1], prev[r0:r1], pts - torch.tensor([0.0, r0]))
+        own0, own1 = y0 // STRIDE, (y1 + STRIDE - 1) // STRIDE               # the frame's map rows owned
+        lo, hi = max(r0 // STRIDE, own0 - 1), min((r1 + STRIDE - 1) // STRIDE, own1 + 1)
+        return window[:, lo - r0 // STRIDE: hi - r0 // STRIDE], (own0 - lo, own1 - lo), lo
+
     @torch.inference_mode()
     def detect(self, frame, prev_frame=None, prev_points=None, threshold: float | None = None,
-               prev_velocity=None) -> Detections:
+               prev_velocity=None, rows: tuple[int, int] | None = None) -> Detections:
         cur, prev, pts = self.inputs(frame, prev_frame, prev_points)
         h, w = cur.shape
-        out = self.maps(cur, prev, pts)[None]
         d = self.config.decode
+        if rows is None:
+            out, own, first, cap = self.maps(cur, prev, pts)[None], None, 0, d.peaks_for(h, w)
+        else:
+            out, own, first = self.strip_maps(cur, prev, pts, rows)
+            out, cap = out[None], d.peaks_for(rows[1] - rows[0], w)
         det = decode(out[:, :1], out[:, 1:3], out[:, 3:], STRIDE, d.threshold if threshold is None else threshold,
-                     d.peaks_for(h, w))
+                     cap, own, first)
         keep = det.mask[0]
         xy, vel = det.xy[0, keep], det.velocity[0, keep]
         if prev_frame is not None and d.refine_radius > 0:
