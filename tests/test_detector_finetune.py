@@ -18,6 +18,7 @@ from torchtrack.detector.inference import Detector, detector_from_checkpoint
 from torchtrack.detector.labelled import evaluate_labelled, label_frames
 from torchtrack.detector.losses import detection_loss
 from torchtrack.detector.region import Region
+from torchtrack.detector.unlabelled import dont_care_mask, unlabelled_detections
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import from_points
 from torchtrack.sim.video import generate_sequence
@@ -94,6 +95,42 @@ def test_scores_count_only_what_lies_inside_the_region(tmp_path):
     assert (inside["tp"], inside["fp"], inside["fn"]) == (2, 2, 0)
     everywhere = evaluate_labelled(det, data)["all"]
     assert (everywhere["tp"], everywhere["fp"], everywhere["fn"]) == (2, 4, 2)
+
+
+def test_vehicles_the_truth_does_not_list_are_neither_positive_nor_negative(tmp_path):
+    """A detection of the starting weights far from every truth point (an unlisted parked car) is
+    don't-care within ``unlabelled_radius``; the truth points stay positive."""
+    cfg = dataclasses.replace(tiny_config(tmp_path), data=dataclasses.replace(tiny_config(tmp_path).data,
+                                                                               register=False))
+    frames = np.random.default_rng(1).integers(0, 255, (2, 64, 64), dtype=np.uint8)
+    corners = np.array([[10.0, 10], [53, 10], [10, 53], [53, 53]])   # a set every flip/transposition keeps
+    truth = from_points(np.repeat([1, 2], 4), np.tile(np.arange(1, 5), 2), np.tile(corners[:, 0], 2),
+                        np.tile(corners[:, 1], 2))
+    data = label_frames(frames, truth, "gt.txt")
+    det = FixedDetector(cfg, [[12.0, 16.0], [31.5, 31.5]])     # the first is the vehicle at (10, 10)
+    unlisted = unlabelled_detections(det, data)
+    assert [p.tolist() for p in unlisted] == [[[31.5, 31.5]]] * 2
+    radius = cfg.finetune.unlabelled_radius
+    pairs = PairDataset(data.as_cache(), cfg, 0, dont_care=dont_care_mask(unlisted, (64, 64), radius)[None])
+    x, tg = pairs[0]
+    # brute force: a 2 x 2-pixel cell is don't-care when one of its pixels lies within the radius
+    rows, cols = np.mgrid[0:64, 0:64]
+    near = ((cols - 31.5) ** 2 + (rows - 31.5) ** 2 <= radius ** 2).reshape(32, 2, 32, 2).any(3).any(1)
+    assert near.sum() > 0
+    assert np.array_equal(tg.labelled.numpy(), ~near)
+    assert tg.centre.sum() == 4 and tg.labelled[tg.centre].all()
+    assert torch.equal(tg.heatmap[0][tg.centre], torch.ones(4))
+    net = Detector(cfg).net
+    torch.manual_seed(0)
+    hm, off, vel = net(x[None])
+    batch = type(tg)(*(t[None] for t in tg))
+    unknown = ~tg.labelled[None, None]
+    firing = torch.where(unknown, torch.full_like(hm, 8.0), hm)   # fires on the unlisted vehicle
+    quiet = torch.where(unknown, torch.full_like(hm, -8.0), hm)
+    assert detection_loss((firing, off, vel), batch)[0].item() == pytest.approx(
+        detection_loss((quiet, off, vel), batch)[0].item(), rel=1e-6)
+    negative = batch._replace(labelled=torch.ones_like(batch.labelled))  # unlabelled_static: negative
+    assert detection_loss((firing, off, vel), negative)[0] > detection_loss((quiet, off, vel), negative)[0] + 1
 
 
 def write_frames(folder, n=2, shape=(40, 60)):

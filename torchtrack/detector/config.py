@@ -89,6 +89,10 @@ class FinetuneConfig(Checked):
     gain: float = option(0.2, ge=0, lt=1)           # real pairs: both frames scaled by U(1 - gain, 1 + gain)
     noise: float = option(0.1, ge=0)                # real pairs: Gaussian noise, in units of the frame's std
     registration: str = option("lk", one_of=("lk", "orb", "none"))   # as the pipeline's registration.method
+    # vehicles the truth does not list (detections of the starting weights farther than the match radius
+    # from every truth point): "dont_care" masks their neighbourhood out of the loss, "negative" keeps it
+    unlabelled_static: str = option("dont_care", one_of=("dont_care", "negative"))
+    unlabelled_radius: float = option(6.0, gt=0)    # px around such a detection (a vehicle's reach)
     out: str = "out/detector-finetune"
 
 

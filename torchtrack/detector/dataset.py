@@ -125,12 +125,14 @@ class PairDataset(Dataset):
     """``len = steps_per_epoch * batch``; item ``i`` -> ``(input (3, c, c), Targets at stride 2)``.
 
     ``region``: only its pixels are labelled (the crop is placed as much inside it as it fits and the
-    cells outside are masked out of the loss, :attr:`Targets.labelled`); ``augment``: both frames'
+    cells outside are masked out of the loss, :attr:`Targets.labelled`); ``dont_care`` (S, T, H, W) bool:
+    pixels of frame ``(s, t)`` that are neither positive nor negative either (vehicles the truth does not
+    list, :mod:`torchtrack.detector.unlabelled`); ``augment``: both frames'
     normalised values scaled by one gain ``U(1 - g, 1 + g)`` and each given Gaussian noise of std ``n``
     (``finetune.gain``, ``finetune.noise``), for small labelled sets."""
 
     def __init__(self, cache: SequenceCache, cfg: DetectorConfig, seed: int, region: Region | None = None,
-                 augment: bool = False) -> None:
+                 augment: bool = False, dont_care: torch.Tensor | None = None) -> None:
         s, t, h, w = cache.frames.shape
         c = cfg.data.crop
         if t < 2:
@@ -138,7 +140,7 @@ class PairDataset(Dataset):
         if c > min(h, w):
             raise TorchtrackError(f"detector data: crop {c} is larger than the frames ({h}x{w})")
         self.cache, self.cfg, self.seed, self.epoch = cache, cfg, seed, 0
-        self.region, self.augment = region, augment
+        self.region, self.augment, self.dont_care = region, augment, dont_care
         fr = cache.frames.float()
         self.mean = fr.mean((2, 3))
         self.std = fr.std((2, 3)) + 1.0
@@ -187,6 +189,9 @@ class PairDataset(Dataset):
             clutter = torch.from_numpy(rng.uniform(0, c, (rng.poisson(d.prior_clutter), 2))).float()
             prior_xy = torch.cat([(pxy + jitter)[keep], false_near, clutter])
         labelled = None if self.region is None else self.region.mask((h, w))[y0:y0 + c, x0:x0 + c]
+        if self.dont_care is not None:
+            known = ~self.dont_care[s, t, y0:y0 + c, x0:x0 + c]
+            labelled = known if labelled is None else labelled & known
         img = torch.stack([cur, prev] + ([] if labelled is None else [labelled.float()]))
         code = int(rng.integers(8))
         img, xy, vel = _dihedral(img, xy, vel, code, c)

@@ -4,7 +4,10 @@ Each training pair is, with probability ``finetune.synthetic_share``, a syntheti
 :class:`~torchtrack.detector.dataset.PairDataset` (from ``finetune.synthetic_sequences`` cached
 sequences, so that the synthetic skill is not forgotten), otherwise a pair of the labelled frames
 (:mod:`torchtrack.detector.labelled`) cropped inside the labelled region, with the cells outside it
-masked out of the loss, the 8 flips/transpositions, gain and noise (``finetune.gain``, ``noise``). The
+masked out of the loss, the 8 flips/transpositions, gain and noise (``finetune.gain``, ``noise``). With
+``finetune.unlabelled_static: dont_care`` the neighbourhoods of the vehicles the truth does not list (the
+starting weights' detections far from every truth point, :mod:`torchtrack.detector.unlabelled`) are masked
+out of the loss as well. The
 pairs are pure functions of ``(seed, index)``. Adam at ``finetune.lr`` with a linear warm-up (10 % of the
 steps) and cosine decay; the losses are those of the synthetic training
 (:func:`torchtrack.detector.losses.detection_loss`). Writes ``finetune.out/last.pt`` (the training
@@ -31,6 +34,7 @@ from torchtrack.detector.labelled import LabelledFrames
 from torchtrack.detector.losses import detection_loss
 from torchtrack.detector.region import Region
 from torchtrack.detector.targets import Targets
+from torchtrack.detector.unlabelled import MATCH_RADIUS, dont_care_mask, unlabelled_detections
 
 SAVE_EVERY = 100   # steps between checkpoints
 
@@ -61,9 +65,15 @@ def finetune(cfg: DetectorConfig, weights: dict, data: LabelledFrames, region: R
     torch.manual_seed(seed)
     det = Detector(cfg)
     det.net.load_state_dict(weights)
+    dont_care = None
+    if f.unlabelled_static == "dont_care":
+        unlisted = unlabelled_detections(det.eval(), data)
+        log(f"unlabelled: {sum(len(p) for p in unlisted)} detections of the starting weights farther than "
+            f"{MATCH_RADIUS:g} px from every truth point are don't-care within {f.unlabelled_radius:g} px")
+        dont_care = dont_care_mask(unlisted, data.frames.shape[1:], f.unlabelled_radius)[None]
     net = det.net.train()
     span = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps_per_epoch=f.steps, batch=f.batch))
-    real = PairDataset(data.as_cache(), span, seed, region=region, augment=True)
+    real = PairDataset(data.as_cache(), span, seed, region=region, augment=True, dont_care=dont_care)
     synthetic = None
     if f.synthetic_share > 0:
         synthetic = PairDataset(build_cache(span, "train", seed, count=f.synthetic_sequences, progress=progress),
