@@ -32,6 +32,21 @@ def _kf(x, P, z):
     return x, A @ P @ A.T + K @ R @ K.T
 
 
+def _follows_the_kalman_filter(tracker, zs: np.ndarray, x: np.ndarray, P: np.ndarray, first: int
+                               ) -> tuple[np.ndarray, np.ndarray]:
+    """Frames ``first … len(zs)``: one hypothesis holding the one track, reported under id 1, whose density is the
+    Kalman filter's from ``x, P`` (to 1e-9); returns the filter's last ``x, P``."""
+    for k in range(first, len(zs) + 1):
+        ids, pos = tracker.step(k, torch.tensor(zs[k - 1:k]))
+        x, P = _kf(x, P, zs[k - 1])
+        state = tracker.state
+        assert state.hyp.shape[0] == 1 and ids.tolist() == [1]
+        np.testing.assert_allclose(state.mean[state.hyp[0, 0]].numpy(), x, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(state.cov[state.hyp[0, 0]].numpy(), P, rtol=1e-9, atol=1e-9)
+        np.testing.assert_allclose(pos[0].numpy(), x[:2], rtol=1e-9)
+    return x, P
+
+
 def test_one_target_no_clutter_pd_one_is_a_kalman_filter():
     """Births at rest (B1): the track is the Kalman filter from frame 1's detection."""
     cfg = {"q": Q_DENSITY, "sigma": SIGMA, "p_detection": 1.0, "clutter_density": 1e-12, "velocity_sigma": None,
@@ -43,14 +58,7 @@ def test_one_target_no_clutter_pd_one_is_a_kalman_filter():
     x, P = np.r_[zs[0], 0.0, 0.0], np.diag([4.0, 4.0, 25.0, 25.0])   # the birth density from frame 1's detection
     ids, _ = tracker.step(1, torch.tensor(zs[:1]))
     assert ids.numel() == 0
-    for k in range(2, 16):
-        ids, pos = tracker.step(k, torch.tensor(zs[k - 1:k]))
-        x, P = _kf(x, P, zs[k - 1])
-        state = tracker.state
-        assert state.hyp.shape[0] == 1 and ids.tolist() == [1]
-        np.testing.assert_allclose(state.mean[state.hyp[0, 0]].numpy(), x, rtol=1e-9, atol=1e-9)
-        np.testing.assert_allclose(state.cov[state.hyp[0, 0]].numpy(), P, rtol=1e-9, atol=1e-9)
-        np.testing.assert_allclose(pos[0].numpy(), x[:2], rtol=1e-9)
+    _follows_the_kalman_filter(tracker, zs, x, P, first=2)
 
 
 def test_two_point_birth_is_a_kalman_filter_from_two_detections():
@@ -67,14 +75,7 @@ def test_two_point_birth_is_a_kalman_filter_from_two_detections():
         ids, _ = tracker.step(k, torch.tensor(zs[k - 1:k]))
         assert ids.numel() == 0
     x, P = np.r_[zs[1], zs[1] - zs[0]], np.diag([4.0, 4.0, 2.25, 2.25])
-    for k in range(3, 21):
-        ids, pos = tracker.step(k, torch.tensor(zs[k - 1:k]))
-        x, P = _kf(x, P, zs[k - 1])
-        state = tracker.state
-        assert state.hyp.shape[0] == 1 and ids.tolist() == [1]
-        np.testing.assert_allclose(state.mean[state.hyp[0, 0]].numpy(), x, rtol=1e-9, atol=1e-9)
-        np.testing.assert_allclose(state.cov[state.hyp[0, 0]].numpy(), P, rtol=1e-9, atol=1e-9)
-        np.testing.assert_allclose(pos[0].numpy(), x[:2], rtol=1e-9)
+    x, P = _follows_the_kalman_filter(tracker, zs, x, P, first=3)
     assert np.abs(x[2:] - velocity).max() < 3 * math.sqrt(P[2, 2])
 
 
