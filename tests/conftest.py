@@ -1,6 +1,9 @@
 """Test-suite settings shared by every test file."""
 
 import os
+import subprocess
+import sys
+from pathlib import Path
 
 import pytest
 import torch
@@ -21,3 +24,16 @@ def wpafb_data():
         return wpafb_folder()
     except TorchtrackError as exc:
         pytest.skip(str(exc))
+
+
+@pytest.fixture
+def run_on_two_ranks():
+    """``run(script)``: the Python file ``script`` on two ``torchrun --standalone`` ranks on this machine (the
+    repository on ``PYTHONPATH``, one thread each); fails the test, with the ranks' stderr, unless both exit 0."""
+    def run(script: Path) -> None:
+        env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[1]), "OMP_NUM_THREADS": "1"}
+        torchrun = Path(sys.executable).with_name("torchrun")
+        proc = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", str(script)],
+                              env=env, capture_output=True, text=True, timeout=300)
+        assert proc.returncode == 0, proc.stderr[-2000:]
+    return run

@@ -1,10 +1,7 @@
 """Many sequences: discovery, exact pooled aggregation, and sharding over two torchrun ranks (gloo)."""
 
 import json
-import os
-import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -18,8 +15,6 @@ from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.sequences import concatenate, find_sequences, run_sequences
 from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import VideoConfig, write_sequence
-
-ROOT = Path(__file__).resolve().parents[1]
 
 # A test-only stand-in detector: the brightest local maxima of the frame (no weights needed).
 STANDIN = '''
@@ -90,7 +85,7 @@ def read_mot_like(rows):
     return from_points(a[:, 0], a[:, 1], a[:, 2], a[:, 3])
 
 
-def test_single_process_and_torchrun_agree(root, tmp_path):
+def test_single_process_and_torchrun_agree(root, tmp_path, run_on_two_ranks):
     cfg = PipelineConfig(tracker="greedy", video=False, min_speed=0.0, min_motion=0.0)  # stand-in: no velocity
     with pytest.warns(UserWarning):
         single = run_sequences(root, tmp_path / "one", cfg, detector=_standin(root), progress=False,
@@ -124,11 +119,7 @@ def test_single_process_and_torchrun_agree(root, tmp_path):
         "PipelineConfig(tracker='greedy', video=False, min_speed=0.0, min_motion=0.0),"
         " detector=PeakDetector(), progress=False)\n"
         "destroy()\n")
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    torchrun = Path(sys.executable).with_name("torchrun")
-    proc = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", str(script)],
-                          env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    run_on_two_ranks(script)
     two = json.loads((tmp_path / "two" / "metrics.json").read_text())
     assert two["world_size"] == 2 and set(two["sequences"]) == {"a_seq", "b_seq", "c_seq"}
     for k in ("MOTA", "IDS", "FP", "FN", "TP", "IDF1"):

@@ -1,9 +1,6 @@
 """Detection over spatial strips across two torchrun ranks (gloo, loopback; issue #28 item 5): every rank holds
 the whole frame's detections, equal to one process's detector loop over the frames."""
 
-import os
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -45,7 +42,7 @@ def test_merge_strips_orders_by_score_then_strip():
     assert merged.velocity[:, 0].tolist() == [1.0, 0.0, 0.0, 1.0] and len(merged) == 4
 
 
-def test_two_ranks_over_strips_equal_one_process(tmp_path):
+def test_two_ranks_over_strips_equal_one_process(tmp_path, run_on_two_ranks):
     det = load_detector(tile=TILE)
     frames = _frames()
     one, prev = [], None
@@ -73,11 +70,7 @@ def test_two_ranks_over_strips_equal_one_process(tmp_path):
         "found = [tuple(d[:3]) for d in detect_strips(load_detector(tile=TILE), _frames())]\n"
         f"torch.save(found, {str(tmp_path)!r} + f'/rank{{dist.get_rank()}}.pt')\n"
         "dist.destroy_process_group()\n")
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "OMP_NUM_THREADS": "1"}
-    torchrun = Path(sys.executable).with_name("torchrun")
-    proc = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", str(script)],
-                          env=env, capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
+    run_on_two_ranks(script)
     for rank in (0, 1):                        # every rank holds the whole frame's detections
         two = torch.load(tmp_path / f"rank{rank}.pt")
         assert len(two) == FRAMES
