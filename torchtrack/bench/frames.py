@@ -200,7 +200,7 @@ def plot(rows: Sequence[FrameSizeRow], path: str | Path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchtrack.io.outputs import atomic_file
+    from torchtrack.io.outputs import save_figure
 
     sizes = [r.size for r in rows]
     fig, (ax_rate, ax_mem, ax_score) = plt.subplots(1, 3, figsize=(14, 4.2))
@@ -222,10 +222,7 @@ def plot(rows: Sequence[FrameSizeRow], path: str | Path, title: str) -> None:
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle(title, fontsize=8)
-    fig.tight_layout()
-    with atomic_file(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def print_progress(row: FrameSizeRow) -> None:

@@ -265,7 +265,7 @@ def plot(rows: Sequence[ScaleRow], path: str | Path, title: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    from torchtrack.io.outputs import atomic_file
+    from torchtrack.io.outputs import save_figure
 
     fig, (ax_fps, ax_mota) = plt.subplots(1, 2, figsize=(11, 4.2))
     for name in dict.fromkeys(r.tracker for r in rows):
@@ -279,10 +279,7 @@ def plot(rows: Sequence[ScaleRow], path: str | Path, title: str) -> None:
         ax.grid(True, which="both", alpha=0.3)
     ax_mota.legend()
     fig.suptitle(title, fontsize=8)
-    fig.tight_layout()
-    with atomic_file(path) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
+    save_figure(fig, path, dpi=110)
 
 
 def print_progress(row: ScaleRow) -> None:

@@ -62,6 +62,18 @@ def atomic_file(path: str | os.PathLike) -> Iterator[Path]:
     os.replace(tmp, path)
 
 
+def save_figure(fig: Any, path: str | os.PathLike, dpi: float | None = None) -> Path:
+    """Lay out the matplotlib figure ``fig``, write it to ``path`` whole (:func:`atomic_file`; the format from
+    the suffix, PNG without one) and close it."""
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    with atomic_file(path) as tmp:
+        fig.savefig(tmp, format=Path(path).suffix.lstrip(".") or "png", dpi=dpi)
+    plt.close(fig)
+    return Path(path)
+
+
 def write_text(path: str | os.PathLike, text: str) -> Path:
     """Write ``text`` to ``path`` through a temporary file and a rename; returns ``path``."""
     with atomic_file(path) as tmp:

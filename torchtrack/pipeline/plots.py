@@ -10,7 +10,7 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 
-from torchtrack.io.outputs import atomic_file  # noqa: E402
+from torchtrack.io.outputs import save_figure  # noqa: E402
 from torchtrack.io.video_writer import identity_color  # noqa: E402
 
 
@@ -31,7 +31,7 @@ def plot_tracks(first_frame: np.ndarray, tracks: dict[int, np.ndarray], path: st
     ax.set_ylim(h - 1, 0)
     ax.set_axis_off()
     ax.set_title(title, fontsize=9)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_scores(rows: dict[str, dict], path: str | Path) -> Path:
@@ -45,13 +45,4 @@ def plot_scores(rows: dict[str, dict], path: str | Path) -> Path:
         ax.set_ylabel(label)
         ax.set_xticks(x, names, rotation=20, fontsize=8)
         ax.grid(axis="y", alpha=0.3)
-    return _save(fig, path)
-
-
-def _save(fig: plt.Figure, path: str | Path) -> Path:
-    """Lay ``fig`` out, write it to ``path`` whole (parent folders created) and close it."""
-    fig.tight_layout()
-    with atomic_file(path) as tmp:
-        fig.savefig(tmp)
-    plt.close(fig)
-    return Path(path)
+    return save_figure(fig, path)

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.io.outputs import atomic_file
+from torchtrack.io.outputs import save_figure
 from torchtrack.tuning.trainer import FitResult
 
 
@@ -28,8 +28,5 @@ def plot_loss_curve(result: FitResult, path: str | Path, title: str = "") -> Pat
     ax.set_ylabel("loss")
     ax.set_title(title or "torchtrack tune")
     ax.legend()
-    fig.tight_layout()
-    with atomic_file(path) as tmp:
-        fig.savefig(tmp, dpi=100)
-    plt.close(fig)
+    save_figure(fig, path, dpi=100)
     return path
