@@ -9,12 +9,12 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402  (after the backend is chosen)
 
+from torchtrack.io.outputs import save_figure  # noqa: E402
+
 __all__ = ["plt", "save"]
 
 
 def save(fig, path: Path, dpi: int = 110) -> Path:
-    """Lay ``fig`` out, write it to ``path`` at ``dpi`` and close it."""
-    fig.tight_layout()
-    fig.savefig(path, dpi=dpi)
-    plt.close(fig)
-    return path
+    """Lay ``fig`` out, write it to ``path`` at ``dpi`` (whole: :func:`torchtrack.io.outputs.save_figure`) and
+    close it."""
+    return save_figure(fig, path, dpi=dpi)
