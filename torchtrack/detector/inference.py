@@ -95,16 +95,14 @@ class Detector(nn.Module):
         hp, wp = h + (-h) % MULTIPLE, w + (-w) % MULTIPLE
         device = next(self.net.parameters()).device       # the network may sit on a GPU (training); the rest runs here
         d = self.config.decode
-        if d.tile == 0 or (hp <= d.tile + 2 * HALO and wp <= d.tile + 2 * HALO):
-            x = self._window(cur, prev, pts, slice(0, h), slice(0, w), (hp, wp))[None]
-            out = torch.cat(self.net(x.to(device).contiguous(memory_format=torch.channels_last)), 1)[0].cpu()
-            return out[:, : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
+        tiled = d.tile > 0 and (hp > d.tile + 2 * HALO or wp > d.tile + 2 * HALO)
+        side = d.tile if tiled else max(hp, wp)                # one tile: the whole frame
         out = torch.empty(5, hp // STRIDE, wp // STRIDE)
         tiles: dict[tuple[int, int], list[tuple[slice, slice, int, int]]] = {}
-        for y0 in range(0, hp, d.tile):
-            for x0 in range(0, wp, d.tile):
-                rows = slice(max(0, y0 - HALO), min(hp, y0 + d.tile + HALO))
-                cols = slice(max(0, x0 - HALO), min(wp, x0 + d.tile + HALO))
+        for y0 in range(0, hp, side):
+            for x0 in range(0, wp, side):
+                rows = slice(max(0, y0 - HALO), min(hp, y0 + side + HALO))
+                cols = slice(max(0, x0 - HALO), min(wp, x0 + side + HALO))
                 tiles.setdefault((rows.stop - rows.start, cols.stop - cols.start), []).append((rows, cols, y0, x0))
         for shape, group in tiles.items():
             for b in range(0, len(group), d.tile_batch):
@@ -112,7 +110,7 @@ class Detector(nn.Module):
                 x = torch.stack([self._window(cur, prev, pts, rows, cols, shape) for rows, cols, _, _ in batch])
                 maps = torch.cat(self.net(x.to(device).contiguous(memory_format=torch.channels_last)), 1).cpu()
                 for m, (rows, cols, y0, x0) in zip(maps, batch):
-                    ch, cw = min(d.tile, hp - y0) // STRIDE, min(d.tile, wp - x0) // STRIDE
+                    ch, cw = min(side, hp - y0) // STRIDE, min(side, wp - x0) // STRIDE
                     oy, ox = (y0 - rows.start) // STRIDE, (x0 - cols.start) // STRIDE
                     cy, cx = y0 // STRIDE, x0 // STRIDE
                     out[:, cy: cy + ch, cx: cx + cw] = m[:, oy: oy + ch, ox: ox + cw]
@@ -157,7 +155,6 @@ class Detector(nn.Module):
             vel = refine_velocity(cur, prev, xy, vel, d.refine_patch, d.refine_radius, d.refine_pull)
         if prev_frame is not None and prev_points is not None and prev_velocity is not None and d.continuity_reach > 0:
             pv = torch.as_tensor(prev_velocity, dtype=torch.float32).reshape(-1, 2)
-            pts = torch.as_tensor(prev_points, dtype=torch.float32).reshape(-1, 2)
             if pv.shape != pts.shape:
                 raise TorchtrackError(f"detector: prev_velocity {tuple(pv.shape)} does not match prev_points "
                                       f"{tuple(pts.shape)}")
