@@ -34,7 +34,7 @@ from torchtrack.detector.labelled import LabelledFrames
 from torchtrack.detector.losses import detection_loss
 from torchtrack.detector.region import Region
 from torchtrack.detector.targets import Targets
-from torchtrack.detector.unlabelled import MATCH_RADIUS, dont_care_mask, unlabelled_detections
+from torchtrack.detector.unlabelled import dont_care_mask, unlabelled_detections
 
 SAVE_EVERY = 100   # steps between checkpoints
 
@@ -69,7 +69,7 @@ def finetune(cfg: DetectorConfig, weights: dict, data: LabelledFrames, region: R
     if f.unlabelled_static == "dont_care":
         unlisted = unlabelled_detections(det.eval(), data)
         log(f"unlabelled: {sum(len(p) for p in unlisted)} detections of the starting weights farther than "
-            f"{MATCH_RADIUS:g} px from every truth point are don't-care within {f.unlabelled_radius:g} px")
+            f"{det.config.decode.radius:g} px from every truth point are don't-care within {f.unlabelled_radius:g} px")
         dont_care = dont_care_mask(unlisted, data.frames.shape[1:], f.unlabelled_radius)[None]
     net = det.net.train()
     span = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, steps_per_epoch=f.steps, batch=f.batch))

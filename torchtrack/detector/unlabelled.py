@@ -3,8 +3,8 @@
 A truth that lists only some of the vehicles (WPAFB AOI 02: only those that move at some time) makes the
 others negatives of the fine-tune, and the network learns to skip them. Before training, the starting
 weights are streamed over the labelled frames (at their own threshold, registered as the pipeline
-registers); a detection farther than :data:`MATCH_RADIUS` from every truth point of its frame is taken for
-an unlisted vehicle, and the pixels within ``finetune.unlabelled_radius`` of it become *don't-care*:
+registers); a detection farther than the weights' match radius (``decode.radius``, the scoring's) from every
+truth point of its frame is taken for an unlisted vehicle, and the pixels within ``finetune.unlabelled_radius`` of it become *don't-care*:
 neither positive nor negative (they leave :attr:`torchtrack.detector.targets.Targets.labelled`).
 """
 
@@ -16,14 +16,12 @@ import torch
 from torchtrack.detector.evaluate import stream
 from torchtrack.detector.labelled import LabelledFrames
 
-MATCH_RADIUS = 10.0   # px: the match radius of the scoring (eval-detector)
-
 
 @torch.inference_mode()
-def unlabelled_detections(detector, data: LabelledFrames, match_radius: float = MATCH_RADIUS) -> list[np.ndarray]:
+def unlabelled_detections(detector, data: LabelledFrames) -> list[np.ndarray]:
     """Per frame ``k`` the detections (M_k, 2) px (x, y) of ``detector`` streamed over ``data`` (the prior of
     each frame the previous detections; a registered detector gets the previous frame warped by
-    ``data.motions``) that lie farther than ``match_radius`` from every truth point of frame ``k``."""
+    ``data.motions``) that lie farther than its ``decode.radius`` from every truth point of frame ``k``."""
     registered = bool(detector.config.data.register)
     out = []
     for k, det in enumerate(stream(detector, list(data.frames), None, data.motions if registered else None)):
@@ -33,7 +31,7 @@ def unlabelled_detections(detector, data: LabelledFrames, match_radius: float = 
             out.append(xy)
             continue
         nearest = np.sqrt(((xy[:, None, :] - truth[None, :, :]) ** 2).sum(-1)).min(1)
-        out.append(xy[nearest > match_radius])
+        out.append(xy[nearest > detector.config.decode.radius])
     return out
 
 
