@@ -4,8 +4,9 @@ A truth that lists only some of the vehicles (WPAFB AOI 02: only those that move
 others negatives of the fine-tune, and the network learns to skip them. Before training, the starting
 weights are streamed over the labelled frames (at their own threshold, registered as the pipeline
 registers); a detection farther than the weights' match radius (``decode.radius``, the scoring's) from every
-truth point of its frame is taken for an unlisted vehicle, and the pixels within ``finetune.unlabelled_radius`` of it become *don't-care*:
-neither positive nor negative (they leave :attr:`torchtrack.detector.targets.Targets.labelled`).
+truth point of its frame is taken for an unlisted vehicle, and the pixels within ``finetune.unlabelled_radius``
+of it become *don't-care*: neither positive nor negative (they leave
+:attr:`torchtrack.detector.targets.Targets.labelled`).
 """
 
 from __future__ import annotations
