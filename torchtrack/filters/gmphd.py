@@ -103,13 +103,29 @@ class MixtureState(NamedTuple):
         return int(self.log_weight.shape[0])
 
     def select(self, index: Tensor) -> MixtureState:
-        """Components at ``index`` (a long index or bool mask; a stop-gradient selection)."""
+        """Components at ``index`` (a long index or bool mask; a stop-gradient selection). A mask is turned into
+        indices once: on a GPU each boolean indexing waits for the device to count its ``True`` entries."""
+        index = as_rows(index)
         return MixtureState(self.log_weight[index], self.mean[index], self.cov[index], self.label[index],
                             self.mask[index])
 
     def expected_count(self) -> Tensor:
         """Expected number of targets ``Σ w_j`` (differentiable)."""
         return torch.where(self.mask, self.log_weight, torch.full_like(self.log_weight, NEG_INF)).exp().sum()
+
+
+def as_rows(index: Tensor) -> Tensor:
+    """``index`` as a long index of rows: a bool mask's ``True`` positions (one host sync on a GPU), else itself."""
+    return index.nonzero(as_tuple=True)[0] if index.dtype == torch.bool else index
+
+
+def labels_in(query: Tensor, keys: Tensor) -> Tensor:
+    """``torch.isin(query, keys)`` for integer labels by a sorted search: the same mask ``(Q,)``, without the
+    ``unique`` (a host sync) that ``isin`` runs on a GPU."""
+    if keys.numel() == 0:
+        return torch.zeros_like(query, dtype=torch.bool)
+    ordered = torch.sort(keys).values
+    return ordered[torch.searchsorted(ordered, query).clamp_(max=keys.numel() - 1)] == query
 
 
 def empty_mixture(n: int, dtype: torch.dtype = torch.float32, device=None) -> MixtureState:
@@ -592,9 +608,9 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     label = state.label[is_head]
     if keep_label is not None and keep_label.numel():
         with torch.no_grad():
-            key = torch.isin(state.label, keep_label).to(w.dtype) * 2.0 + w / wsum[gid]
+            key = labels_in(state.label, keep_label).to(w.dtype) * 2.0 + w / wsum[gid]
             best = torch.full((G,), -1.0, dtype=w.dtype, device=w.device).scatter_reduce(0, gid, key, "amax")
-            win = key == best[gid]
+            win = as_rows(key == best[gid])
             label = label.clone().scatter_(0, gid[win], state.label[win])
     return MixtureState(torch.log(wsum) + w_max, mu, P, label,
                         torch.ones(G, dtype=torch.bool, device=w.device))
@@ -614,8 +630,8 @@ def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> 
     for _ in range(rounds):
         live = alive[ii] & alive[jj]
         # leaders: alive, with no alive heavier component within reach
-        blocked = torch.zeros(J, dtype=torch.bool, device=mean.device).index_fill_(0, ii[live], True)
-        leader = alive & ~blocked
+        blocked = torch.zeros(J, dtype=torch.long, device=mean.device).scatter_reduce(0, ii, live.long(), "amax")
+        leader = alive & (blocked == 0)
         cand = alive[ii] & leader[jj]
         first = big.scatter_reduce(0, ii, torch.where(cand, jj, none), "amin")   # heaviest leader within reach
         joins = alive & ~leader & (first < J)

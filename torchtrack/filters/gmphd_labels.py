@@ -13,7 +13,7 @@ from typing import NamedTuple
 import torch
 from torch import Tensor
 
-from torchtrack.filters.gmphd import MixtureState
+from torchtrack.filters.gmphd import MixtureState, as_rows, labels_in
 
 
 def _first_of_label(label: Tensor, order: Tensor) -> Tensor:
@@ -98,8 +98,8 @@ def best_per_label(state: MixtureState, estimate: Tensor) -> Tensor:
 
 def relabel(state: MixtureState, old: Tensor, new: Tensor) -> MixtureState:
     """Every component labelled ``old[i]`` takes label ``new[i]`` (``old`` unique)."""
-    changed = old != new
-    if not bool(changed.any()):
+    changed = as_rows(old != new)
+    if changed.numel() == 0:
         return state
     return state._replace(label=value_of_labels(old[changed], new[changed], state.label, state.label))
 
@@ -135,19 +135,18 @@ def label_handover(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Ten
     """
     if label.numel() == 0:
         return label
-    gone = ~torch.isin(prev_label, label)
-    new = ~torch.isin(label, prev_label) & ~torch.isin(label, lost.label)
-    if not bool(new.any()) or (lost.label.numel() == 0 and not bool(gone.any())):
+    gone = as_rows(~labels_in(prev_label, label))
+    ni = as_rows(~labels_in(label, prev_label) & ~labels_in(label, lost.label))
+    if ni.numel() == 0 or (lost.label.numel() == 0 and gone.numel() == 0):
         return label
     from torchtrack.association.assignment import greedy
 
     pool_label = torch.cat([lost.label, prev_label[gone]])
-    steps = torch.cat([lost.age + 1, torch.ones_like(prev_label[gone])]).to(pos.dtype) * dt
+    steps = torch.cat([lost.age + 1, torch.ones_like(gone)]).to(pos.dtype) * dt
     start = torch.cat([lost.pos, prev_pos[gone]]).to(pos.dtype)
     travel = torch.cat([lost.vel, prev_vel[gone]]).to(pos.dtype) * steps.unsqueeze(1)
-    free = ~torch.isin(pool_label, label)  # a lost label reported again this frame is not free
+    free = as_rows(~labels_in(pool_label, label))  # a lost label reported again this frame is not free
     pool_label, start, travel = pool_label[free], start[free], travel[free]
-    ni = new.nonzero(as_tuple=True)[0]
     # distance from each new estimate to the segment [p, p + v·Δt]: robust to a target slowing down
     rel = pos[ni].detach().unsqueeze(1) - start.unsqueeze(0)                         # (N, L, 2)
     t = ((rel * travel).sum(-1) / travel.pow(2).sum(-1).clamp_min(1e-9)).clamp(0.0, 1.0)
@@ -167,12 +166,12 @@ def update_lost(lost: LostLabels, prev_label: Tensor, prev_pos: Tensor, prev_vel
     """The lost-label pool after a frame reporting ``label``: last frame's labels that are not reported
     now join it, reported labels leave it, the others age by one; ``age`` counts the frames between the
     last report and the frame just processed, and entries older than ``max_age`` expire."""
-    gone = ~torch.isin(prev_label, label)
-    keep = ~torch.isin(lost.label, label) & (lost.age + 1 <= max_age)
+    gone = as_rows(~labels_in(prev_label, label))
+    keep = as_rows(~labels_in(lost.label, label) & (lost.age + 1 <= max_age))
     return LostLabels(torch.cat([lost.label[keep], prev_label[gone]]),
                       torch.cat([lost.pos[keep], prev_pos[gone].to(lost.pos.dtype)]),
                       torch.cat([lost.vel[keep], prev_vel[gone].to(lost.vel.dtype)]),
-                      torch.cat([lost.age[keep] + 1, torch.ones_like(prev_label[gone])]))
+                      torch.cat([lost.age[keep] + 1, torch.ones_like(gone)]))
 
 
 class TentativeLabels(NamedTuple):
@@ -200,8 +199,9 @@ def confirm_labels(label: Tensor, known: Tensor, tentative: TentativeLabels, ali
     """
     count = value_of_labels(tentative.label, tentative.count + 1, label, torch.ones_like(label))
     report = known | (count >= frames)
-    wait = ~torch.isin(tentative.label, label) & (tentative.misses < max_misses) & torch.isin(tentative.label, alive)
-    new = ~report
+    wait = as_rows(~labels_in(tentative.label, label) & (tentative.misses < max_misses)
+                   & labels_in(tentative.label, alive))
+    new = as_rows(~report)
     return report, TentativeLabels(torch.cat([label[new], tentative.label[wait]]),
                                    torch.cat([count[new], tentative.count[wait]]),
-                                   torch.cat([torch.zeros_like(label[new]), tentative.misses[wait] + 1]))
+                                   torch.cat([torch.zeros_like(new), tentative.misses[wait] + 1]))

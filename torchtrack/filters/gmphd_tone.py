@@ -24,6 +24,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.association.grid import nearest_within
+from torchtrack.filters.gmphd import as_rows, labels_in
 from torchtrack.filters.gmphd_labels import value_of_labels
 
 TONE_MATCH_DISTANCE = 3.0
@@ -70,15 +71,16 @@ def update_tones(tones: LabelTones, label: Tensor, position: Tensor, z: Tensor, 
     known = tones
     if label.numel() and z.shape[0]:
         hit, k = nearest_within(position.to(z.dtype), z, max_distance)
+        hit = as_rows(hit)
         lab, t = label[hit], z_tone[k[hit]].to(tones.tone.dtype)
         old, n = lookup(tones, lab), value_of_labels(tones.label, tones.count, lab, torch.zeros_like(lab))
         step = torch.clamp(1.0 / (n + 1).to(t.dtype), min=rate)
         new = torch.where(torch.isnan(old), t, old + step * (t - old))
-        keep = ~torch.isin(tones.label, lab)
+        keep = as_rows(~labels_in(tones.label, lab))
         known = LabelTones(torch.cat([tones.label[keep], lab]), torch.cat([tones.tone[keep], new]),
                            torch.cat([tones.count[keep], n + 1]))
-    alive_mask = torch.isin(known.label, alive)
-    return LabelTones(known.label[alive_mask], known.tone[alive_mask], known.count[alive_mask])
+    alive_rows = as_rows(labels_in(known.label, alive))
+    return LabelTones(known.label[alive_rows], known.tone[alive_rows], known.count[alive_rows])
 
 
 def add_births(tones: LabelTones, label: Tensor, tone: Tensor) -> LabelTones:

@@ -32,7 +32,7 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.gmphd import GMPHD, Matrices, MixtureState, concat, empty_mixture
+from torchtrack.filters.gmphd import GMPHD, Matrices, MixtureState, as_rows, concat, empty_mixture, labels_in
 from torchtrack.filters.gmphd_birth import AdaptiveBirth, BirthConstants, VelocityMap
 from torchtrack.filters.gmphd_existence import LabelExistence, bernoulli_log_likelihood, label_groups, no_existence
 from torchtrack.filters.gmphd_labels import (
@@ -184,7 +184,7 @@ class GMPHDTracker(nn.Module):
         sel = best_per_label(post, est)
         if o.label_fix and o.coast_threshold is not None:
             coast = (~est & (post.log_weight > math.log(o.coast_threshold))
-                     & torch.isin(post.label, memory.prev_label) & ~torch.isin(post.label, post.label[sel]))
+                     & labels_in(post.label, memory.prev_label) & ~labels_in(post.label, post.label[sel]))
             sel = torch.cat([sel, best_per_label(post, coast)])
         ids = post.label[sel]
         mean = post.mean[sel]
@@ -206,18 +206,20 @@ class GMPHDTracker(nn.Module):
         tentative = memory.tentative
         pending = pos[:0].detach()
         if self.confirm_frames > 1:
-            known = torch.isin(ids, memory.prev_label)
+            known = labels_in(ids, memory.prev_label)
             if o.handover_frames > 0:
-                known = known | torch.isin(ids, lost_before.label)
+                known = known | labels_in(ids, lost_before.label)
             report, tentative = confirm_labels(ids, known, tentative, post.label, self.confirm_frames,
                                                o.confirm_misses)
-            pending = pos[~report].detach()
+            pending = pos[as_rows(~report)].detach()
+            report = as_rows(report)
             sel, ids, pos, vel = sel[report], ids[report], pos[report], vel[report]
         pos_d, vel_d = pos.detach(), vel.detach()
         if vmap is not None:
             cov = post.cov.detach()[sel]
-            settled = (cov[:, 2, 2] + cov[:, 3, 3]) < o.settled_velocity_var
+            settled = as_rows((cov[:, 2, 2] + cov[:, 3, 3]) < o.settled_velocity_var)
             vmap.update(pos_d[settled], vel_d[settled])
+        is_birth = as_rows(is_birth)
         zb = z[is_birth]
         vb = velocity[is_birth] if velocity is not None else None
         b_mean, b_std, b_logw = birth.forward(zb, vb, vmap, birth_consts)
