@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchtrack.filters.gmphd import MixtureState
+from torchtrack.filters.gmphd import MixtureState, as_rows, labels_in
 from torchtrack.filters.gmphd_labels import (
     LostLabels,
     best_per_label,
@@ -169,3 +169,19 @@ def test_tracker_reports_a_new_vehicle_after_confirm_new_extractions():
     missed = frozenset({at_once + 1})
     assert _first_reported_frame({"confirm_new": 3}, missed) == at_once + 4
     assert _first_reported_frame({"confirm_new": 3, "confirm_misses": 1}, missed) == at_once + 3
+
+
+@pytest.mark.parametrize("keys", [0, 1, 7, 300])
+def test_labels_in_is_torch_isin(keys):
+    gen = torch.Generator().manual_seed(keys)
+    query = torch.randint(0, 200, (500,), generator=gen)
+    among = torch.randint(0, 200, (keys,), generator=gen)          # repeated labels among the keys too
+    assert torch.equal(labels_in(query, among), torch.isin(query, among))
+    assert labels_in(query[:0], among).shape == (0,)
+
+
+def test_as_rows_selects_what_the_mask_selects():
+    mask = torch.tensor([True, False, True, True, False])
+    values = torch.arange(5) * 10
+    assert torch.equal(values[as_rows(mask)], values[mask])
+    assert torch.equal(as_rows(torch.tensor([4, 1])), torch.tensor([4, 1]))
