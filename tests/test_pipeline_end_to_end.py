@@ -101,6 +101,7 @@ def test_demo_on_a_tiny_sequence(tmp_path):
     text = format_demo(m)
     assert "MOTA (%)" in text and "labelled-gmphd" in text
     assert np.isfinite(m["fps"]["end_to_end"])
+    assert (tmp_path / m["source"]).is_dir()          # relative to the output folder, true after it is moved
 
 
 def test_real_wpafb_frames(tmp_path, capsys, wpafb_data):

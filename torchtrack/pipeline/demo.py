@@ -79,6 +79,7 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     result = track_video(FolderSource(seq / "frames"), out, cfg, gt=gt, gt_path=str(seq / "gt.txt"), ignore=ignore,
                          camera=camera, keep_detections=True, progress=progress)
     metrics = result.metrics
+    metrics["source"] = "sequence/frames"        # relative to out, as ``files``: out is moved into place at the end
     scores = {cfg.tracker: {**metrics["clear_mot"], "FPS": metrics["fps"].get("tracking_only", float("inf"))}}
     for name in [n for n in tracker_names() if n != cfg.tracker]:
         with torch_threads(cfg.threads):
