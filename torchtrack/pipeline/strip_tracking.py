@@ -1,0 +1,230 @@
+"""Tracking over horizontal strips, one strip per rank of a process group (``torchrun``, ``torch.distributed``;
+issue #28 item 5, tracking half), with identities agreed across the strips' seams.
+
+**Strips.** The seams are the inner boundaries of ``strip_rows(height, W)`` (:mod:`torchtrack.pipeline.strips`).
+Rank ``r`` *owns* the rows ``[s_r, s_{r+1})`` between its seams (the first strip reaches up to −∞, the last
+down to +∞, so every position has one owner). Every rank is given the whole frame's detections; rank ``r``
+runs its own tracker on those whose ``y`` lies in its *window*: its rows widened by ``band`` px on each side
+(the handover band).
+
+**Identities** (:class:`Identities`, run identically on every rank on the all-gathered reports, so every rank
+holds the same result). Each frame every rank sends all the tracks its tracker reports, ``(local id,
+position)``. A global identity ``g`` has one *owner*, a rank and its local id, whose estimate is ``g``'s
+position:
+
+1. ``g`` continues while its owner's local id is reported;
+2. **handover**: when the owner's estimate of ``g`` lies outside its rows, the rank owning that position
+   takes ``g`` over with its local track nearest that estimate within ``match_distance`` px that reports no
+   identity yet (pairs nearest first); with none, the owner keeps ``g`` (its estimate, in its band);
+3. **new**: a local track in its rank's own rows that reports no identity is the *shadow* of another rank's
+   track (the same vehicle seen in the band) when a track reported by another rank lies within
+   ``match_distance`` px, and is left out; otherwise it takes the identity it held last (a local label the
+   tracker resumed) if that identity is not reported, else a new identity (candidates in rank order).
+
+The merged tracks of the whole frame, global ids in increasing order, are returned on every rank.
+
+**What equals one process.** Every tracker of :mod:`torchtrack.filters.multitarget` is local: its update,
+birth, merge, label fix and hand-over couple a track only to detections and components within the gate
+(≈ 4.3 σ of the innovation, 10–15 px here), the birth distance ``T_B`` and the label hand-over's
+``handover_distance`` (20 px) of it. A track whose vehicle stays farther than ``band`` from every seam in
+one process is therefore 2 ``band`` inside its strip's window at every frame and sees the same detections and
+neighbours; with ``band`` above those reaches it gets the *same* positions (to float rounding) and one
+global id (equal to one process's ids up to a one-to-one relabelling). Three shared things are not strictly
+local, and the equality holds where they do not act:
+
+- the enhanced GM-PHD's component cap sizes itself from the detections and labels given (here a strip's):
+  a strip whose cap is hit drops different components (:attr:`StripTracker.cap_hits` counts this rank's);
+- its velocity map is a grid over the image fed by the rank's own estimates, including those in the band;
+  a birth in a cell last crossed by a vehicle that came over a seam takes that vehicle's strip estimate of
+  the velocity, which differs slightly from one process's;
+- a neighbour that crossed a seam carries its (slightly different) strip estimate into a shared gate.
+
+**What does not.** A track that comes within ``band`` of a seam is tracked twice. The receiving rank's track
+starts when its vehicle enters the receiving window (a birth, confirmed frames later, whose Kalman estimate
+has not forgotten its start), so after a handover the position is the receiver's estimate, typically within
+a pixel of one process's; a handover that finds no match within ``match_distance`` leaves the track with its
+sender until lost, and a vehicle that reaches the seam before the receiver confirms it (faster than about
+``band / 3`` px per frame across the seam) may briefly be missing or switch identity. A shadow test against
+a different vehicle within ``match_distance`` px across a seam leaves that vehicle out for the frame. These
+are the differences ``tests/test_strip_tracking.py`` measures as CLEAR-MOT against one process.
+"""
+
+from __future__ import annotations
+
+import bisect
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.distributed as dist
+from torch import Tensor
+
+from torchtrack.errors import TorchtrackError
+from torchtrack.filters.multitarget import Tracker
+from torchtrack.pipeline.strips import rank_and_size, strip_rows
+
+BAND = 48.0
+"""Default handover band (px): the gate (≈ 15 px) plus a new track's birth and confirmation before it reaches
+the seam (3 frames at 3.5 px/frame) and about ten more frames of filtering at that speed."""
+
+MATCH_DISTANCE = 5.0
+"""Default distance (px) within which two ranks' tracks are taken for the same vehicle: a few times the
+difference of two estimates of one vehicle (under a pixel once both have filtered a few frames), under the
+spacing of vehicles the trackers keep apart."""
+
+
+@dataclass(frozen=True)
+class StripConfig:
+    """``height``: rows ``0 .. height`` split by :func:`~torchtrack.pipeline.strips.strip_rows` (the seams; the
+    outer strips reach past them); ``band``: px each side of a strip its tracker also sees; ``match_distance``:
+    px within which two ranks' tracks are one vehicle (module docstring)."""
+
+    height: int
+    band: float = BAND
+    match_distance: float = MATCH_DISTANCE
+
+    def __post_init__(self) -> None:
+        if not (self.band >= 0 and np.isfinite(self.band)):
+            raise TorchtrackError(f"strips: band must be a distance >= 0 px, got {self.band}")
+        if not (self.match_distance > 0 and np.isfinite(self.match_distance)):
+            raise TorchtrackError(f"strips: match_distance must be a positive distance in px, got "
+                                  f"{self.match_distance}")
+
+    def seams(self, parts: int) -> list[float]:
+        """The ``parts − 1`` seam rows between ``parts`` strips."""
+        return [float(y1) for _, y1 in strip_rows(self.height, parts)[:-1]]
+
+
+Report = tuple[np.ndarray, np.ndarray]
+"""One rank's tracks of a frame: local ``ids (n,)`` int64 and ``positions (n, 2)`` float64."""
+
+
+class Identities:
+    """The global identities of the strips' tracks (module docstring, rules 1–3); every rank keeps one and
+    feeds it the same reports, so all agree."""
+
+    def __init__(self, seams: Sequence[float], match_distance: float):
+        self.seams = list(seams)
+        self.match_distance = match_distance
+        self.owner: dict[int, tuple[int, int]] = {}     # global id -> (rank, local id)
+        self.held: dict[tuple[int, int], int] = {}      # (rank, local id) -> the global id it held last
+        self.next_id = 1
+
+    def rank_of(self, y: float) -> int:
+        """The rank owning row ``y``."""
+        return bisect.bisect_right(self.seams, y)
+
+    def assign(self, reports: Sequence[Report]) -> tuple[np.ndarray, np.ndarray]:
+        """Global ``ids (E,)`` (increasing) and ``positions (E, 2)`` of a frame from every rank's report."""
+        row = [{int(lid): i for i, lid in enumerate(ids)} for ids, _ in reports]
+
+        def position(key: tuple[int, int]) -> np.ndarray:
+            return reports[key[0]][1][row[key[0]][key[1]]]
+
+        out = {g: key for g, key in self.owner.items() if key[1] in row[key[0]]}       # 1. continuing
+        pairs = []                                                                        # 2. handover
+        for g, key in out.items():
+            p = position(key)
+            target = self.rank_of(p[1])
+            if target != key[0]:
+                ids, pos = reports[target]
+                d = np.hypot(*(pos - p).T)
+                pairs += [(float(d[i]), g, target, int(ids[i])) for i in np.flatnonzero(d <= self.match_distance)]
+        leaving = {g for _, g, _, _ in pairs}
+        reporter = {key: g for g, key in out.items()}
+        for _, g, target, lid in sorted(pairs):
+            key = (target, lid)
+            duplicate = reporter.get(key)
+            if g not in out or out[g][0] == target or duplicate in leaving:
+                continue
+            if duplicate is not None:      # the receiver reports this vehicle already: one identity, g's
+                del out[duplicate], self.owner[duplicate]
+            del reporter[out[g]]
+            out[g] = self.owner[g] = key
+            reporter[key] = self.held[key] = g
+            leaving.add(g)                 # a receiving track is not taken again
+        taken = set(out.values())
+        cells = _Cells(self.match_distance)                                               # 3. new
+        for key in out.values():
+            cells.add(position(key), key[0])
+        for rank, (ids, pos) in enumerate(reports):
+            for lid, p in zip(ids.tolist(), pos):
+                key = (rank, lid)
+                if key in taken or self.rank_of(p[1]) != rank or cells.near_other(p, rank):
+                    continue
+                g = self.held.get(key)
+                if g is None or g in out:
+                    g, self.next_id = self.next_id, self.next_id + 1
+                out[g] = self.owner[g] = key
+                self.held[key] = g
+                taken.add(key)
+                cells.add(p, rank)
+        ids = np.array(sorted(out), dtype=np.int64)
+        return ids, np.array([position(out[g]) for g in ids], dtype=np.float64).reshape(-1, 2)
+
+
+class _Cells:
+    """Reported positions hashed on a grid of side ``distance``: is one of another rank within ``distance``?"""
+
+    def __init__(self, distance: float):
+        self.distance = distance
+        self.cells: dict[tuple[int, int], list[tuple[np.ndarray, int]]] = {}
+
+    def _cell(self, p: np.ndarray) -> tuple[int, int]:
+        return int(np.floor(p[0] / self.distance)), int(np.floor(p[1] / self.distance))
+
+    def add(self, p: np.ndarray, rank: int) -> None:
+        self.cells.setdefault(self._cell(p), []).append((p, rank))
+
+    def near_other(self, p: np.ndarray, rank: int) -> bool:
+        cx, cy = self._cell(p)
+        return any(r != rank and np.hypot(*(q - p)) <= self.distance
+                   for dx in (-1, 0, 1) for dy in (-1, 0, 1) for q, r in self.cells.get((cx + dx, cy + dy), ()))
+
+
+class StripTracker:
+    """A tracker over strips (module docstring) with the common tracker interface
+    (:mod:`torchtrack.filters.multitarget`): every rank of ``group`` (default: the default process group; none
+    initialised: this process alone, one strip) calls ``step`` with the whole frame's detections and gets the
+    whole frame's merged tracks. ``tracker`` is this rank's own tracker (any registered one)."""
+
+    def __init__(self, tracker: Tracker, config: StripConfig, group: dist.ProcessGroup | None = None):
+        self.tracker, self.config, self.group = tracker, config, group
+        self.rank, self.world = rank_and_size(group)
+        seams = config.seams(self.world)
+        edges = [-np.inf, *seams, np.inf]
+        self.window = (edges[self.rank] - config.band, edges[self.rank + 1] + config.band)
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget all tracks (global ids restart at 1)."""
+        self.tracker.reset()
+        self.identities = Identities(self.config.seams(self.world), self.config.match_distance)
+
+    @property
+    def cap_hits(self) -> int:
+        """This rank's tracker's component-cap hits (0 where it does not count them)."""
+        return int(getattr(self.tracker, "cap_hits", 0))
+
+    @property
+    def tone_sigma(self) -> None:
+        """Tones are not split over strips: none is passed to the trackers."""
+        return None
+
+    def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
+        """Frame ``frame`` with the whole frame's detections ``positions (K, 2)`` (and ``velocities (K, 2)`` or
+        None): the merged global ``ids (E,)`` and ``positions (E, 2)`` (on ``positions``' device and dtype)."""
+        positions = torch.as_tensor(positions)
+        y = positions.reshape(-1, 2)[:, 1]
+        mine = (y >= self.window[0]) & (y < self.window[1])
+        ids, pos = self.tracker.step(frame, positions.reshape(-1, 2)[mine],
+                                     None if velocities is None else torch.as_tensor(velocities).reshape(-1, 2)[mine])
+        report = (ids.detach().cpu().numpy().astype(np.int64), pos.detach().cpu().double().numpy().reshape(-1, 2))
+        reports: list = [report]
+        if self.world > 1:
+            reports = [None] * self.world
+            dist.all_gather_object(reports, report, group=self.group)
+        gids, merged = self.identities.assign(reports)
+        return (torch.as_tensor(gids, device=positions.device),
+                torch.as_tensor(merged, dtype=positions.dtype, device=positions.device))
