@@ -1,20 +1,21 @@
 """Tracking over spatial strips (issue #28 item 5): the identity handover on hand-made reports, and two gloo
 ranks on loopback against one process's tracker on a simulated scene with many seam crossings."""
 
+import json
 import pickle
-from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
 from torchtrack.bench.scale import points, simulate
+from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import make_tracker
+from torchtrack.io.mot import read_mot, write_mot, write_motdata
 from torchtrack.metrics.clear_mot import clear_mot
 from torchtrack.pipeline.strip_tracking import BAND, Identities, StripConfig, StripTracker
 
-ROOT = Path(__file__).resolve().parents[1]
 VEHICLES, FRAMES, SEED = 600, 40, 20_028_028
 OPTIONS = {"dtype": "float64"}
 
@@ -142,3 +143,33 @@ def test_two_ranks_over_strips_equal_one_process_up_to_the_handover_rule(tmp_pat
     mot0, unequal0 = compare(0.0)
     assert unequal0 == 0                                 # tracks that never come near the seam need no band
     assert mot0["IDS"] > len(crossing) // 10, f"band 0: IDS {mot0['IDS']} ({summary})"
+
+
+def test_track_strips_on_two_ranks_writes_one_output_like_one_process(tmp_path, run_on_two_ranks):
+    scene = simulate(300, 20, 20_028_029)
+    frame = np.concatenate([np.full(len(z), f) for f, z, _ in scene.detections])
+    z, v = (torch.cat([d[i] for d in scene.detections]).numpy() for i in (1, 2))
+    write_mot(tmp_path / "det.txt", frame, np.full(len(frame), -1), z[:, 0], z[:, 1], vx=v[:, 0], vy=v[:, 1])
+    write_motdata(tmp_path / "gt.txt", scene.gt)
+    args = ["track", "--detections", str(tmp_path / "det.txt"), "--gt", str(tmp_path / "gt.txt"), "--strips"]
+    script = tmp_path / "track.py"
+    two_ranks = [*args, "--out", str(tmp_path / "two")]
+    script.write_text(f"import sys\nfrom torchtrack.cli import main\nsys.exit(main({two_ranks!r}))\n")
+    run_on_two_ranks(script)
+    assert main([*args[:-1], "--out", str(tmp_path / "one")]) == 0
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["det.txt", "gt.txt", "one", "track.py", "two"]
+    metrics = json.loads((tmp_path / "two" / "metrics.json").read_text())
+    assert metrics["strips"] == 2 and metrics["band"] == BAND and metrics["cap_hits"] == 0
+    one, two = (read_mot(tmp_path / name / "tracks.txt") for name in ("one", "two"))
+    mot = clear_mot(one, two, threshold=1.0)
+    assert mot["MOTA"] >= 0.995 and mot["IDS"] <= 2, mot     # the handover's bound is the test above's
+
+
+def test_track_strips_errors(tmp_path, capsys):
+    det = tmp_path / "det.txt"
+    write_mot(det, [1], [-1], [5.0], [5.0])
+    for extra, flag in ((["--compare"], "--strips"), (["--band", "-1"], "--band"),
+                        (["--strip-height", "0"], "--strip-height")):
+        assert main(["track", "--detections", str(det), "--strips", *extra, "--out", str(tmp_path / "o")]) == 2
+        assert flag in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
