@@ -14,14 +14,18 @@ position:
 
 1. ``g`` continues while its owner's local id is reported;
 2. **handover**: when the owner's estimate of ``g`` lies outside its rows, the rank owning that position
-   takes ``g`` over with its local track nearest that estimate within ``match_distance`` px that reports no
-   identity yet (pairs nearest first); with none, the owner keeps ``g`` (its estimate, in its band);
+   takes ``g`` over with its local track nearest that estimate within ``match_distance`` px (pairs nearest
+   first; a track that received an identity this frame is not taken again). If that track already reports an
+   identity of its own (the receiver had taken the vehicle for a new one), that identity ends and ``g``
+   continues. With no track in reach, the owner keeps ``g`` (its estimate, in its band) and tries again
+   next frame;
 3. **new**: a local track in its rank's own rows that reports no identity is the *shadow* of another rank's
    track (the same vehicle seen in the band) when a track reported by another rank lies within
    ``match_distance`` px, and is left out; otherwise it takes the identity it held last (a local label the
    tracker resumed) if that identity is not reported, else a new identity (candidates in rank order).
 
-The merged tracks of the whole frame, global ids in increasing order, are returned on every rank.
+The merged tracks of the whole frame, global ids in increasing order, are returned on every rank. The
+owners and last identities are kept for every identity issued (a few dictionary entries each).
 
 **What equals one process.** Every tracker of :mod:`torchtrack.filters.multitarget` is local: its update,
 birth, merge, label fix and hand-over couple a track only to detections and components within the gate
@@ -51,7 +55,6 @@ are the differences ``tests/test_strip_tracking.py`` measures as CLEAR-MOT again
 
 from __future__ import annotations
 
-import bisect
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -111,26 +114,28 @@ class Identities:
         self.held: dict[tuple[int, int], int] = {}      # (rank, local id) -> the global id it held last
         self.next_id = 1
 
-    def rank_of(self, y: float) -> int:
-        """The rank owning row ``y``."""
-        return bisect.bisect_right(self.seams, y)
+    def rank_of(self, y: np.ndarray) -> np.ndarray:
+        """The ranks owning rows ``y``."""
+        return np.searchsorted(self.seams, y, side="right")
 
     def assign(self, reports: Sequence[Report]) -> tuple[np.ndarray, np.ndarray]:
         """Global ``ids (E,)`` (increasing) and ``positions (E, 2)`` of a frame from every rank's report."""
-        row = [{int(lid): i for i, lid in enumerate(ids)} for ids, _ in reports]
+        row = [{lid: i for i, lid in enumerate(ids.tolist())} for ids, _ in reports]
 
         def position(key: tuple[int, int]) -> np.ndarray:
             return reports[key[0]][1][row[key[0]][key[1]]]
 
         out = {g: key for g, key in self.owner.items() if key[1] in row[key[0]]}       # 1. continuing
         pairs = []                                                                        # 2. handover
-        for g, key in out.items():
-            p = position(key)
-            target = self.rank_of(p[1])
-            if target != key[0]:
-                ids, pos = reports[target]
-                d = np.hypot(*(pos - p).T)
-                pairs += [(float(d[i]), g, target, int(ids[i])) for i in np.flatnonzero(d <= self.match_distance)]
+        for rank, (ids, pos) in enumerate(reports):
+            leave = np.flatnonzero(self.rank_of(pos[:, 1]) != rank)
+            for lid, p, target in zip(ids[leave].tolist(), pos[leave], self.rank_of(pos[leave, 1]).tolist()):
+                g = self.held.get((rank, lid))
+                if g is None or out.get(g) != (rank, lid):
+                    continue
+                near = np.hypot(*(reports[target][1] - p).T)
+                pairs += [(float(near[i]), g, target, int(reports[target][0][i]))
+                          for i in np.flatnonzero(near <= self.match_distance)]
         leaving = {g for _, g, _, _ in pairs}
         reporter = {key: g for g, key in out.items()}
         for _, g, target, lid in sorted(pairs):
@@ -144,43 +149,26 @@ class Identities:
             out[g] = self.owner[g] = key
             reporter[key] = self.held[key] = g
             leaving.add(g)                 # a receiving track is not taken again
-        taken = set(out.values())
-        cells = _Cells(self.match_distance)                                               # 3. new
-        for key in out.values():
-            cells.add(position(key), key[0])
+        reported = [(position(key), key[0]) for key in out.values()]                     # 3. new
+        where = np.array([p for p, _ in reported]).reshape(-1, 2)
+        by = np.array([r for _, r in reported], dtype=np.int64)
+        added: list[tuple[np.ndarray, int]] = []
         for rank, (ids, pos) in enumerate(reports):
-            for lid, p in zip(ids.tolist(), pos):
+            free = ~np.isin(ids, [lid for r, lid in reporter if r == rank]) & (self.rank_of(pos[:, 1]) == rank)
+            for lid, p in zip(ids[free].tolist(), pos[free]):
+                other = by != rank
+                if (np.hypot(*(where[other] - p).T) <= self.match_distance).any() or any(
+                        r != rank and np.hypot(*(q - p)) <= self.match_distance for q, r in added):
+                    continue               # the shadow of another rank's track
                 key = (rank, lid)
-                if key in taken or self.rank_of(p[1]) != rank or cells.near_other(p, rank):
-                    continue
                 g = self.held.get(key)
                 if g is None or g in out:
                     g, self.next_id = self.next_id, self.next_id + 1
                 out[g] = self.owner[g] = key
                 self.held[key] = g
-                taken.add(key)
-                cells.add(p, rank)
+                added.append((p, rank))
         ids = np.array(sorted(out), dtype=np.int64)
         return ids, np.array([position(out[g]) for g in ids], dtype=np.float64).reshape(-1, 2)
-
-
-class _Cells:
-    """Reported positions hashed on a grid of side ``distance``: is one of another rank within ``distance``?"""
-
-    def __init__(self, distance: float):
-        self.distance = distance
-        self.cells: dict[tuple[int, int], list[tuple[np.ndarray, int]]] = {}
-
-    def _cell(self, p: np.ndarray) -> tuple[int, int]:
-        return int(np.floor(p[0] / self.distance)), int(np.floor(p[1] / self.distance))
-
-    def add(self, p: np.ndarray, rank: int) -> None:
-        self.cells.setdefault(self._cell(p), []).append((p, rank))
-
-    def near_other(self, p: np.ndarray, rank: int) -> bool:
-        cx, cy = self._cell(p)
-        return any(r != rank and np.hypot(*(q - p)) <= self.distance
-                   for dx in (-1, 0, 1) for dy in (-1, 0, 1) for q, r in self.cells.get((cx + dx, cy + dy), ()))
 
 
 class StripTracker:
