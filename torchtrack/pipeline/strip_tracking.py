@@ -27,9 +27,10 @@ position:
 The merged tracks of the whole frame, global ids in increasing order, are returned on every rank. The
 owners and last identities are kept for every identity issued (a few dictionary entries each).
 
-**What equals one process.** Every tracker of :mod:`torchtrack.filters.multitarget` is local: its update,
-birth, merge and label fix couple a track only to detections and components within the gate (≈ 4.3 σ of the
-innovation, 10–15 px here) or the birth distance ``T_B``, and the GM-PHD's label hand-over resumes a lost
+**What equals one process.** The enhanced GM-PHD (the tracker this was built and tested for; the others
+run too but are not examined here) is local: its update, birth, merge and label fix couple a track only to
+detections and components within the gate (≈ 4.3 σ of the innovation, 10–15 px here) or the birth distance
+``T_B``, its clutter intensity is a constant per px², and its label hand-over resumes a lost
 label within ``handover_distance`` (20 px) of its position extrapolated over up to ``handover_frames`` (8)
 frames. A track whose vehicle stays farther than ``band`` from every seam in one process is 2 ``band``
 inside its strip's window at every frame and sees the same detections and neighbours; with ``band`` above
