@@ -10,17 +10,22 @@ from __future__ import annotations
 import argparse
 import math
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
 from torchtrack.cli._common import add_common_options, add_force_option, config_file, positive_float, positive_int
 from torchtrack.cli._frames import add_frame_options, frame_inputs_given, run_frame_inputs
+from torchtrack.cli._strips import add_strip_options, check_strip_arguments, rank_output, strip_group, strip_tracker
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import Tracker, tracker_names
 from torchtrack.filters.tracker_config import read_tracker_sections
 from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.metrics.table import format_table1
 from torchtrack.threads import torch_threads
+
+if TYPE_CHECKING:
+    from torchtrack.pipeline.config import PipelineConfig
 
 NAME = "track"
 OUTPUT = f"torchtrack {NAME}"
@@ -42,6 +47,8 @@ Examples:
   torchtrack track --detections det.txt --gt gt.txt --compare --out out/compare
   torchtrack track --detections det.txt --gt gt.txt --params out/tune-gmphd/params.yaml
   torchtrack track --benchmark wpafb --out out/wpafb-benchmark
+  OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m torchtrack track --strips \\
+      --detections det.txt --gt gt.txt --out out/strips   # two ranks over strips; rank 0 writes
 """
 
 
@@ -75,6 +82,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_force_option(parser)
     add_common_options(parser)
     add_frame_options(parser)
+    add_strip_options(parser)
 
 
 def fitted_tracker(args: argparse.Namespace) -> Tracker:
@@ -108,6 +116,7 @@ def check_arguments(args: argparse.Namespace) -> None:
     """The argument errors that need no file (before anything is read or written)."""
     if not (math.isfinite(args.threshold) and args.threshold > 0):
         raise TorchtrackError(f"--threshold must be a positive distance in px, got {args.threshold:g}")
+    check_strip_arguments(args, frame_inputs_given(args))
     if args.compare and args.detections is not None and args.gt is None:
         raise TorchtrackError("--compare needs --gt to score the trackers")
 
@@ -139,6 +148,8 @@ def _run(args: argparse.Namespace) -> int:
         raise TorchtrackError("give --detections DET (or --benchmark CONFIG)")
     base = load_pipeline_config(args.pipeline_config) if args.pipeline_config else None
     config = detection_file_config(tracker_options, args.threshold, base).replace(device=args.device)
+    if args.strips:
+        return _run_strips(args, config, fitted)
     with OutputFolder(args.out, OUTPUT, args.force, inputs=inputs(args)) as staging:
         det = read_mot(args.detections)
         gt = read_mot(args.gt) if args.gt is not None else None
@@ -147,10 +158,34 @@ def _run(args: argparse.Namespace) -> int:
             write_json(staging / "comparison.json", report)
         else:
             report = track_detections(det, args.tracker, config, staging, gt, fitted)
-    if args.compare or gt is not None:
+    _print_report(args, report, gt is not None)
+    return 0
+
+
+def _run_strips(args: argparse.Namespace, config: PipelineConfig, fitted: Tracker | None) -> int:
+    """``--strips``: one tracker over the strips of the torchrun ranks; rank 0 writes and prints."""
+    from torchtrack.filters.multitarget import make_tracker
+    from torchtrack.io.mot import read_mot
+    from torchtrack.pipeline.detection_file import track_detections
+
+    det = read_mot(args.detections)
+    gt = read_mot(args.gt) if args.gt is not None else None
+    with strip_group() as rank:
+        tracker = strip_tracker(fitted or make_tracker(args.tracker, config.options_for(args.tracker)), det, args)
+        with rank_output(rank, args.out, OUTPUT, args.force, inputs(args)) as staging:
+            report = track_detections(det, args.tracker, config, staging, gt, tracker)
+            report.update(strips=tracker.world, band=tracker.config.band, strip_height=tracker.config.height)
+            if rank == 0:
+                write_json(staging / "metrics.json", report)
+    if rank == 0:
+        _print_report(args, report, gt is not None)
+    return 0
+
+
+def _print_report(args: argparse.Namespace, report: dict, scored: bool) -> None:
+    if args.compare or scored:
         print(format_table1(report if args.compare else {args.tracker: report}))
     else:
         print(f"{args.tracker}: {report['frames_run']} frames, {report['FPS']:.1f} frames/s; tracks in "
               f"{args.out / 'tracks.txt'}")
     write_json(args.json, report)
-    return 0

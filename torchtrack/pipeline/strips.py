@@ -44,7 +44,8 @@ def merge_strips(parts: Sequence[Detections]) -> Detections:
     return Detections(xy[order], score[order], velocity[order], torch.ones(len(order), dtype=torch.bool))
 
 
-def _rank_and_size(group: dist.ProcessGroup | None) -> tuple[int, int]:
+def rank_and_size(group: dist.ProcessGroup | None) -> tuple[int, int]:
+    """This process's rank in ``group`` and the group's size; ``(0, 1)`` without an initialised process group."""
     if not (dist.is_available() and dist.is_initialized()):
         return 0, 1
     return dist.get_rank(group), dist.get_world_size(group)
@@ -58,7 +59,7 @@ def detect_strips(detector: Detector, frames: Iterable[np.ndarray | torch.Tensor
     Frame ``k`` is detected with ``prev_frame`` frame ``k - 1`` and the prior (points and velocities) of frame
     ``k - 1``'s whole detections; frame 0 with neither, as :meth:`Detector.detect` alone. Every rank must
     iterate the same frames."""
-    rank, world = _rank_and_size(group)
+    rank, world = rank_and_size(group)
     prev_frame = prior = prior_velocity = None
     for frame in frames:
         rows = None if world == 1 else strip_rows(frame.shape[0], world)[rank]
