@@ -1,12 +1,14 @@
-"""Corners over bands of rows (issue #28 memory) are OpenCV's ``goodFeaturesToTrack`` of the whole frame."""
+"""Whole-frame OpenCV steps of the pipeline computed over bands of rows (issue #28 memory) give the whole frame's
+results: the registration's corners (``goodFeaturesToTrack``), the motion evidence and grey levels (box filters)."""
 
 import cv2
 import numpy as np
 import pytest
 import torch
 
-from torchtrack.pipeline import corners
+from torchtrack.pipeline import corners, detection
 from torchtrack.pipeline.corners import good_features
+from torchtrack.pipeline.detection import grey_level, motion_evidence
 from torchtrack.sim.video import generate_sequence
 from torchtrack.sim.video_config import VideoConfig
 
@@ -44,3 +46,16 @@ def test_equal_eigenvalues_keep_opencvs_order(count, monkeypatch):
     eig = cv2.cornerMinEigenVal(image, 7, ksize=3)
     assert len(np.unique(eig[ref[:, 0, 1].astype(int), ref[:, 0, 0].astype(int)])) == 1
     np.testing.assert_array_equal(good_features(image, count, 0.01, 8, 7), ref)
+
+
+def test_banded_motion_evidence_and_grey_levels_are_the_whole_frames(frame, monkeypatch):
+    monkeypatch.setattr(detection, "BAND_ROWS", 7)
+    previous = np.roll(frame, (2, -3), axis=(0, 1))
+    rng = np.random.default_rng(0)
+    points = np.concatenate([rng.uniform(-3, [523, 703], (3000, 2)), [[0, 0], [519, 699], [5, 6.5], [5, 7.4]]])
+    x = np.clip(np.rint(points[:, 0]).astype(int), 0, 519)
+    y = np.clip(np.rint(points[:, 1]).astype(int), 0, 699)
+    motion = cv2.blur(cv2.absdiff(frame, previous), (5, 5))[y, x]
+    assert motion.max() > 20
+    np.testing.assert_array_equal(motion_evidence(frame, previous, points), motion.astype(np.float64))
+    np.testing.assert_array_equal(grey_level(frame, points), cv2.blur(frame, (3, 3))[y, x].astype(np.float64))
