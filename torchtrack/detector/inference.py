@@ -47,9 +47,13 @@ class Detector(nn.Module):
     (K, 2) px, ``score`` (K,), ``velocity`` (K, 2) px/frame, ``x_k - x_{k-1}``, best score first.
 
     ``rows = (y0, y1)`` (multiples of 16; ``y1`` may be the frame's height): only the detections whose cell
-    lies in those rows, computed from the frame rows ``y0 - HALO .. y1 + HALO`` (:meth:`strip_maps`), at most
-    ``peaks_for`` of the strip's area; velocities are refined on the whole frames. Strips that partition the
-    frame give, together, the whole frame's detections (where no strip reaches its cap).
+    lies in those rows, computed from the frame rows ``y0 - HALO .. y1 + HALO`` (the window of
+    :meth:`strip_maps`), at most ``peaks_for`` of the strip's area; velocities are refined on the whole frames.
+    Strips that partition the frame give, together, the whole frame's detections (where no strip reaches its cap).
+
+    Memory: no frame-sized float buffer — the frames are normalised window by window
+    (:class:`~torchtrack.detector.normalised.NormalisedFrame`) and each tile's peaks are decoded as it comes out
+    of the network (:meth:`tiles`, :class:`~torchtrack.detector.decode.TopPeaks`).
     """
 
     def __init__(self, config: DetectorConfig | None = None) -> None:
