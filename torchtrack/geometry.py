@@ -82,4 +82,5 @@ def warp_previous(previous: np.ndarray, current_to_previous: np.ndarray, size: t
     h, w = previous.shape[:2]
     inside = cv2.warpPerspective(np.ones((h, w), np.uint8), m, (size[1], size[0]),
                                  flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT)
-    return np.where(inside > 0, out, fill.astype(out.dtype))
+    np.copyto(out, fill, casting="unsafe", where=inside == 0)                   # in place: no third frame
+    return out

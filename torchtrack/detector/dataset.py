@@ -56,14 +56,6 @@ class SequenceCache(NamedTuple):
         return self.ids[a:b], self.xy[a:b], self.velocity[a:b]
 
 
-def normalise(frame: torch.Tensor) -> torch.Tensor:
-    """``(I - mean) / (std + 1)`` of a whole frame (H, W) -> float32; the same at training and inference.
-    One frame-sized copy (the arithmetic is in place on it): a 66-megapixel frame costs 265 MB, not three times."""
-    f = frame.to(torch.float32, copy=True)
-    mean, std = f.mean(), f.std()
-    return f.sub_(mean).div_(std + 1.0)
-
-
 def split_seed(seed: int, split: str, index: int) -> int:
     """Generator seed of sequence ``index`` of a split: train, val and test never share a seed."""
     return {"train": 0, "val": 1, "test": 2}[split] * 10_000_000 + seed * 10_000 + index

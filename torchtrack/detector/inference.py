@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
@@ -11,9 +12,9 @@ from torch import nn
 
 from torchtrack.detector.checkpoint import load_checkpoint
 from torchtrack.detector.config import DetectorConfig
-from torchtrack.detector.dataset import normalise
-from torchtrack.detector.decode import Detections, decode
+from torchtrack.detector.decode import Detections, TopPeaks
 from torchtrack.detector.network import MULTIPLE, STRIDE, CenterTrackNet
+from torchtrack.detector.normalised import NormalisedFrame
 from torchtrack.detector.refine import continuity_refine, refine_velocity
 from torchtrack.detector.targets import gaussian_heatmap
 from torchtrack.errors import TorchtrackError
@@ -46,9 +47,13 @@ class Detector(nn.Module):
     (K, 2) px, ``score`` (K,), ``velocity`` (K, 2) px/frame, ``x_k - x_{k-1}``, best score first.
 
     ``rows = (y0, y1)`` (multiples of 16; ``y1`` may be the frame's height): only the detections whose cell
-    lies in those rows, computed from the frame rows ``y0 - HALO .. y1 + HALO`` (:meth:`strip_maps`), at most
-    ``peaks_for`` of the strip's area; velocities are refined on the whole frames. Strips that partition the
-    frame give, together, the whole frame's detections (where no strip reaches its cap).
+    lies in those rows, computed from the frame rows ``y0 - HALO .. y1 + HALO`` (the window of
+    :meth:`strip_maps`), at most ``peaks_for`` of the strip's area; velocities are refined on the whole frames.
+    Strips that partition the frame give, together, the whole frame's detections (where no strip reaches its cap).
+
+    Memory: no frame-sized float buffer — the frames are normalised window by window
+    (:class:`~torchtrack.detector.normalised.NormalisedFrame`) and each tile's peaks are decoded as it comes out
+    of the network (:meth:`tiles`, :class:`~torchtrack.detector.decode.TopPeaks`).
     """
 
     def __init__(self, config: DetectorConfig | None = None) -> None:
@@ -58,8 +63,8 @@ class Detector(nn.Module):
         self.net = CenterTrackNet(tuple(m.widths), m.head, m.motion, m.radius, m.fine)
         self.net = self.net.to(memory_format=torch.channels_last)
 
-    def inputs(self, frame, prev_frame=None, prev_points=None) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        """The normalised frames ``(H, W)`` (current, previous) and the prior's points ``(N, 2)``."""
+    def inputs(self, frame, prev_frame=None, prev_points=None) -> tuple[NormalisedFrame, NormalisedFrame, torch.Tensor]:
+        """The frames (current, previous), read normalised window by window, and the prior's points ``(N, 2)``."""
         cur = _as_frame(frame, "frame")
         prev = cur if prev_frame is None else _as_frame(prev_frame, "prev_frame")
         if prev.shape != cur.shape:
@@ -68,70 +73,90 @@ class Detector(nn.Module):
         pts = torch.zeros(0, 2) if prev_points is None else torch.as_tensor(prev_points, dtype=torch.float32)
         if pts.dim() != 2 or pts.shape[-1] != 2:
             raise TorchtrackError(f"detector: prev_points must have shape (N, 2), got {tuple(pts.shape)}")
-        return normalise(cur), normalise(prev), pts
+        ncur = NormalisedFrame(cur)
+        return ncur, ncur if prev is cur else NormalisedFrame(prev), pts
 
-    def _window(self, cur: torch.Tensor, prev: torch.Tensor, pts: torch.Tensor, rows: slice, cols: slice,
+    def _window(self, cur: NormalisedFrame, prev: NormalisedFrame, pts: torch.Tensor, rows: slice, cols: slice,
                 shape: tuple[int, int]) -> torch.Tensor:
         """Network input ``(3, h, w)`` of the window ``rows × cols`` of the frame, zero where it passes the
         frame's size (the padding to a multiple of 16), the prior drawn in window coordinates."""
         x = torch.zeros(3, *shape)
-        fh, fw = cur[rows, cols].shape
+        fh, fw = cur.frame[rows, cols].shape
         x[0, :fh, :fw], x[1, :fh, :fw] = cur[rows, cols], prev[rows, cols]
         origin = torch.tensor([cols.start, rows.start], dtype=torch.float32)
         x[2, :fh, :fw] = gaussian_heatmap(pts - origin, (fh, fw), self.config.data.prior_sigma)
         return x
 
-    def maps(self, cur: torch.Tensor, prev: torch.Tensor, pts: torch.Tensor) -> torch.Tensor:
-        """The network's five output maps ``(5, ⌈H/2⌉, ⌈W/2⌉)`` (heatmap logits, offset, velocity) for the
-        normalised frames ``(H, W)``.
+    def tiles(self, cur: NormalisedFrame, prev: NormalisedFrame,
+              pts: torch.Tensor) -> Iterator[tuple[torch.Tensor, tuple[int, int], tuple[int, int, int, int]]]:
+        """The network's five output maps (heatmap logits, offset, velocity) of the frames ``(H, W)``, one tile
+        at a time: per tile the maps ``(5, m, n)`` of a block of the frame's map cells (stride 2, ``⌈H/2⌉ ×
+        ⌈W/2⌉``), the block's first cell (row, column) in the frame's map, and the cells its tile owns in the
+        block, ``(r0, r1, c0, c1)``. The block is the tile's core and the ring of cells around it that lie in
+        the frame's map (the neighbours of the 3x3 peak test); the cores partition the map.
 
         A frame larger than ``tile`` (plus its halo) runs in tiles: the cores of side ``tile`` partition the
         frame (padded to a multiple of 16), each core is run with :data:`HALO` px of the frame around it —
         more than the network's receptive field reaches (about 100 px each way), at offsets that are
-        multiples of its stride 16 — and only the core's outputs are kept. So the maps equal the whole
-        frame's (up to float rounding), peaks are decoded once on them (none doubled across a seam), and
-        memory holds ``tile_batch`` tiles rather than the frame's activations."""
+        multiples of its stride 16 — so the blocks equal the whole frame's maps (up to float rounding), and
+        memory holds ``tile_batch`` tiles rather than the frame's activations or maps."""
         h, w = cur.shape
         hp, wp = h + (-h) % MULTIPLE, w + (-w) % MULTIPLE
+        mh, mw = (h + STRIDE - 1) // STRIDE, (w + STRIDE - 1) // STRIDE
         device = next(self.net.parameters()).device       # the network may sit on a GPU (training); the rest runs here
         d = self.config.decode
         tiled = d.tile > 0 and (hp > d.tile + 2 * HALO or wp > d.tile + 2 * HALO)
         side = d.tile if tiled else max(hp, wp)                # one tile: the whole frame
-        out = torch.empty(5, hp // STRIDE, wp // STRIDE)
-        tiles: dict[tuple[int, int], list[tuple[slice, slice, int, int]]] = {}
+        groups: dict[tuple[int, int], list[tuple[slice, slice, int, int]]] = {}
         for y0 in range(0, hp, side):
             for x0 in range(0, wp, side):
                 rows = slice(max(0, y0 - HALO), min(hp, y0 + side + HALO))
                 cols = slice(max(0, x0 - HALO), min(wp, x0 + side + HALO))
-                tiles.setdefault((rows.stop - rows.start, cols.stop - cols.start), []).append((rows, cols, y0, x0))
-        for shape, group in tiles.items():
+                groups.setdefault((rows.stop - rows.start, cols.stop - cols.start), []).append((rows, cols, y0, x0))
+        for shape, group in groups.items():
             for b in range(0, len(group), d.tile_batch):
                 batch = group[b: b + d.tile_batch]
                 x = torch.stack([self._window(cur, prev, pts, rows, cols, shape) for rows, cols, _, _ in batch])
                 maps = torch.cat(self.net(x.to(device).contiguous(memory_format=torch.channels_last)), 1).cpu()
                 for m, (rows, cols, y0, x0) in zip(maps, batch):
-                    ch, cw = min(side, hp - y0) // STRIDE, min(side, wp - x0) // STRIDE
-                    oy, ox = (y0 - rows.start) // STRIDE, (x0 - cols.start) // STRIDE
-                    cy, cx = y0 // STRIDE, x0 // STRIDE
-                    out[:, cy: cy + ch, cx: cx + cw] = m[:, oy: oy + ch, ox: ox + cw]
-        return out[:, : (h + STRIDE - 1) // STRIDE, : (w + STRIDE - 1) // STRIDE]
+                    cy, cx = y0 // STRIDE, x0 // STRIDE                        # the core's cells: cy .. ey, cx .. ex
+                    ey, ex = min(cy + side // STRIDE, mh), min(cx + side // STRIDE, mw)
+                    by, bx = max(cy - 1, 0), max(cx - 1, 0)                     # the block: the core and its ring
+                    oy, ox = rows.start // STRIDE, cols.start // STRIDE
+                    block = m[:, by - oy: min(ey + 1, mh) - oy, bx - ox: min(ex + 1, mw) - ox]
+                    yield block, (by, bx), (cy - by, ey - by, cx - bx, ex - bx)
 
-    def strip_maps(self, cur: torch.Tensor, prev: torch.Tensor, pts: torch.Tensor,
+    def maps(self, cur: NormalisedFrame, prev: NormalisedFrame, pts: torch.Tensor) -> torch.Tensor:
+        """The whole maps ``(5, ⌈H/2⌉, ⌈W/2⌉)`` of :meth:`tiles`, assembled (for inspection: :meth:`detect`
+        decodes tile by tile and never holds them)."""
+        h, w = cur.shape
+        out = torch.empty(5, (h + STRIDE - 1) // STRIDE, (w + STRIDE - 1) // STRIDE)
+        for block, (by, bx), (r0, r1, c0, c1) in self.tiles(cur, prev, pts):
+            out[:, by + r0: by + r1, bx + c0: bx + c1] = block[:, r0:r1, c0:c1]
+        return out
+
+    @staticmethod
+    def _strip_window(h: int, rows: tuple[int, int]) -> tuple[int, int]:
+        """The frame rows ``y0 - HALO .. y1 + HALO`` (within the frame) that the strip ``rows`` is computed from."""
+        y0, y1 = rows
+        if not (0 <= y0 < y1 <= h and y0 % MULTIPLE == 0 and (y1 % MULTIPLE == 0 or y1 == h)):
+            raise TorchtrackError(f"detector: rows {rows} must satisfy 0 <= y0 < y1 <= {h} (the frame's height), "
+                                  f"y0 and y1 multiples of {MULTIPLE} (y1 may be the height)")
+        return max(0, y0 - HALO), min(h, y1 + HALO)
+
+    def strip_maps(self, cur: NormalisedFrame, prev: NormalisedFrame, pts: torch.Tensor,
                    rows: tuple[int, int]) -> tuple[torch.Tensor, tuple[int, int], int]:
         """The maps of the frame rows ``rows = (y0, y1)`` with one map row beyond each edge (the 3x3
-        neighbourhood of the decoding), computed from the window of frame rows ``y0 - HALO .. y1 + HALO`` only.
+        neighbourhood of the decoding), computed from the window of frame rows ``y0 - HALO .. y1 + HALO`` only
+        (for inspection: :meth:`detect` decodes a strip tile by tile).
 
         Returns the maps ``(5, m, ⌈W/2⌉)``, the map rows ``(a, b)`` among them that the strip owns, and the
         frame's map row of their row 0. The window starts at a multiple of 16 and reaches :data:`HALO` px —
         more than the receptive field — past the rows kept, so they equal the whole frame's maps of
         :meth:`maps` (up to float rounding); a window that ends at the frame's bottom is padded as the frame."""
-        h = cur.shape[0]
         y0, y1 = rows
-        if not (0 <= y0 < y1 <= h and y0 % MULTIPLE == 0 and (y1 % MULTIPLE == 0 or y1 == h)):
-            raise TorchtrackError(f"detector: rows {rows} must satisfy 0 <= y0 < y1 <= {h} (the frame's height), "
-                                  f"y0 and y1 multiples of {MULTIPLE} (y1 may be the height)")
-        r0, r1 = max(0, y0 - HALO), min(h, y1 + HALO)
-        window = self.maps(cur[r0:r1], prev[r0:r1], pts - torch.tensor([0.0, r0]))
+        r0, r1 = self._strip_window(cur.shape[0], rows)
+        window = self.maps(cur.rows(r0, r1), prev.rows(r0, r1), pts - torch.tensor([0.0, r0]))
         own0, own1 = y0 // STRIDE, (y1 + STRIDE - 1) // STRIDE               # the frame's map rows owned
         lo, hi = max(r0 // STRIDE, own0 - 1), min((r1 + STRIDE - 1) // STRIDE, own1 + 1)
         return window[:, lo - r0 // STRIDE: hi - r0 // STRIDE], (own0 - lo, own1 - lo), lo
@@ -142,15 +167,18 @@ class Detector(nn.Module):
         cur, prev, pts = self.inputs(frame, prev_frame, prev_points)
         h, w = cur.shape
         d = self.config.decode
-        if rows is None:
-            out, own, first, cap = self.maps(cur, prev, pts)[None], None, 0, d.peaks_for(h, w)
-        else:
-            out, own, first = self.strip_maps(cur, prev, pts, rows)
-            out, cap = out[None], d.peaks_for(rows[1] - rows[0], w)
-        det = decode(out[:, :1], out[:, 1:3], out[:, 3:], STRIDE, d.threshold if threshold is None else threshold,
-                     cap, own, first)
-        keep = det.mask[0]
-        xy, vel = det.xy[0, keep], det.velocity[0, keep]
+        y0, y1 = (0, h) if rows is None else rows
+        r0, r1 = (0, h) if rows is None else self._strip_window(h, rows)
+        own0, own1 = y0 // STRIDE - r0 // STRIDE, (y1 + STRIDE - 1) // STRIDE - r0 // STRIDE   # window map rows
+        peaks = TopPeaks(d.peaks_for(y1 - y0, w), (w + STRIDE - 1) // STRIDE, STRIDE,
+                         d.threshold if threshold is None else threshold)
+        for block, (by, bx), (a, b, c0, c1) in self.tiles(cur.rows(r0, r1), prev.rows(r0, r1),
+                                                           pts - torch.tensor([0.0, r0])):
+            a, b = max(a, own0 - by), min(b, own1 - by)
+            if a < b:
+                peaks.add(block, (by + r0 // STRIDE, bx), (a, b, c0, c1))
+        found = peaks.detections()
+        xy, vel = found.xy, found.velocity
         if prev_frame is not None and d.refine_radius > 0:
             vel = refine_velocity(cur, prev, xy, vel, d.refine_patch, d.refine_radius, d.refine_pull)
         if prev_frame is not None and prev_points is not None and prev_velocity is not None and d.continuity_reach > 0:
@@ -159,7 +187,7 @@ class Detector(nn.Module):
                 raise TorchtrackError(f"detector: prev_velocity {tuple(pv.shape)} does not match prev_points "
                                       f"{tuple(pts.shape)}")
             vel = continuity_refine(cur, prev, xy, vel, pts, pv, d.refine_patch, d.continuity_reach)
-        return Detections(xy, det.score[0, keep], vel, keep[keep])
+        return Detections(xy, found.score, vel, found.mask)
 
 
 def detector_from_checkpoint(data: dict) -> Detector:

@@ -28,14 +28,14 @@ MATCH_CHUNK = 2048
 45 kB each), so a wide-area frame's tens of thousands are matched in chunks (the same result)."""
 
 
-def _gather_windows(img: torch.Tensor, centre: torch.Tensor, half: int) -> torch.Tensor:
-    """Windows ``(K, 2 half + 1, 2 half + 1)`` of ``img (H, W)`` centred on integer ``centre (K, 2)``
+def _gather_windows(img, centre: torch.Tensor, half: int) -> torch.Tensor:
+    """Windows ``(K, 2 half + 1, 2 half + 1)`` (float32) of ``img (H, W)`` centred on integer ``centre (K, 2)``
     (x, y), with replicated borders."""
     h, w = img.shape
     u = torch.arange(-half, half + 1, device=img.device)
     ys = (centre[:, 1, None] + u).clamp(0, h - 1)
     xs = (centre[:, 0, None] + u).clamp(0, w - 1)
-    return img.reshape(-1)[ys[:, :, None] * w + xs[:, None, :]]
+    return img[ys[:, :, None], xs[:, None, :]].float()
 
 
 def _box_means(x: torch.Tensor, size: int) -> torch.Tensor:
@@ -51,7 +51,6 @@ def match_cost(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, velocity
     """:func:`refine_velocity` and the cost ``(K,)`` of each refined velocity (mean squared difference
     of the zero-mean patches plus the pull term; ``K >= 1``)."""
     k = xy.shape[0]
-    cur, prev = cur.float(), prev.float()
     r = torch.round(xy).long()
     s0 = torch.round(-velocity).long()                                       # (K, 2) as (sx, sy)
     tmpl = _gather_windows(cur, r, patch).reshape(k, -1)                      # (K, T)
@@ -86,7 +85,8 @@ def refine_velocity(cur: torch.Tensor, prev: torch.Tensor, xy: torch.Tensor, vel
                     patch: int = 3, radius: int = 5, pull: float = 0.005) -> torch.Tensor:
     """Refined velocities ``(K, 2)`` for detections ``xy (K, 2)`` (x, y) px with coarse ``velocity (K, 2)``.
 
-    cur, prev: (H, W) float frames (normalised alike); ``patch`` = p (the patch is (2p+1)^2 px),
+    cur, prev: (H, W) frames normalised alike — tensors, or :class:`~torchtrack.detector.normalised.NormalisedFrame`
+    s, which normalise only the patches read; ``patch`` = p (the patch is (2p+1)^2 px),
     ``radius`` = R (search half-width around ``round(-velocity)``), ``pull`` = lam (per px^2 of
     departure from the coarse estimate, in units of the frames' squared grey levels).
     """

@@ -23,7 +23,8 @@ def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray)
     over a ``MOTION_WINDOW``-px square at each of ``points (K, 2)`` (x, y): a classical change-detection cue
     (moving vehicles leave a difference of tens of grey levels, static structure only sensor noise and
     parallax). ``(K,)``."""
-    return _at(cv2.blur(cv2.absdiff(image, previous), (MOTION_WINDOW, MOTION_WINDOW)), points)
+    return _banded(lambda a, b: cv2.blur(cv2.absdiff(a, b), (MOTION_WINDOW, MOTION_WINDOW)), (image, previous),
+                   points, MOTION_WINDOW // 2)
 
 
 TONE_WINDOW = 3
@@ -34,15 +35,28 @@ def grey_level(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Mean grey level of ``image`` over a ``TONE_WINDOW``-px square at each of ``points (K, 2)`` (x, y): the
     tone of the vehicle detected there, the attribute the GM-PHD's ``tone_sigma`` compares between frames.
     ``(K,)``."""
-    return _at(cv2.blur(image, (TONE_WINDOW, TONE_WINDOW)), points)
+    return _banded(lambda a: cv2.blur(a, (TONE_WINDOW, TONE_WINDOW)), (image,), points, TONE_WINDOW // 2)
 
 
-def _at(image: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """``image`` at the pixels nearest ``points (K, 2)`` (x, y), clipped to the frame, as float64 ``(K,)``."""
-    h, w = image.shape
+BAND_ROWS = 256
+"""Rows of the frame filtered at once by :func:`_banded`."""
+
+
+def _banded(op, images: tuple[np.ndarray, ...], points: np.ndarray, halo: int) -> np.ndarray:
+    """``op(*images)`` at the pixels nearest ``points (K, 2)`` (x, y), clipped to the frame, as float64 ``(K,)``.
+
+    ``op``, a uint8 filter that reaches ``halo`` rows (OpenCV's box filter: integer sums, the same wherever the
+    rows start), runs on bands of :data:`BAND_ROWS` rows with ``halo`` rows of the frame either side, only
+    where a point falls: the values of the whole frame's filter, with a band's memory instead of the frame's."""
+    h, w = images[0].shape
     x = np.clip(np.rint(points[:, 0]).astype(np.int64), 0, w - 1)
     y = np.clip(np.rint(points[:, 1]).astype(np.int64), 0, h - 1)
-    return image[y, x].astype(np.float64)
+    out = np.empty(len(points), np.float64)
+    for y0 in np.unique(y // BAND_ROWS) * BAND_ROWS:
+        mine = np.nonzero((y >= y0) & (y < y0 + BAND_ROWS))[0]
+        top, bottom = max(0, y0 - halo), min(h, y0 + BAND_ROWS + halo)
+        out[mine] = op(*(im[top:bottom] for im in images))[y[mine] - top, x[mine]]
+    return out
 
 
 class Detection:

@@ -6,7 +6,8 @@ own map is the composition
     H_k = H_r · H_{k→r},        x_ref ≃ H_k · [x, y, 1]ᵀ                                   (R1)
 
 where ``H_{k→r}`` is estimated by RANSAC (``cv2.findHomography``, then a least-squares refit on the
-inliers) from point correspondences: corners of the keyframe followed into frame ``k`` by pyramidal
+inliers) from point correspondences: corners of the keyframe (Shi–Tomasi, computed over bands of rows:
+:mod:`torchtrack.pipeline.corners`) followed into frame ``k`` by pyramidal
 Lucas–Kanade optical flow (``lk``, the default: sub-pixel and fast), or matched ORB features (``orb``:
 slower, robust to large motion). Moving objects are outliers to the camera's homography. Optionally
 the estimate is refined by ECC (``cv2.findTransformECC``, which maximises the enhanced correlation of the
@@ -31,6 +32,7 @@ import numpy as np
 from torchtrack.config import Checked, option
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import area_factor
+from torchtrack.pipeline.corners import good_features
 
 
 @dataclass
@@ -82,8 +84,7 @@ class Registration:
     def _features(self, image: np.ndarray):
         count = math.ceil(self.config.features * area_factor(*image.shape[:2]))
         if self.config.method == "lk":
-            corners = cv2.goodFeaturesToTrack(image, count, 0.01, 8, blockSize=7)
-            return (np.zeros((0, 1, 2), np.float32) if corners is None else corners.astype(np.float32)), None
+            return good_features(image, count, 0.01, 8, 7), None
         self._orb.setMaxFeatures(count)
         keypoints, descriptors = self._orb.detectAndCompute(image, None)
         return np.array([k.pt for k in keypoints], np.float32).reshape(-1, 2), descriptors
