@@ -18,7 +18,8 @@ def gaussian_heatmap(points: torch.Tensor, shape: tuple[int, int], sigma: float,
     """Max over points of ``w_i exp(-|p - c_i|^2 / (2 sigma^2))`` on the pixel grid ``shape`` = (H, W).
 
     points: (N, 2) as (x, y) in pixels (any float); weight: optional (N,). Returns (H, W) float32,
-    computed on a ``(2r+1)^2`` window (``r = ceil(3 sigma)``) around each point, no loop over points.
+    computed on a ``(2r+1)^2`` window (``r = ceil(3 sigma)``) around each point, no loop over points; points
+    whose window misses the grid are dropped first (a tile of a large frame reaches few of the frame's points).
     """
     h, w = shape
     out = torch.zeros(h * w, dtype=torch.float32, device=points.device)
@@ -27,6 +28,11 @@ def gaussian_heatmap(points: torch.Tensor, shape: tuple[int, int], sigma: float,
     r = max(1, int(torch.ceil(torch.tensor(3.0 * sigma)).item()))
     d = torch.arange(-r, r + 1, device=points.device)
     base = torch.round(points).long()                                  # (N, 2)
+    reach = ((base >= -r) & (base < torch.tensor([w + r, h + r], device=base.device))).all(1)
+    if not bool(reach.all()):
+        reach = reach.nonzero(as_tuple=True)[0]
+        points, base = points[reach], base[reach]
+        weight = None if weight is None else weight[reach]
     gx = base[:, 0, None, None] + d[None, None, :]                     # (N, 1, K)
     gy = base[:, 1, None, None] + d[None, :, None]                     # (N, K, 1)
     val = torch.exp(-((gx - points[:, 0, None, None]) ** 2 + (gy - points[:, 1, None, None]) ** 2)
