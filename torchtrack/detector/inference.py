@@ -79,11 +79,12 @@ class Detector(nn.Module):
     def _window(self, cur: NormalisedFrame, prev: NormalisedFrame, pts: torch.Tensor, rows: slice, cols: slice,
                 shape: tuple[int, int]) -> torch.Tensor:
         """Network input ``(3, h, w)`` of the window ``rows × cols`` of the frame, zero where it passes the
-        frame's size (the padding to a multiple of 16), the prior drawn in window coordinates."""
-        x = torch.zeros(3, *shape)
+        frame's size (the padding to a multiple of 16), the prior drawn in window coordinates; on the device of
+        the prior's points ``pts``."""
+        x = torch.zeros(3, *shape, device=pts.device)
         fh, fw = cur.frame[rows, cols].shape
         x[0, :fh, :fw], x[1, :fh, :fw] = cur[rows, cols], prev[rows, cols]
-        origin = torch.tensor([cols.start, rows.start], dtype=torch.float32)
+        origin = torch.tensor([cols.start, rows.start], dtype=torch.float32, device=pts.device)
         x[2, :fh, :fw] = gaussian_heatmap(pts - origin, (fh, fw), self.config.data.prior_sigma)
         return x
 
@@ -103,7 +104,8 @@ class Detector(nn.Module):
         h, w = cur.shape
         hp, wp = h + (-h) % MULTIPLE, w + (-w) % MULTIPLE
         mh, mw = (h + STRIDE - 1) // STRIDE, (w + STRIDE - 1) // STRIDE
-        device = next(self.net.parameters()).device       # the network may sit on a GPU (training); the rest runs here
+        device = next(self.net.parameters()).device   # the network's (a GPU): the inputs are drawn there, decoded here
+        pts = pts.to(device)
         d = self.config.decode
         tiled = d.tile > 0 and (hp > d.tile + 2 * HALO or wp > d.tile + 2 * HALO)
         side = d.tile if tiled else max(hp, wp)                # one tile: the whole frame
@@ -117,7 +119,7 @@ class Detector(nn.Module):
             for b in range(0, len(group), d.tile_batch):
                 batch = group[b: b + d.tile_batch]
                 x = torch.stack([self._window(cur, prev, pts, rows, cols, shape) for rows, cols, _, _ in batch])
-                maps = torch.cat(self.net(x.to(device).contiguous(memory_format=torch.channels_last)), 1).cpu()
+                maps = torch.cat(self.net(x.contiguous(memory_format=torch.channels_last)), 1).cpu()
                 for m, (rows, cols, y0, x0) in zip(maps, batch):
                     cy, cx = y0 // STRIDE, x0 // STRIDE                        # the core's cells: cy .. ey, cx .. ex
                     ey, ex = min(cy + side // STRIDE, mh), min(cx + side // STRIDE, mw)
