@@ -83,8 +83,8 @@ class FinetuneConfig(Checked):
 
     steps: int = option(300, ge=1)
     batch: int = option(16, ge=1)
-    lr: float = option(5e-4, gt=0)                  # Adam, warm-up and cosine decay over the steps
-    synthetic_share: float = option(0.25, ge=0, le=1)   # probability that a training pair is synthetic
+    lr: float = option(2.5e-4, gt=0)                # Adam, warm-up and cosine decay over the steps
+    synthetic_share: float = option(0.5, ge=0, le=1)    # probability that a training pair is synthetic
     synthetic_sequences: int = option(8, ge=1)      # cached synthetic sequences the synthetic pairs come from
     gain: float = option(0.2, ge=0, lt=1)           # real pairs: both frames scaled by U(1 - gain, 1 + gain)
     noise: float = option(0.1, ge=0)                # real pairs: Gaussian noise, in units of the frame's std
