@@ -168,7 +168,8 @@ def test_track_strips_on_two_ranks_writes_one_output_like_one_process(tmp_path, 
 def test_track_strips_errors(tmp_path, capsys):
     det = tmp_path / "det.txt"
     write_mot(det, [1], [-1], [5.0], [5.0])
-    for extra, flag in ((["--compare"], "--strips"), (["--band", "-1"], "--band"),
+    for extra, flag in ((["--compare"], "--strips"), (["--sequences", str(tmp_path)], "--strips"),
+                        (["--band", "-1"], "--band"),
                         (["--strip-height", "0"], "--strip-height")):
         assert main(["track", "--detections", str(det), "--strips", *extra, "--out", str(tmp_path / "o")]) == 2
         assert flag in capsys.readouterr().err

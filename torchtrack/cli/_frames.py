@@ -2,19 +2,23 @@
 
 ``torchtrack/cli/track.py`` calls :func:`add_frame_options` on its parser and, when one of them was given,
 :func:`run_frame_inputs` with its parsed arguments (it also reads ``--tracker``, ``--gt``, ``--out``,
-``--force``, ``--json``, ``--threads``, ``--compare`` and ``--trackers`` of ``torchtrack track``); the
-tracker's options come from ``torchtrack track --config`` through ``tracker_options``. The output folder is
-written as one set (:class:`~torchtrack.io.outputs.OutputFolder`; under ``torchrun`` every rank writes into
-the same staging folder, :func:`~torchtrack.pipeline.sequences.shared_output`).
+``--force``, ``--json``, ``--threads``, ``--compare``, ``--trackers``, ``--strips``, ``--band`` and
+``--strip-height`` of ``torchtrack track``); the tracker's options come from ``torchtrack track --config``
+through ``tracker_options``. The output folder is written as one set (:class:`~torchtrack.io.outputs.OutputFolder`;
+under ``torchrun`` every rank writes into the same staging folder,
+:func:`~torchtrack.pipeline.sequences.shared_output`). With ``--strips`` (:mod:`torchtrack.cli._strips`) the
+ranks split every frame into strips and rank 0 alone writes the folder.
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 
 from torchtrack.cli._common import config_file
+from torchtrack.cli._strips import frame_strips, rank_output, strip_group
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
 from torchtrack.io.frames import open_frames
@@ -119,19 +123,32 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
     if args.gt and args.truth_csv:
         raise TorchtrackError("give either --gt or --truth-csv, not both")
     folder = OutputFolder(out, command, args.force, inputs=inputs)
-    with folder as staging:
+    strips = args.strips
+    with (strip_group() if strips else nullcontext(0)) as rank, \
+            (folder if rank == 0 else rank_output(rank, out, command, args.force, inputs)) as staging:
         source = open_frames(args.video or args.frames)
         if args.truth_csv:
             gt, ignore = wpafb_truth(args.truth_csv, len(source))
         else:
             gt, ignore = (read_mot(args.gt) if args.gt else None), None
-            if args.gt and Path(args.gt).with_name("velocity.txt").is_file():
+            if args.gt and Path(args.gt).with_name("velocity.txt").is_file() and rank == 0:
                 print(f"note: every vehicle of {args.gt} is a target, parked ones too, while the pipeline tracks "
                       "moving objects; track --sequences on the sequence's folder scores the moving ones (the "
                       "paper's protocol, with its velocity.txt)", file=sys.stderr)
         camera = read_camera(args.camera) if args.camera else None
+        built = {}
+        if strips:
+            built["detector"], built["tracker"] = frame_strips(config, source.shape[0], args)
+            config = config if rank == 0 else config.replace(video=False)
         result = track_video(source, staging, config, gt=gt, gt_path=str(args.truth_csv or args.gt), ignore=ignore,
-                             camera=camera, progress=not args.no_progress)
+                             camera=camera, progress=not args.no_progress and rank == 0, **built)
+        if strips:
+            tracker = built["tracker"]
+            result.metrics.update(strips=tracker.world, band=tracker.config.band,
+                                  strip_height=tracker.config.height, cap_hits=tracker.cap_hits)
+            write_json(result.files["metrics"], result.metrics)
+    if rank != 0:
+        return 0
     m = result.metrics
     print(format_table(header, [_score_row(Path(source.path).name, m.get("clear_mot"), m["fps"]["end_to_end"])],
                        floatfmt=".3f"))

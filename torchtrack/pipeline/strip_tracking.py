@@ -25,7 +25,10 @@ position:
    tracker resumed) if that identity is not reported, else a new identity (candidates in rank order).
 
 The merged tracks of the whole frame, global ids in increasing order, are returned on every rank. The
-owners and last identities are kept for every identity issued (a few dictionary entries each).
+owners and last identities are kept for every identity issued (a few dictionary entries each). The detections'
+grey levels (``tones``) follow the detections into the window; the tracker's pending new tracks
+(``pending_positions``, which the video pipeline's weak detections may continue) are all-gathered with the
+reports, each kept by the rank owning its position, so that every rank's stream sees the whole frame's.
 
 **What equals one process.** The enhanced GM-PHD (the tracker this was built and tested for; the others
 run too but are not examined here) is local: its update, birth, merge and label fix couple a track only to
@@ -198,25 +201,43 @@ class StripTracker:
         """Forget all tracks (global ids restart at 1)."""
         self.tracker.reset()
         self.identities = Identities(self.config.seams(self.world), self.config.match_distance)
+        self.pending_positions = np.zeros((0, 2))
 
     @property
     def cap_hits(self) -> int:
         """This rank's tracker's component-cap hits (0 where it does not count them)."""
         return int(getattr(self.tracker, "cap_hits", 0))
 
-    def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None) -> tuple[Tensor, Tensor]:
+    @property
+    def tone_sigma(self) -> float | None:
+        """This rank's tracker's ``tone_sigma`` (None where it takes no grey levels): ``step`` passes ``tones``
+        on only where it is set."""
+        return getattr(self.tracker, "tone_sigma", None)
+
+    def step(self, frame: int, positions: Tensor, velocities: Tensor | None = None,
+             tones: Tensor | None = None) -> tuple[Tensor, Tensor]:
         """Frame ``frame`` with the whole frame's detections ``positions (K, 2)`` (and ``velocities (K, 2)`` or
-        None): the merged global ``ids (E,)`` and ``positions (E, 2)`` (on the device and in the dtype of this
-        rank's tracker's output)."""
+        None; their grey levels ``tones (K,)`` or None): the merged global ``ids (E,)`` and ``positions (E, 2)``
+        (on the device and in the dtype of this rank's tracker's output).
+
+        Where this rank's tracker has ``pending_positions`` (new tracks not yet reported), they are
+        all-gathered with the tracks and :attr:`pending_positions` holds, after the step, those of every rank
+        that lie in that rank's own rows."""
         positions = torch.as_tensor(positions)
         y = positions.reshape(-1, 2)[:, 1]
         mine = (y >= self.window[0]) & (y < self.window[1])
+        extra = {} if tones is None else {"tones": torch.as_tensor(tones).reshape(-1)[mine]}
         ids, pos = self.tracker.step(frame, positions.reshape(-1, 2)[mine],
-                                     None if velocities is None else torch.as_tensor(velocities).reshape(-1, 2)[mine])
-        report = (ids.detach().cpu().numpy().astype(np.int64), pos.detach().cpu().double().numpy().reshape(-1, 2))
+                                     None if velocities is None else torch.as_tensor(velocities).reshape(-1, 2)[mine],
+                                     **extra)
+        pending = getattr(self.tracker, "pending_positions", None)
+        report = (ids.detach().cpu().numpy().astype(np.int64), pos.detach().cpu().double().numpy().reshape(-1, 2),
+                  np.zeros((0, 2)) if pending is None else pending.detach().cpu().double().numpy().reshape(-1, 2))
         reports: list = [report]
         if self.world > 1:
             reports = [None] * self.world
             dist.all_gather_object(reports, report, group=self.group)
-        gids, merged = self.identities.assign(reports)
+        self.pending_positions = np.concatenate(
+            [p[self.identities.rank_of(p[:, 1]) == r] for r, (_, _, p) in enumerate(reports)])
+        gids, merged = self.identities.assign([r[:2] for r in reports])
         return torch.as_tensor(gids, device=pos.device), torch.as_tensor(merged, dtype=pos.dtype, device=pos.device)

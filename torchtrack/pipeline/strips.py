@@ -7,7 +7,9 @@ with the whole previous frame's detections as the detector's prior. Each frame t
 all-gathered, so that every rank holds the whole frame's detections — the next frame's prior — in the whole-frame
 decoding's order (:func:`merge_strips`). The result equals one process's loop of
 :meth:`torchtrack.detector.Detector.detect` over the frames (up to float rounding), as long as no strip reaches
-its peak cap (``peaks_for`` of its area).
+its peak cap (``peaks_for`` of its area). :class:`StripDetector` is the same per frame behind the detector's
+``detect`` interface, for the video pipeline (``torchtrack track --frames DIR --strips``), which registers the
+whole frames on every rank and hands it the prior itself.
 """
 
 from __future__ import annotations
@@ -51,6 +53,34 @@ def rank_and_size(group: dist.ProcessGroup | None) -> tuple[int, int]:
     return dist.get_rank(group), dist.get_world_size(group)
 
 
+class StripDetector:
+    """A :class:`Detector` over the strips of the ranks of ``group`` (default: the default process group; none
+    initialised: this process alone, the whole frame), with the detector's ``detect`` interface: every rank
+    calls ``detect`` with the same whole frames and prior and gets the whole frame's detections, its own strip
+    detected and the others all-gathered (:func:`merge_strips`). The video pipeline's
+    :class:`~torchtrack.pipeline.detection.Detection` takes it in place of the detector."""
+
+    def __init__(self, detector: Detector, group: dist.ProcessGroup | None = None):
+        self.detector, self.group = detector, group
+        self.rank, self.world = rank_and_size(group)
+
+    @property
+    def config(self):
+        """The detector's configuration (its decoding threshold is the pipeline's prior threshold)."""
+        return self.detector.config
+
+    def detect(self, frame, prev_frame=None, prev_points=None, threshold: float | None = None,
+               prev_velocity=None) -> Detections:
+        """:meth:`Detector.detect` of the whole frame, computed over the strips."""
+        if self.world == 1:
+            return self.detector.detect(frame, prev_frame, prev_points, threshold, prev_velocity)
+        rows = strip_rows(frame.shape[0], self.world)[self.rank]
+        mine = self.detector.detect(frame, prev_frame, prev_points, threshold, prev_velocity, rows=rows)
+        parts: list = [None] * self.world
+        dist.all_gather_object(parts, mine, group=self.group)
+        return merge_strips(parts)
+
+
 def detect_strips(detector: Detector, frames: Iterable[np.ndarray | torch.Tensor],
                   group: dist.ProcessGroup | None = None) -> Iterator[Detections]:
     """The detections of each frame ``(H, W)`` of ``frames`` (module docstring), on every rank of ``group``
@@ -59,16 +89,9 @@ def detect_strips(detector: Detector, frames: Iterable[np.ndarray | torch.Tensor
     Frame ``k`` is detected with ``prev_frame`` frame ``k - 1`` and the prior (points and velocities) of frame
     ``k - 1``'s whole detections; frame 0 with neither, as :meth:`Detector.detect` alone. Every rank must
     iterate the same frames."""
-    rank, world = rank_and_size(group)
+    strips = StripDetector(detector, group)
     prev_frame = prior = prior_velocity = None
     for frame in frames:
-        rows = None if world == 1 else strip_rows(frame.shape[0], world)[rank]
-        mine = detector.detect(frame, prev_frame, prior, prev_velocity=prior_velocity, rows=rows)
-        if world == 1:
-            found = mine
-        else:
-            parts: list = [None] * world
-            dist.all_gather_object(parts, mine, group=group)
-            found = merge_strips(parts)
+        found = strips.detect(frame, prev_frame, prior, prev_velocity=prior_velocity)
         yield found
         prev_frame, prior, prior_velocity = frame, found.xy, found.velocity

@@ -84,7 +84,7 @@ class PipelineResult:
 
 def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | None = None, detector=None,
                 gt: MOTData | None = None, gt_path: str = "gt.txt", ignore: np.ndarray | None = None,
-                camera: np.ndarray | None = None,
+                camera: np.ndarray | None = None, tracker=None,
                 keep_detections: bool = False, progress: bool = True) -> PipelineResult:
     """Run the pipeline on ``source`` and write ``tracks.txt``, ``detections.txt``, ``annotated.mp4`` and
     ``metrics.json`` under ``out``.
@@ -97,6 +97,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
             ``ignore (K,)`` bool over its lines marks don't-care objects (not drawn, not scored).
         camera: true homographies ``(T, 3, 3)`` reference → frame ``k`` of a synthetic sequence; when
             given, the registration error against them is measured and reported.
+        tracker: the tracker to run, already built (default: ``make_tracker(config.tracker, ...)``; e.g. a
+            :class:`~torchtrack.pipeline.strip_tracking.StripTracker`).
         keep_detections: also return every frame's :class:`FrameDetections` (to run other trackers on
             the same detections, as ``torchtrack demo`` does; a few kB per frame).
     """
@@ -113,7 +115,9 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
     timer = StageTimer()
     detection = Detection(detector, Registration(cfg.registration), timer, cfg.detection_threshold,
                           cfg.weak_threshold)
-    stream = TrackerStream(make_tracker(cfg.tracker, cfg.options_for(cfg.tracker)), cfg)
+    if tracker is None:
+        tracker = make_tracker(cfg.tracker, cfg.options_for(cfg.tracker))
+    stream = TrackerStream(tracker, cfg)
     truth = _truth_by_frame(gt if ignore is None or gt is None else gt.select(~ignore))
     files = {"tracks": out / "tracks.txt", "detections": out / "detections.txt"}
     video = AnnotatedVideoWriter(out / "annotated.mp4", fps=cfg.video_fps, trail=cfg.trail, box=cfg.box,
