@@ -14,6 +14,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import make_tracker
 from torchtrack.io.mot import read_mot, write_mot, write_motdata
 from torchtrack.metrics.clear_mot import clear_mot
+from torchtrack.pipeline.config import SELECTED_TRACKERS
 from torchtrack.pipeline.strip_tracking import BAND, Identities, StripConfig, StripTracker
 
 VEHICLES, FRAMES, SEED = 600, 40, 20_028_028
@@ -67,6 +68,29 @@ def test_one_strip_is_the_tracker_relabelled():
             b = relabel.setdefault(a, len(relabel) + 1)
             assert torch.equal(at[b], p)
     assert len(set(relabel.values())) == len(relabel) > 50
+
+
+def test_one_strip_passes_tones_and_pending_tracks_on():
+    # the pipeline's GM-PHD options (grey levels, new labels confirmed a frame late) with a random tone per
+    # vehicle: one strip gives the tracker's own estimates and pending new tracks; tones that are ignored would not
+    scene = simulate(100, 8, 6)
+    options = {**SELECTED_TRACKERS["gmphd"], "dtype": "float64"}
+    one = make_tracker("gmphd", options)
+    strips = StripTracker(make_tracker("gmphd", options), StripConfig(height=int(scene.side)))
+    blind = StripTracker(make_tracker("gmphd", {**options, "tone_sigma": None}), StripConfig(height=int(scene.side)))
+    assert strips.tone_sigma == 4.0 and blind.tone_sigma is None
+    gen = torch.Generator().manual_seed(6)
+    xs, blind_xs, pending = [], [], 0
+    for frame, z, v in scene.detections:
+        tones = 255 * torch.rand(len(z), generator=gen, dtype=torch.float64)
+        _, pos = one.step(frame, z, v, tones)
+        _, gpos = strips.step(frame, z, v, tones)
+        assert torch.equal(torch.sort(gpos[:, 0]).values, torch.sort(pos[:, 0]).values)
+        assert np.array_equal(strips.pending_positions, one.pending_positions.numpy().reshape(-1, 2))
+        pending += len(strips.pending_positions)
+        xs.append(torch.sort(pos[:, 0]).values)
+        blind_xs.append(torch.sort(blind.step(frame, z, v)[1][:, 0]).values)
+    assert pending > 50 and not torch.equal(torch.cat(xs), torch.cat(blind_xs))
 
 
 def test_strip_config_rejects_bad_distances():
