@@ -49,7 +49,7 @@ Examples:
   torchtrack track --benchmark wpafb --out out/wpafb-benchmark
   OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m torchtrack track --strips \\
       --detections det.txt --gt gt.txt --out out/strips   # two ranks over strips; rank 0 writes
-  OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m torchtrack track --strips \
+  OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m torchtrack track --strips \\
       --frames seq/frames --gt seq/gt.txt --no-video --out out/strips-frames   # each rank detects its strip
 """
 
