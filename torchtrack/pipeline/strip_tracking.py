@@ -137,11 +137,12 @@ class Identities:
         def position(key: tuple[int, int]) -> np.ndarray:
             return reports[key[0]][1][row[key[0]][key[1]]]
 
+        owner_rank = [self.rank_of(pos[:, 1]) for _, pos in reports]                      # of each position
         out = {g: key for g, key in self.owner.items() if key[1] in row[key[0]]}       # 1. continuing
         pairs = []                                                                        # 2. handover
         for rank, (ids, pos) in enumerate(reports):
-            leave = np.flatnonzero(self.rank_of(pos[:, 1]) != rank)
-            for lid, p, target in zip(ids[leave].tolist(), pos[leave], self.rank_of(pos[leave, 1]).tolist()):
+            leave = np.flatnonzero(owner_rank[rank] != rank)
+            for lid, p, target in zip(ids[leave].tolist(), pos[leave], owner_rank[rank][leave].tolist()):
                 g = self.held.get((rank, lid))
                 if g is None or out.get(g) != (rank, lid):
                     continue
@@ -166,7 +167,7 @@ class Identities:
         by = np.array([r for _, r in reported], dtype=np.int64)
         added: list[tuple[np.ndarray, int]] = []
         for rank, (ids, pos) in enumerate(reports):
-            free = ~np.isin(ids, [lid for r, lid in reporter if r == rank]) & (self.rank_of(pos[:, 1]) == rank)
+            free = ~np.isin(ids, [lid for r, lid in reporter if r == rank]) & (owner_rank[rank] == rank)
             for lid, p in zip(ids[free].tolist(), pos[free]):
                 other = by != rank
                 if (np.hypot(*(where[other] - p).T) <= self.match_distance).any() or any(
