@@ -18,7 +18,7 @@ from contextlib import nullcontext
 from pathlib import Path
 
 from torchtrack.cli._common import config_file
-from torchtrack.cli._strips import frame_strips, rank_output, strip_group
+from torchtrack.cli._strips import frame_strips, rank_output, strip_group, strip_metrics
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import tracker_names
 from torchtrack.io.frames import open_frames
@@ -143,9 +143,7 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
         result = track_video(source, staging, config, gt=gt, gt_path=str(args.truth_csv or args.gt), ignore=ignore,
                              camera=camera, progress=not args.no_progress and rank == 0, **built)
         if strips:
-            tracker = built["tracker"]
-            result.metrics.update(strips=tracker.world, band=tracker.config.band,
-                                  strip_height=tracker.config.height, cap_hits=tracker.cap_hits)
+            result.metrics.update(strip_metrics(built["tracker"]))
             write_json(result.files["metrics"], result.metrics)
     if rank != 0:
         return 0

@@ -81,6 +81,13 @@ def strip_tracker(tracker: Tracker, det: MOTData, args: argparse.Namespace) -> S
     return StripTracker(tracker, StripConfig(height, band=args.band))
 
 
+def strip_metrics(tracker: StripTracker) -> dict:
+    """What ``metrics.json`` adds with ``--strips``: the ranks, the band, the tracker's rows and this rank's cap
+    hits."""
+    return {"strips": tracker.world, "band": tracker.config.band, "strip_height": tracker.config.height,
+            "cap_hits": tracker.cap_hits}
+
+
 @contextmanager
 def rank_output(rank: int, out: Path, command: str, force: bool, inputs: list) -> Iterator[Path]:
     """The staging folder of rank 0's output folder; a temporary folder, removed, on the other ranks."""

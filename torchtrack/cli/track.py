@@ -16,7 +16,14 @@ import torch
 
 from torchtrack.cli._common import add_common_options, add_force_option, config_file, positive_float, positive_int
 from torchtrack.cli._frames import add_frame_options, frame_inputs_given, run_frame_inputs
-from torchtrack.cli._strips import add_strip_options, check_strip_arguments, rank_output, strip_group, strip_tracker
+from torchtrack.cli._strips import (
+    add_strip_options,
+    check_strip_arguments,
+    rank_output,
+    strip_group,
+    strip_metrics,
+    strip_tracker,
+)
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.multitarget import Tracker, tracker_names
 from torchtrack.filters.tracker_config import read_tracker_sections
@@ -176,7 +183,7 @@ def _run_strips(args: argparse.Namespace, config: PipelineConfig, fitted: Tracke
         tracker = strip_tracker(fitted or make_tracker(args.tracker, config.options_for(args.tracker)), det, args)
         with rank_output(rank, args.out, OUTPUT, args.force, inputs(args)) as staging:
             report = track_detections(det, args.tracker, config, staging, gt, tracker)
-            report.update(strips=tracker.world, band=tracker.config.band, strip_height=tracker.config.height)
+            report.update(strip_metrics(tracker))
             if rank == 0:
                 write_json(staging / "metrics.json", report)
     if rank == 0:
