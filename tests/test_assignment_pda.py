@@ -5,7 +5,7 @@ import math
 import torch
 
 from torchtrack.association.pda import pda_update
-from torchtrack.filters.kalman import GaussianState
+from torchtrack.filters.kalman.filter import GaussianState
 from torchtrack.gaussian import kalman_update, log_prob, moment_match
 
 F64 = torch.float64

@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import make_tracker, run_tracker, tracker_names
+from torchtrack.filters.trackers.protocol import make_tracker, run_tracker, tracker_names
 
 
 def crossing_scene(T=30, speed=6.0, with_velocity=True, noise=0.3, seed=0):

@@ -12,12 +12,12 @@ import numpy as np
 import pytest
 import torch
 
-import torchtrack.filters.glmb as glmb_module
+import torchtrack.filters.glmb.filter as glmb_module
 from torchtrack.association.gibbs import FIRST_MEASUREMENT
 from torchtrack.bench.glmb_reference import ReferenceGLMB, enumerate_choices, gibbs_chain
 from torchtrack.cli import main
-from torchtrack.filters.multitarget import make_tracker
-from torchtrack.filters.tracker_config import tracker_config
+from torchtrack.filters.trackers.options import tracker_config
+from torchtrack.filters.trackers.protocol import make_tracker
 
 CONFIG = {"q": 0.5, "sigma": 1.0, "velocity_sigma": None, "p_survival": 0.9, "p_detection": 0.9,
           "clutter_density": 0.01, "prune_threshold": 1e-5, "max_hypotheses": 100000, "birth_min": 0.05,

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.trackers.protocol import make_tracker
 
 pytestmark = [pytest.mark.cuda,
               pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device (runs where a GPU exists)")]
@@ -48,7 +48,7 @@ def test_tracker_on_cuda_equals_cpu(name):
 
 
 def test_kalman_filter_run_on_cuda_equals_cpu():
-    from torchtrack.filters.kalman import GaussianState, KalmanFilter
+    from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter
     from torchtrack.models import ConstantVelocity, LinearPosition
 
     z = torch.randn(30, 500, 2, dtype=torch.float64, generator=torch.Generator().manual_seed(1)).cumsum(0)

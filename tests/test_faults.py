@@ -166,25 +166,25 @@ def _random_frames(rng, n_frames=6, n=300, size=400.0):
 def test_sort_on_gated_pairs_equals_the_dense_assignment(monkeypatch):
     import torch
 
-    import torchtrack.filters.baselines as baselines
-    from torchtrack.filters.tracker_config import SORTConfig
+    import torchtrack.filters.trackers.sort as sort_module
+    from torchtrack.filters.trackers.options import SORTConfig
 
     frames = _random_frames(np.random.default_rng(1))
 
     def run():
-        tracker = baselines.SORT(SORTConfig(max_distance=6.0, min_hits=1))
+        tracker = sort_module.SORT(SORTConfig(max_distance=6.0, min_hits=1))
         return [tuple(t.tolist() for t in tracker.step(k + 1, torch.as_tensor(z))) for k, z in enumerate(frames)]
 
     dense = run()
-    monkeypatch.setattr(baselines, "DENSE_PAIRS", 0)       # every frame through the k-d tree and components
+    monkeypatch.setattr(sort_module, "DENSE_PAIRS", 0)       # every frame through the k-d tree and components
     assert run() == dense
 
 
 def test_greedy_on_gated_pairs_equals_the_brute_force_rule():
     import torch
 
-    from torchtrack.filters.baselines import GreedyTracker
-    from torchtrack.filters.tracker_config import GreedyConfig
+    from torchtrack.filters.trackers.greedy import GreedyTracker
+    from torchtrack.filters.trackers.options import GreedyConfig
 
     frames = _random_frames(np.random.default_rng(2))
     tracker = GreedyTracker(GreedyConfig(max_distance=5.0, max_age=1))

@@ -14,7 +14,7 @@ from torchtrack.cli import main
 from torchtrack.config import Bounds, Checked, from_mapping, load_sections, preset_path, read_mapping
 from torchtrack.detector.config import DetectorConfig, load_config
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.tracker_config import GMPHDConfig, GreedyConfig, PMBConfig, SORTConfig, load_tracker_configs
+from torchtrack.filters.trackers.options import GMPHDConfig, GreedyConfig, PMBConfig, SORTConfig, load_tracker_configs
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.sim.maneuver import maneuvering
 from torchtrack.sim.video_config import VideoConfig, load_video_config

@@ -7,8 +7,8 @@ import numpy as np
 import torch
 
 from torchtrack.bench.scale import simulate
-from torchtrack.filters.glmb_birth import adaptive_births, scene_birth_rate, two_point_births
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.glmb.birth import adaptive_births, scene_birth_rate, two_point_births
+from torchtrack.filters.trackers.protocol import make_tracker
 
 
 def test_birth_rate_is_the_larger_of_the_floor_and_the_density_times_the_extent():
@@ -85,7 +85,7 @@ def test_tracks_start_in_a_scene_of_1000_vehicles():
 def test_two_point_partners_from_the_grid_equal_every_pair_compared(monkeypatch):
     """The two-point birth's nearest free partners within the maximum speed: the grid path (wide-area frames)
     gives the distances and partners of comparing every pair (float64, random frames, ties impossible)."""
-    from torchtrack.filters import glmb_birth
+    from torchtrack.filters.glmb import birth as glmb_birth
 
     g = torch.Generator().manual_seed(7)
     z = torch.rand(400, 2, generator=g, dtype=torch.float64) * 300

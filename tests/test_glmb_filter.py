@@ -10,10 +10,10 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.glmb import Births, GLMBFilter, GLMBState
-from torchtrack.filters.glmb_birth import no_births
-from torchtrack.filters.multitarget import make_tracker
-from torchtrack.filters.tracker_config import tracker_config
+from torchtrack.filters.glmb.birth import no_births
+from torchtrack.filters.glmb.filter import Births, GLMBFilter, GLMBState
+from torchtrack.filters.trackers.options import tracker_config
+from torchtrack.filters.trackers.protocol import make_tracker
 
 Q_DENSITY, SIGMA = 0.5, 1.0
 F = np.array([[1, 0, 1, 0], [0, 1, 0, 1], [0, 0, 1, 0], [0, 0, 0, 1]], dtype=float)
@@ -246,7 +246,7 @@ def test_cap_respected_and_warned_once(caplog):
     truth = _crossing()
     tracker = make_tracker("glmb", {"velocity_sigma": None, "max_hypotheses": 2, "clutter_density": 1e-3})
     rng = np.random.default_rng(2)
-    with caplog.at_level(logging.WARNING, logger="torchtrack.filters.glmb"):
+    with caplog.at_level(logging.WARNING, logger="torchtrack.filters.glmb.filter"):
         for k, x in enumerate(truth, start=1):
             tracker.step(k, torch.tensor(np.vstack([x + rng.normal(0, 1.0, x.shape), rng.uniform(0, 150, (5, 2))])))
             assert int(torch.bincount(tracker.state.group).max()) <= 2          # the cap is per group

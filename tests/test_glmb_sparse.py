@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-import torchtrack.filters.glmb_gating as glmb_gating
+import torchtrack.filters.glmb.gating as glmb_gating
 from torchtrack.association.gibbs import FIRST_MEASUREMENT, gating_groups
-from torchtrack.filters.glmb_gating import gated_candidates
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.glmb.gating import gated_candidates
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.gaussian import chi2_quantile, innovation_cov, kalman_gain
 
 
@@ -174,7 +174,7 @@ def _sequential_products(proj, proj_w, proj_q, pair_new, cap):
 
 @pytest.mark.parametrize("seed", range(4))
 def test_products_of_joined_groups_equal_sequential_products(seed):
-    from torchtrack.filters.glmb import _products
+    from torchtrack.filters.glmb.filter import _products
 
     rng = np.random.default_rng(seed)
     n_groups = 12

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.trackers.protocol import make_tracker
 
 
 def _target(k: int) -> torch.Tensor:
@@ -34,8 +34,8 @@ def test_many_empty_frames_then_targets(name):
 def test_thousands_of_detections_bounded_by_the_scene(velocity_sigma):
     """8000 detections a frame: the mixture stays within the cap sized from the measurements and live labels
     (far above the configured floor of 512), and the tracker keeps working afterwards."""
-    from torchtrack.filters.gmphd import GMPHD
-    from torchtrack.filters.tracker_config import GMPHDFilterOptions
+    from torchtrack.filters.gmphd.filter import GMPHD
+    from torchtrack.filters.trackers.options import GMPHDFilterOptions
 
     tracker = make_tracker("gmphd", {"filter": {"capacity": 512, "chunk": 2048, "velocity_sigma": velocity_sigma}})
     phd = GMPHD(options=GMPHDFilterOptions(capacity=512))
@@ -75,15 +75,15 @@ def test_long_sequence_memory_bounded_and_every_cap_hit_reported(caplog, name):
     """Hundreds of frames of dense clutter without merging or pruning (every gated pair stays a component): the
     mixture never exceeds the scene's cap ``max(capacity, 2 (M + live labels))``, each hit is logged and
     counted; with merging and pruning, the cap is never reached."""
-    from torchtrack.filters.gmphd import GMPHD
-    from torchtrack.filters.tracker_config import GMPHDFilterOptions
+    from torchtrack.filters.gmphd.filter import GMPHD
+    from torchtrack.filters.trackers.options import GMPHDFilterOptions
 
     g = torch.Generator().manual_seed(1)
     frames = [torch.rand(60, 2, generator=g) * 400 for _ in range(300)]
     tight = make_tracker(name, {"filter": {"capacity": 40, "merge_threshold": 0.0, "prune_threshold": 1e-30}})
     phd = GMPHD(options=GMPHDFilterOptions(capacity=40))
     before = 0
-    with caplog.at_level(logging.WARNING, logger="torchtrack.filters.gmphd"):
+    with caplog.at_level(logging.WARNING, logger="torchtrack.filters.gmphd.filter"):
         for k, z in enumerate(frames, start=1):
             tight.step(k, z, torch.zeros_like(z))
             assert tight.state.size <= phd.capacity_for(60, before)    # live labels <= components before
@@ -97,7 +97,7 @@ def test_long_sequence_memory_bounded_and_every_cap_hit_reported(caplog, name):
 
 
 def test_non_positive_definite_innovation_covariance_is_a_clear_error():
-    from torchtrack.filters.gmphd import GMPHD, MixtureState
+    from torchtrack.filters.gmphd.filter import GMPHD, MixtureState
 
     phd = GMPHD()
     state = MixtureState(torch.zeros(2), torch.zeros(2, 4), -10.0 * torch.eye(4).expand(2, 4, 4),

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import torch
 
-from torchtrack.filters.gmphd_birth import AdaptiveBirth, VelocityMap
-from torchtrack.filters.tracker_config import GMPHDBirthOptions, VelocityMapOptions
+from torchtrack.filters.gmphd.birth import AdaptiveBirth, VelocityMap
+from torchtrack.filters.trackers.options import GMPHDBirthOptions, VelocityMapOptions
 
 F64 = torch.float64
 

@@ -5,9 +5,9 @@ import torch
 
 from torchtrack.bench import scale
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.gmphd import GMPHD, SCENE_COMPONENTS
-from torchtrack.filters.multitarget import make_tracker
-from torchtrack.filters.tracker_config import GMPHDFilterOptions
+from torchtrack.filters.gmphd.filter import GMPHD, SCENE_COMPONENTS
+from torchtrack.filters.trackers.options import GMPHDFilterOptions
+from torchtrack.filters.trackers.protocol import make_tracker
 
 
 def test_capacity_is_the_floor_of_a_cap_sized_from_the_scene():
@@ -46,7 +46,7 @@ def test_a_small_configured_capacity_drops_no_live_component(name):
 
 def test_the_merge_screen_finds_the_same_pairs_as_testing_every_pair():
     """The grid screen of the merge returns exactly the pairs within reach, checked pair by pair (float64)."""
-    from torchtrack.filters.gmphd import _within_reach
+    from torchtrack.filters.gmphd.filter import _within_reach
 
     g = torch.Generator().manual_seed(4)
     J, U = 600, 9.0

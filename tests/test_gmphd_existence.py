@@ -1,4 +1,4 @@
-"""The Bernoulli existence per label (torchtrack.filters.gmphd_existence) and the update's label support."""
+"""The Bernoulli existence per label (torchtrack.filters.gmphd.existence) and the update's label support."""
 
 from __future__ import annotations
 
@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from torchtrack.filters.gmphd import GMPHD, MixtureState
-from torchtrack.filters.gmphd_existence import LabelExistence, bernoulli_step, no_existence
-from torchtrack.filters.tracker_config import GMPHDFilterOptions
+from torchtrack.filters.gmphd.existence import LabelExistence, bernoulli_step, no_existence
+from torchtrack.filters.gmphd.filter import GMPHD, MixtureState
+from torchtrack.filters.trackers.options import GMPHDFilterOptions
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 F64 = torch.float64

@@ -10,10 +10,10 @@ import torch
 from filterpy.kalman import KalmanFilter as FPKalman
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.gmphd import GMPHD, MixtureState, merge
-from torchtrack.filters.gmphd_birth import AdaptiveBirth
-from torchtrack.filters.gmphd_tracker import GMPHDTracker
-from torchtrack.filters.tracker_config import GMPHDBirthOptions, GMPHDConfig, GMPHDFilterOptions
+from torchtrack.filters.gmphd.birth import AdaptiveBirth
+from torchtrack.filters.gmphd.filter import GMPHD, MixtureState, merge
+from torchtrack.filters.gmphd.tracker import GMPHDTracker
+from torchtrack.filters.trackers.options import GMPHDBirthOptions, GMPHDConfig, GMPHDFilterOptions
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 F64 = torch.float64
@@ -294,7 +294,7 @@ def test_gradients_reach_the_velocity_noise_and_velocity_clutter_density():
 
 def test_dense_and_screened_merges_agree(monkeypatch):
     """Small mixtures test every pair at once, large ones screen pairs on positions first: same merge."""
-    import torchtrack.filters.gmphd as gm
+    import torchtrack.filters.gmphd.filter as gm
 
     g = torch.Generator().manual_seed(4)
     for _ in range(30):

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from torchtrack.filters.gmphd import MixtureState, as_rows, labels_in
-from torchtrack.filters.gmphd_labels import (
+from torchtrack.filters.gmphd.filter import MixtureState, as_rows, labels_in
+from torchtrack.filters.gmphd.labels import (
     LostLabels,
     best_per_label,
     confirm_labels,
@@ -16,7 +16,7 @@ from torchtrack.filters.gmphd_labels import (
     no_tentative_labels,
     relabel,
 )
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.trackers.protocol import make_tracker
 
 F64 = torch.float64
 

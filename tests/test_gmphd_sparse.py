@@ -1,7 +1,7 @@
 """The sparse GM-PHD update (gated pairs from a grid index) equals the dense all-pairs update (float64).
 
 The reference below forms every (component, measurement) pair and follows the equations of the
-``torchtrack.filters.gmphd`` docstring with general solves, independently of the Cholesky and grid paths.
+``torchtrack.filters.gmphd.filter`` docstring with general solves, independently of the Cholesky and grid paths.
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ import torch
 
 from torchtrack.association.grid import disc_candidates, nearest_within
 from torchtrack.bench import scale
-from torchtrack.filters.gmphd import GMPHD, MixtureState, UpdateInfo
-from torchtrack.filters.gmphd_birth import AdaptiveBirth
-from torchtrack.filters.multitarget import make_tracker
-from torchtrack.filters.tracker_config import GMPHDBirthOptions, GMPHDFilterOptions
+from torchtrack.filters.gmphd.birth import AdaptiveBirth
+from torchtrack.filters.gmphd.filter import GMPHD, MixtureState, UpdateInfo
+from torchtrack.filters.trackers.options import GMPHDBirthOptions, GMPHDFilterOptions
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 F64 = torch.float64
@@ -117,8 +117,8 @@ CASES = {
 def pairs_from(request, monkeypatch) -> str:
     """Both ways to the gated pairs: every pair tested at once (a small problem) and the grid index."""
     limit = 10**12 if request.param == "every pair" else 0
-    monkeypatch.setattr("torchtrack.filters.gmphd.DENSE_PAIRS", limit)
-    monkeypatch.setattr("torchtrack.filters.gmphd_birth.DENSE_PAIRS", limit)
+    monkeypatch.setattr("torchtrack.filters.gmphd.filter.DENSE_PAIRS", limit)
+    monkeypatch.setattr("torchtrack.filters.gmphd.birth.DENSE_PAIRS", limit)
     monkeypatch.setattr("torchtrack.association.grid.DENSE_PAIRS", limit)
     return request.param
 
@@ -264,8 +264,8 @@ def test_trackers_report_what_the_dense_update_reports(name, monkeypatch):
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="no CUDA device (runs where a GPU exists)")
 @pytest.mark.parametrize("name", ["gmphd", "labelled-gmphd"])
 def test_the_grid_path_on_cuda_gives_the_cpu_tracks(name, monkeypatch):
-    monkeypatch.setattr("torchtrack.filters.gmphd.DENSE_PAIRS", 0)
-    monkeypatch.setattr("torchtrack.filters.gmphd_birth.DENSE_PAIRS", 0)
+    monkeypatch.setattr("torchtrack.filters.gmphd.filter.DENSE_PAIRS", 0)
+    monkeypatch.setattr("torchtrack.filters.gmphd.birth.DENSE_PAIRS", 0)
     scene = scale.simulate(300, 6, seed=3)
     runs = {}
     for device in ("cpu", "cuda"):

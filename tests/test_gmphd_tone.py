@@ -1,4 +1,4 @@
-"""The grey-level attribute of the labelled GM-PHD (torchtrack.filters.gmphd_tone) and the pipeline's
+"""The grey-level attribute of the labelled GM-PHD (torchtrack.filters.gmphd.tone) and the pipeline's
 grey level per detection."""
 
 from __future__ import annotations
@@ -10,11 +10,11 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.gmphd import GMPHD, MixtureState
-from torchtrack.filters.gmphd_labels import label_handover, no_lost_labels
-from torchtrack.filters.gmphd_tone import LabelTones, add_births, lookup, no_label_tones, tone_log_ratio, update_tones
-from torchtrack.filters.multitarget import make_tracker
-from torchtrack.filters.tracker_config import GMPHDFilterOptions
+from torchtrack.filters.gmphd.filter import GMPHD, MixtureState
+from torchtrack.filters.gmphd.labels import label_handover, no_lost_labels
+from torchtrack.filters.gmphd.tone import LabelTones, add_births, lookup, no_label_tones, tone_log_ratio, update_tones
+from torchtrack.filters.trackers.options import GMPHDFilterOptions
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.models import ConstantVelocity, LinearPosition
 from torchtrack.pipeline.detection import grey_level
 from torchtrack.pipeline.frame_detections import FrameDetections

@@ -4,9 +4,9 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.imm import InteractingMultipleModel
-from torchtrack.filters.imm_bank import ClassConditionedIMM
-from torchtrack.filters.imm_cv import ConstantVelocityIMM
+from torchtrack.filters.imm.bank import ClassConditionedIMM
+from torchtrack.filters.imm.cv import ConstantVelocityIMM
+from torchtrack.filters.imm.filter import InteractingMultipleModel
 from torchtrack.gaussian import log_prob, moment_match
 from torchtrack.models import LinearPosition, ModeControlInput
 

@@ -5,9 +5,9 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.imm import InteractingMultipleModel
-from torchtrack.filters.imm_cv import ConstantVelocityIMM
-from torchtrack.filters.kalman import GaussianState, KalmanFilter
+from torchtrack.filters.imm.cv import ConstantVelocityIMM
+from torchtrack.filters.imm.filter import InteractingMultipleModel
+from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter
 from torchtrack.models import ConstantAcceleration, ConstantVelocity, LinearPosition, ModeControlInput
 from torchtrack.params import RowStochastic
 
@@ -154,7 +154,7 @@ def test_imm_bad_input():
 
 
 def test_compiled_step_falls_back_to_eager(monkeypatch):
-    import torchtrack.filters.imm_cv as imm_cv
+    import torchtrack.filters.imm.cv as imm_cv
 
     def broken(fn, **kw):
         def call(*args):

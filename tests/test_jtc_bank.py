@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.jtc import (
+from torchtrack.filters.particle.jtc import (
     PAPER_SPEED_ENVELOPES,
     MultipleModelParticleFilter,
     alias_tables,

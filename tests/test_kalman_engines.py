@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.kalman import GaussianState, KalmanFilter
+from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 

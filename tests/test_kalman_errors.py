@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from torchtrack import TorchtrackError
-from torchtrack.filters.kalman import GaussianState, KalmanFilter
+from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter
 from torchtrack.gaussian import log_prob
 from torchtrack.models import ConstantVelocity, LinearMeasurement, LinearMotion, LinearPosition
 from torchtrack.params import Covariance, Positive, Probability, RowStochastic

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from torchtrack import TorchtrackError
-from torchtrack.filters import kalman_lanes as lanes
-from torchtrack.filters.kalman import GaussianState, KalmanFilter, _GaussianFilter
+from torchtrack.filters.kalman import lanes
+from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter, _GaussianFilter
 from torchtrack.models import ConstantVelocity, LinearMeasurement, LinearMotion, LinearPosition
 
 F64 = torch.float64

@@ -3,7 +3,7 @@
 import pytest
 import torch
 
-from torchtrack.filters.kalman import GaussianState, KalmanFilter, chi2_bounds, nees
+from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter, chi2_bounds, nees
 from torchtrack.gaussian import sample
 from torchtrack.models import ConstantVelocity, LinearPosition
 

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 import torch
 
-from torchtrack.filters.kalman import (
+from torchtrack.filters.kalman.filter import (
     ExtendedKalmanFilter,
     GaussianState,
     KalmanFilter,

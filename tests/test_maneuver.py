@@ -8,8 +8,8 @@ import torch
 
 from torchtrack import TorchtrackError
 from torchtrack.cli import main
-from torchtrack.filters.kalman import KalmanFilter
-from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter, two_point_init
+from torchtrack.filters.kalman.filter import KalmanFilter
+from torchtrack.filters.kalman.maneuver import ManeuverDetectingKalmanFilter, two_point_init
 from torchtrack.gaussian import chi2_quantile
 from torchtrack.models import ConstantVelocity, LinearPosition
 from torchtrack.sim.maneuver import maneuvering

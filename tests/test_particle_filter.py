@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.particle import (
+from torchtrack.filters.particle.filter import (
     ParticleFilter,
     ParticleState,
     effective_sample_size,

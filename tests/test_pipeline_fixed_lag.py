@@ -135,7 +135,7 @@ def test_weak_detections_continue_pending_tracks_only_when_asked(continues_pendi
 
 
 def test_gmphd_tracker_exposes_new_labels_waiting_for_confirmation():
-    from torchtrack.filters.multitarget import make_tracker
+    from torchtrack.filters.trackers.protocol import make_tracker
 
     tracker = make_tracker("gmphd", {"dtype": "float64", "confirm_new": 3})
     pending = []

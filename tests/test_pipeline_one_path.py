@@ -17,7 +17,7 @@ from test_baselines_track_cli import scene
 from test_io_wpafb import write_csv
 
 from torchtrack.cli import main
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.mot import read_mot
 from torchtrack.metrics.table import TABLE1_HEADER, format_table1, table1_row
 from torchtrack.pipeline.config import PipelineConfig

@@ -7,9 +7,9 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import make_tracker
-from torchtrack.filters.pmb_tracker import birth_weight
-from torchtrack.filters.tracker_config import tracker_config
+from torchtrack.filters.pmb.tracker import birth_weight
+from torchtrack.filters.trackers.options import tracker_config
+from torchtrack.filters.trackers.protocol import make_tracker
 
 SPACING = 40.0
 

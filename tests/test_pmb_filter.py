@@ -9,7 +9,7 @@ import torch
 from filterpy.kalman import KalmanFilter as FilterpyKF
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.pmb import PMBFilter, expected_count
+from torchtrack.filters.pmb.filter import PMBFilter, expected_count
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 F64 = torch.float64

@@ -6,8 +6,8 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.pmb import PMBFilter
-from torchtrack.filters.pmb_sensor import JointSensorPMB, SensorState, v2f_update
+from torchtrack.filters.pmb.filter import PMBFilter
+from torchtrack.filters.pmb.sensor import JointSensorPMB, SensorState, v2f_update
 from torchtrack.gaussian import kalman_update
 from torchtrack.models import ConstantVelocity, LinearPosition
 

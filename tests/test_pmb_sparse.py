@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.pmb import PMBFilter
+from torchtrack.filters.pmb.filter import PMBFilter
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 SIDE = 200.0

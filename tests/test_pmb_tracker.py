@@ -6,7 +6,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import make_tracker, tracker_names
+from torchtrack.filters.trackers.protocol import make_tracker, tracker_names
 
 
 def test_pmb_tracker_follows_two_targets_with_stable_ids():

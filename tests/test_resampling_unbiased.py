@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters import resampling
+from torchtrack.filters.particle import resampling
 
 W = torch.tensor([0.31, 0.02, 0.17, 0.0, 0.255, 0.105, 0.07, 0.07], dtype=torch.float64)
 N, REPS = W.numel(), 20_000

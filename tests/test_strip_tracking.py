@@ -11,7 +11,7 @@ import torch
 from torchtrack.bench.scale import points, simulate
 from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.mot import read_mot, write_mot, write_motdata
 from torchtrack.metrics.clear_mot import clear_mot
 from torchtrack.pipeline.config import SELECTED_TRACKERS
@@ -115,7 +115,7 @@ def test_two_ranks_over_strips_equal_one_process_up_to_the_handover_rule(tmp_pat
     script.write_text(
         "import pickle, torch.distributed as dist\n"
         "from torchtrack.bench.scale import simulate\n"
-        "from torchtrack.filters.multitarget import make_tracker\n"
+        "from torchtrack.filters.trackers.protocol import make_tracker\n"
         "from torchtrack.pipeline.strip_tracking import StripConfig, StripTracker\n"
         "dist.init_process_group('gloo')\n"
         f"scene = simulate({VEHICLES}, {FRAMES}, {SEED})\n"

@@ -10,8 +10,7 @@ import torch
 
 from torchtrack.config import from_mapping
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import make_tracker, tracker_names
-from torchtrack.filters.tracker_config import (
+from torchtrack.filters.trackers.options import (
     DEFAULTS,
     LABELLED_GMPHD,
     GMPHDConfig,
@@ -19,6 +18,7 @@ from torchtrack.filters.tracker_config import (
     load_tracker_configs,
     tracker_config,
 )
+from torchtrack.filters.trackers.protocol import make_tracker, tracker_names
 from torchtrack.pipeline.config import SELECTED_TRACKERS
 
 ROOT = Path(__file__).resolve().parents[1]

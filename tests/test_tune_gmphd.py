@@ -124,8 +124,8 @@ def test_grid_search_scores_every_point_and_keeps_the_best(tmp_path):
 def test_exported_tracker_options_are_accepted_by_track(tmp_path):
     import yaml
 
-    from torchtrack.filters.multitarget import make_tracker
-    from torchtrack.filters.tracker_config import read_tracker_sections
+    from torchtrack.filters.trackers.options import read_tracker_sections
+    from torchtrack.filters.trackers.protocol import make_tracker
 
     tun, tracker, _ = problem(tmp_path, frames=30)
     set_values(tracker, {"phd.p_detection": 0.77, "birth.birth_weight": 0.03})

@@ -97,7 +97,7 @@ def fitted_kalman_file(tmp_path, noise="pwca"):
 
 
 def test_scenario_maneuver_params_reproduce_the_fitted_filter_exactly(tmp_path):
-    from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter
+    from torchtrack.filters.kalman.maneuver import ManeuverDetectingKalmanFilter
     from torchtrack.scenarios.maneuver import DEFAULT_CONFIG, fitted_kalman, load_config
 
     kf, params = fitted_kalman_file(tmp_path)

@@ -4,7 +4,7 @@ over hypotheses and tracks as the published codes do (:mod:`torchtrack.bench.glm
 Workload: ``bench gmphd``'s WPAFB-scale frames (:func:`torchtrack.bench.gmphd.scenario`): 100 vehicles with
 constant-velocity motion in 1000 × 1000 px, detected with p_D 0.9 and σ 1 px, Poisson clutter of mean 60 —
 about 150 measurements per frame — with the detector's velocity (noise 1 px/frame) used or not (``velocities``).
-Both trackers take the ``glmb`` defaults (:class:`~torchtrack.filters.tracker_config.GLMBConfig`) except the
+Both trackers take the ``glmb`` defaults (:class:`~torchtrack.filters.trackers.options.GLMBConfig`) except the
 clutter density, set to the workload's, and ``velocity_sigma`` (1 px/frame with velocities, else None). Each
 starts empty and runs ``warmup`` frames untimed (its tracks are born and confirmed), then the next frames are
 timed one step at a time: ``frames`` of ours, ``reference_frames`` (fewer) of the reference; rates are per frame.
@@ -22,8 +22,8 @@ import torch
 from torchtrack.bench._timing import BenchResult, format_result, load_average
 from torchtrack.bench.glmb_reference import ReferenceGLMB
 from torchtrack.bench.gmphd import WORKLOADS, scenario
-from torchtrack.filters.multitarget import make_tracker
-from torchtrack.filters.tracker_config import tracker_config
+from torchtrack.filters.trackers.options import tracker_config
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.threads import torch_threads
 
 DETECTOR_VELOCITY_SIGMA = 1.0   # px/frame: the workload's velocity noise

@@ -1,8 +1,8 @@
 """A NumPy δ-GLMB tracker written the way the published codes are (B.-N. Vo's MATLAB ``jointpredictupdate`` and
 its Python ports): the reference of ``torchtrack bench glmb``.
 
-The same model and recursion as :mod:`torchtrack.filters.glmb` (equations (G1)–(G7) of its docstring) and
-:mod:`torchtrack.filters.glmb_birth` ((B1), (B2)), with the same options (:class:`GLMBConfig`):
+The same model and recursion as :mod:`torchtrack.filters.glmb.filter` (equations (G1)–(G7) of its docstring) and
+:mod:`torchtrack.filters.glmb.birth` ((B1), (B2)), with the same options (:class:`GLMBConfig`):
 
 - (G1)/(G2) every track of the table and every birth is predicted and updated against every measurement one
   track at a time (a Python loop over tracks, each Kalman step in NumPy), χ² gating, the per-track weights
@@ -15,7 +15,7 @@ The same model and recursion as :mod:`torchtrack.filters.glmb` (equations (G1)�
 - births (B1)–(B2) from the measurements' probability of having been assigned, and for positions only the
   two-point births (B3) of the previous frame's unexplained measurements.
 
-What differs from :class:`~torchtrack.filters.glmb.GLMBFilter`: **no groups** — like the published code, one
+What differs from :class:`~torchtrack.filters.glmb.filter.GLMBFilter`: **no groups** — like the published code, one
 δ-GLMB over all tracks (a frame's hypotheses are joint: ``chains`` chains per frame, ``max_hypotheses`` hypotheses
 in all, the estimate is the joint MAP); the sweep visits a hypothesis's tracks in table order, then the births;
 its own random stream (``numpy.random.Generator``). Where the tracks form one group (every track gates a common
@@ -33,7 +33,7 @@ import numpy as np
 from scipy.linalg import cho_solve, solve_triangular
 from scipy.stats import chi2
 
-from torchtrack.filters.tracker_config import GLMBConfig
+from torchtrack.filters.trackers.options import GLMBConfig
 
 ABSENT, MISSED = 0, 1   # columns of a track's η row; column 2 + j is measurement j
 

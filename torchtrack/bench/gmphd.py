@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import BenchResult, best_time, format_result
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.gaussian import chi2_quantile
 
 WORKLOADS = {

@@ -1,6 +1,6 @@
 """``torchtrack bench imm``: a 3-model IMM on ``[x, y, vx, vy]`` for many tracks against FilterPy.
 
-Ours: :class:`~torchtrack.filters.imm_cv.ConstantVelocityIMM` (structured elementwise step, compiled
+Ours: :class:`~torchtrack.filters.imm.cv.ConstantVelocityIMM` (structured elementwise step, compiled
 with ``torch.compile`` unless ``--no-compile``), all tracks at once, float32 by default; a full cycle
 per step: interaction, three model-matched predictions and updates, mode update, combination.
 Reference: FilterPy's ``IMMEstimator`` (three ``KalmanFilter``s with the same models), one object
@@ -19,7 +19,7 @@ import torch
 
 from torchtrack.bench._timing import BenchResult, best_time, cpu_time, format_result
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.imm_cv import ConstantVelocityIMM
+from torchtrack.filters.imm.cv import ConstantVelocityIMM
 from torchtrack.models import LinearPosition, ModeControlInput
 from torchtrack.threads import torch_threads
 

@@ -4,7 +4,7 @@ Workload: 2-D nearly-constant-velocity targets (state ``[x, y, vx, vy]``), posit
 float32, ``--tracks`` tracks × ``--steps`` steps. Timed in the same run:
 
 * **ours** — :meth:`KalmanFilter.run` with ``engine="axes"`` (the axis-decoupled engine,
-  :mod:`torchtrack.filters.kalman_axes`, compiled; final posterior only, ``history=False``);
+  :mod:`torchtrack.filters.kalman.axes`, compiled; final posterior only, ``history=False``);
 * **general path** — :meth:`KalmanFilter.run`'s default engine (lanes) with full 4×4 matrices (reported as
   extras: ``general_path_per_s`` compiled unless ``--no-compile``, ``general_path_eager_per_s``,
   ``general_path_per_cpu_s``; ``batch_first_loop_per_s`` is the batch-first predict/update loop that
@@ -24,7 +24,7 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import BenchResult, best_time, format_result
-from torchtrack.filters.kalman import GaussianState, KalmanFilter
+from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter
 from torchtrack.models import ConstantVelocity, LinearPosition
 
 DT, Q, SIGMA = 1.0, 0.05, 1.0

@@ -4,7 +4,7 @@ Workload: the JTC paper's bank (2 classes × 5 modes, range–bearing radar, spe
 systematic resampling at every scan) on the paper's trajectory, ``--runs`` runs × 2 classes ×
 ``--particles`` particles × ``--scans`` scans, float32 or float64. Timed in the same process:
 
-* **ours** — :class:`torchtrack.filters.jtc.MultipleModelParticleFilter`, all runs one batch;
+* **ours** — :class:`torchtrack.filters.particle.jtc.MultipleModelParticleFilter`, all runs one batch;
   best of ``--repeats`` whole passes (after one warm-up pass), random draws included;
 * **reference** — the same algorithm written in vectorised NumPy (all runs and classes batched,
   systematic resampling by one ``np.searchsorted`` over the concatenated rows).
@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from torchtrack.bench._timing import BenchResult, best_time, cpu_time, format_result, load_average
-from torchtrack.filters.jtc import MultipleModelParticleFilter, paper_bank
+from torchtrack.filters.particle.jtc import MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import jtc_trajectory, simulate_measurements
 from torchtrack.threads import torch_threads
 

@@ -17,7 +17,7 @@ import torch
 
 from torchtrack.bench._timing import CLOCKS, BenchResult, best_time, format_result, load_average
 from torchtrack.bench.lbp import numpy_lbp
-from torchtrack.filters.pmb import PMBFilter, PMBState
+from torchtrack.filters.pmb.filter import PMBFilter, PMBState
 from torchtrack.models import ConstantVelocity, LinearPosition
 from torchtrack.threads import torch_threads
 

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 
 from torchtrack.bench._memory import PeakMemory
-from torchtrack.filters.multitarget import make_tracker, tracker_names
+from torchtrack.filters.trackers.protocol import make_tracker, tracker_names
 from torchtrack.io.mot import MOTData
 from torchtrack.metrics.clear_mot import clear_mot
 from torchtrack.metrics.table import format_table

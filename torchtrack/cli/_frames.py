@@ -20,7 +20,7 @@ from pathlib import Path
 from torchtrack.cli._common import config_file
 from torchtrack.cli._strips import frame_strips, rank_output, strip_group, strip_metrics
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import tracker_names
+from torchtrack.filters.trackers.protocol import tracker_names
 from torchtrack.io.frames import open_frames
 from torchtrack.io.mot import read_mot
 from torchtrack.io.outputs import OutputFolder, write_json

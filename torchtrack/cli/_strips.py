@@ -25,7 +25,7 @@ import torch.distributed as dist
 
 from torchtrack.detector import load_detector
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import Tracker, make_tracker
+from torchtrack.filters.trackers.protocol import Tracker, make_tracker
 from torchtrack.io.mot import MOTData
 from torchtrack.io.outputs import OutputFolder
 from torchtrack.pipeline.config import PipelineConfig

@@ -6,7 +6,7 @@ from __future__ import annotations
 from pathlib import Path
 
 from torchtrack.config import preset_path, read_mapping
-from torchtrack.filters.tracker_config import read_tracker_sections
+from torchtrack.filters.trackers.options import read_tracker_sections
 from torchtrack.io.datasets import WPAFB, wpafb_truth_csv
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table1

@@ -8,7 +8,7 @@ from pathlib import Path
 
 from torchtrack.cli._common import add_common_options, add_force_option, config_file
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import tracker_names
+from torchtrack.filters.trackers.protocol import tracker_names
 from torchtrack.io.outputs import OutputFolder, check_output_file, write_json, write_yaml
 from torchtrack.metrics.table import format_table
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config

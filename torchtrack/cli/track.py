@@ -25,8 +25,8 @@ from torchtrack.cli._strips import (
     strip_tracker,
 )
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import Tracker, tracker_names
-from torchtrack.filters.tracker_config import read_tracker_sections
+from torchtrack.filters.trackers.options import read_tracker_sections
+from torchtrack.filters.trackers.protocol import Tracker, tracker_names
 from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.metrics.table import format_table1
 from torchtrack.threads import torch_threads
@@ -173,7 +173,7 @@ def _run(args: argparse.Namespace) -> int:
 
 def _run_strips(args: argparse.Namespace, config: PipelineConfig, fitted: Tracker | None) -> int:
     """``--strips``: one tracker over the strips of the torchrun ranks; rank 0 writes and prints."""
-    from torchtrack.filters.multitarget import make_tracker
+    from torchtrack.filters.trackers.protocol import make_tracker
     from torchtrack.io.mot import read_mot
     from torchtrack.pipeline.detection_file import track_detections
 

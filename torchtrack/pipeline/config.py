@@ -11,7 +11,7 @@ import torch
 
 from torchtrack.config import Checked, from_mapping, option, read_mapping
 from torchtrack.detector.network import MULTIPLE
-from torchtrack.filters.tracker_config import DEFAULTS, tracker_config
+from torchtrack.filters.trackers.options import DEFAULTS, tracker_config
 from torchtrack.pipeline.registration import RegistrationConfig
 
 SELECTED_TRACKERS: dict = {
@@ -25,7 +25,7 @@ SELECTED_TRACKERS: dict = {
     "greedy": {"max_distance": 20.0, "max_age": 2},
 }
 """Per-tracker options of the embedded defaults (the keys that differ from each tracker's built-in defaults,
-:mod:`torchtrack.filters.tracker_config`), with ``min_speed 2`` and ``min_motion 5``: chosen by
+:mod:`torchtrack.filters.trackers.options`), with ``min_speed 2`` and ``min_motion 5``: chosen by
 ``torchtrack select-trackers --sequences out/val --min-speeds 1 2 --min-motions 5 8`` on the detector's
 validation-split sequences, with the fixed-lag output and weak detections of the defaults; the GM-PHD's
 ``tone_sigma`` (a grey level per label) added after a comparison on 32 validation sequences (docs/pipeline.md).
@@ -66,7 +66,7 @@ class PipelineConfig(Checked):
     snapshots: frame numbers saved as PNG beside the video.
     dtype: the tracker's floating-point type.
     device: where the trackers run (``cpu``, ``cuda``, ``cuda:N``): each frame's detections are put there and the
-    trackers follow them (:mod:`torchtrack.filters.multitarget`).
+    trackers follow them (:mod:`torchtrack.filters.trackers.protocol`).
     threads: torch intra-op threads while the pipeline runs (default 1: the other core serves the
     concurrent frame decoding, registration and video encoding; on a loaded 2-core machine two torch
     threads made the detector 10–20 times slower, spinning against each other).
@@ -132,7 +132,7 @@ class PipelineConfig(Checked):
 def load_pipeline_config(path: str | Path | None) -> PipelineConfig:
     """Read a pipeline YAML (the mapping may sit under a top-level ``pipeline:`` key); ``None``: defaults.
     Each ``trackers`` entry holds the keys to change from that tracker's built-in defaults
-    (:mod:`torchtrack.filters.tracker_config`), checked here."""
+    (:mod:`torchtrack.filters.trackers.options`), checked here."""
     if path is None:
         return PipelineConfig()
     where = f"pipeline config {path}"

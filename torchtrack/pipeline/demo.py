@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from torchtrack.detector.dataset import split_seed
-from torchtrack.filters.multitarget import make_tracker, tracker_names
+from torchtrack.filters.trackers.protocol import make_tracker, tracker_names
 from torchtrack.geometry import apply_homography
 from torchtrack.io.frames import FolderSource
 from torchtrack.io.mot import MOTData, read_mot

@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
-from torchtrack.filters.multitarget import Tracker, make_tracker
+from torchtrack.filters.trackers.protocol import Tracker, make_tracker
 from torchtrack.io.mot import MOTData
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import score

@@ -23,7 +23,7 @@ import numpy as np
 from tqdm import tqdm
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.metrics.table import score
 from torchtrack.pipeline.config import PipelineConfig

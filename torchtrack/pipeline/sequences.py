@@ -31,7 +31,7 @@ import torch.distributed as dist
 
 from torchtrack.detector import load_detector
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, concat_mot, read_mot
 from torchtrack.io.outputs import OutputFolder, write_json

@@ -73,7 +73,7 @@ import torch.distributed as dist
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import Tracker
+from torchtrack.filters.trackers.protocol import Tracker
 from torchtrack.pipeline.strips import rank_and_size, strip_rows
 
 BAND = 48.0
@@ -186,7 +186,7 @@ class Identities:
 
 class StripTracker:
     """A tracker over strips (module docstring) with the common tracker interface
-    (:mod:`torchtrack.filters.multitarget`): every rank of ``group`` (default: the default process group; none
+    (:mod:`torchtrack.filters.trackers.protocol`): every rank of ``group`` (default: the default process group; none
     initialised: this process alone, one strip) calls ``step`` with the whole frame's detections and gets the
     whole frame's merged tracks. ``tracker`` is this rank's own tracker (any registered one)."""
 

@@ -39,7 +39,7 @@ from tqdm import tqdm
 
 from torchtrack.detector import load_detector
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import make_tracker
+from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.geometry import apply_homography, transfer_error
 from torchtrack.io.frames import FrameSource, prefetch
 from torchtrack.io.mot import MOTData, from_points

@@ -17,7 +17,7 @@ import torch
 
 from torchtrack.config import from_mapping
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import tracker_names
+from torchtrack.filters.trackers.protocol import tracker_names
 from torchtrack.io.mot import MOTData, write_motdata
 from torchtrack.io.wpafb import moving_mask
 from torchtrack.pipeline.detection_file import compare, detection_file_config

@@ -38,8 +38,8 @@ from torchtrack.association.gating import (
 )
 from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.imm_bank import BankState, ClassConditionedIMM
-from torchtrack.filters.imm_cv import ConstantVelocityIMM
+from torchtrack.filters.imm.bank import BankState, ClassConditionedIMM
+from torchtrack.filters.imm.cv import ConstantVelocityIMM
 from torchtrack.gaussian import chi2_quantile, moment_match
 from torchtrack.metrics.table import format_table
 from torchtrack.models import LinearPosition, ModeControlInput

@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.jtc import MMPFOutput, MultipleModelParticleFilter, paper_bank
+from torchtrack.filters.particle.jtc import MMPFOutput, MultipleModelParticleFilter, paper_bank
 from torchtrack.metrics.table import format_table
 from torchtrack.sim.jtc_trajectory import Trajectory, jtc_trajectory, simulate_measurements, true_modes
 from torchtrack.threads import torch_threads

@@ -15,8 +15,8 @@ import torch
 
 from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.kalman import GaussianState, KalmanFilter
-from torchtrack.filters.maneuver import ManeuverDetectingKalmanFilter
+from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter
+from torchtrack.filters.kalman.maneuver import ManeuverDetectingKalmanFilter
 from torchtrack.metrics.table import format_table
 from torchtrack.models import ConstantPosition, ConstantVelocity, LinearPosition
 from torchtrack.sim import maneuver as sim

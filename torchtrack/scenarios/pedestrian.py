@@ -22,8 +22,8 @@ from tqdm import tqdm
 
 from torchtrack.config import load_sections, preset_path
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.pmb import PMBFilter
-from torchtrack.filters.pmb_sensor import JointSensorPMB, SensorState, v2f_update
+from torchtrack.filters.pmb.filter import PMBFilter
+from torchtrack.filters.pmb.sensor import JointSensorPMB, SensorState, v2f_update
 from torchtrack.metrics.ospa import ospa
 from torchtrack.metrics.table import format_table
 from torchtrack.models import ConstantVelocity, LinearPosition

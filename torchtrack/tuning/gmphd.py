@@ -1,4 +1,4 @@
-"""Tunable GM-PHD tracker (:class:`~torchtrack.filters.gmphd_tracker.GMPHDTracker`): ``p_D``, clutter
+"""Tunable GM-PHD tracker (:class:`~torchtrack.filters.gmphd.tracker.GMPHDTracker`): ``p_D``, clutter
 density ``κ``, measurement and process noise, ``p_S``, birth weight and birth spreads.
 
 Items are windows of consecutive frames, :class:`FrameWindow` (measurement sets ``Z_k (M_k, 2)``, the
@@ -33,7 +33,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.gmphd_tracker import GMPHDTracker
+from torchtrack.filters.gmphd.tracker import GMPHDTracker
 from torchtrack.tuning.kalman import psd_factor
 from torchtrack.tuning.losses import sinkhorn_gospa
 from torchtrack.tuning.parameters import get_values, plain
@@ -105,7 +105,7 @@ def simulate_truth(cfg: Mapping[str, Any], generator: torch.Generator):
 def quiet_caps() -> Iterator[None]:
     """Silence the GM-PHD's per-frame "cap hit" warnings (training runs many mis-specified frames);
     the hits are still counted in ``GMPHD.cap_hits`` and reported by :meth:`GMPHDTunable.evaluate`."""
-    logger = logging.getLogger("torchtrack.filters.gmphd")
+    logger = logging.getLogger("torchtrack.filters.gmphd.filter")
     level = logger.level
     logger.setLevel(logging.ERROR)
     try:
@@ -133,7 +133,7 @@ class GMPHDTunable(Tunable):
         return {k: v for k, v in self.options.items() if k != "tracker"}
 
     def build(self) -> GMPHDTracker:
-        from torchtrack.filters.tracker_config import tracker_config
+        from torchtrack.filters.trackers.options import tracker_config
 
         return GMPHDTracker.from_config(tracker_config(self.variant, self.tracker_config()))   # with-velocity options
 

@@ -1,4 +1,4 @@
-"""Tunable IMM (:class:`~torchtrack.filters.imm_cv.ConstantVelocityIMM`): the mode transition matrix
+"""Tunable IMM (:class:`~torchtrack.filters.imm.cv.ConstantVelocityIMM`): the mode transition matrix
 ``transition.learned`` (a :class:`~torchtrack.params.RowStochastic`), the per-mode process noise
 ``motion.sigma (M,)`` and the measurement noise ``measurement.sigma``.
 
@@ -26,8 +26,8 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.imm import IMMState
-from torchtrack.filters.imm_cv import ConstantVelocityIMM
+from torchtrack.filters.imm.cv import ConstantVelocityIMM
+from torchtrack.filters.imm.filter import IMMState
 from torchtrack.models import LinearPosition, ModeControlInput
 from torchtrack.params import RowStochastic
 from torchtrack.tuning.kalman import KalmanTunable, Track

@@ -26,7 +26,7 @@ import torch
 from torch import Tensor, nn
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.kalman import GaussianState, KalmanFilter
+from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter
 from torchtrack.models import ConstantAcceleration, ConstantVelocity, LinearPosition
 from torchtrack.tuning.losses import sinkhorn_gospa
 from torchtrack.tuning.registry import Tunable, TuneData, check_keys, split_items

@@ -2,7 +2,7 @@
 
 Every constrained parameter of :mod:`torchtrack.params` (``Positive``, ``Probability``,
 ``RowStochastic``, ``Covariance``) inside a filter is addressed by its dotted module path, e.g.
-``motion.q`` or ``measurement.sigma`` of a :class:`~torchtrack.filters.kalman.KalmanFilter`. Its
+``motion.q`` or ``measurement.sigma`` of a :class:`~torchtrack.filters.kalman.filter.KalmanFilter`. Its
 *value* is the constrained tensor (``param()``); its *raw* value is the unconstrained
 ``nn.Parameter`` (``param.raw``) that the optimiser moves.
 """

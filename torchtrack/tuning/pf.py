@@ -1,4 +1,4 @@
-"""Tunable bootstrap particle filter (:class:`~torchtrack.filters.particle.ParticleFilter`) on the same
+"""Tunable bootstrap particle filter (:class:`~torchtrack.filters.particle.filter.ParticleFilter`) on the same
 models, data and initialisation as the Kalman tunable (:mod:`torchtrack.tuning.kalman`).
 
 The loss ``nll`` is minus the particle estimate of the conditional log-likelihood,
@@ -18,7 +18,7 @@ import torch
 from torch import Tensor
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.particle import ParticleFilter
+from torchtrack.filters.particle.filter import ParticleFilter
 from torchtrack.tuning.kalman import OPTIONS, KalmanTunable, Track, pad_batch
 
 

@@ -8,7 +8,7 @@ from pathlib import Path
 from torchtrack.bench import frames, scale
 from torchtrack.cli._common import add_force_option, bounded, positive_float, positive_int
 from torchtrack.errors import TorchtrackError
-from torchtrack.filters.multitarget import tracker_names
+from torchtrack.filters.trackers.protocol import tracker_names
 from torchtrack.io.outputs import OutputFolder, write_json
 
 NAME = "scale"
