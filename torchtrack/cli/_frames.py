@@ -14,24 +14,28 @@ from __future__ import annotations
 
 import argparse
 import sys
-from contextlib import nullcontext
 from pathlib import Path
+
+import numpy as np
 
 from torchtrack.cli._common import config_file
 from torchtrack.cli._strips import frame_strips, rank_output, strip_group, strip_metrics
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import tracker_names
 from torchtrack.io.frames import open_frames
-from torchtrack.io.mot import read_mot
+from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.io.outputs import OutputFolder, write_json
-from torchtrack.metrics.table import format_table, format_table1
+from torchtrack.metrics.table import TABLE1_HEADER, format_table, format_table1, table1_row
+from torchtrack.pipeline.api import track
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.sequences import destroy, run_sequences, shared_output
-from torchtrack.pipeline.track_video import track_video
+from torchtrack.pipeline.track_video import PipelineResult, track_video
 from torchtrack.pipeline.truth import wpafb_truth
 from torchtrack.sim.video import read_camera
 
-SCORE_COLUMNS = ["GT", "MT", "PT", "ML", "FP", "FN", "IDS", "MOTA", "HOTA", "MOTP", "IDF1"]
+HEADER = ["sequence", *TABLE1_HEADER[1:-1], "FPS (end to end)"]
+"""The columns of Table 1 (:func:`~torchtrack.metrics.table.format_table1`: ratios in percent, MOTP in px), the
+sequence in place of the method and the pipeline's frames per second."""
 
 
 def add_frame_options(parser: argparse.ArgumentParser) -> None:
@@ -62,7 +66,9 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _score_row(name: str, m: dict | None, fps: float) -> list:
-    return [name, *(m[k] if m is not None else "-" for k in SCORE_COLUMNS), fps]
+    if m is None:
+        return [name, *["-"] * (len(HEADER) - 2), fps]
+    return table1_row(name, {**m, "FPS": fps})
 
 
 def frame_inputs_given(args: argparse.Namespace) -> bool:
@@ -92,7 +98,6 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
         raise TorchtrackError("give either --detections or one of --video/--frames/--sequences, not both")
     config = pipeline_config(args, tracker_options)
     out = args.out
-    header = ["sequence", *SCORE_COLUMNS, "FPS"]
     if args.sequences:
         if args.gt:
             raise TorchtrackError("--gt does not apply to --sequences: each sequence folder holds its gt.txt")
@@ -108,7 +113,7 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
         rows = [_score_row(n, m.get("clear_mot"), m["fps"]["end_to_end"]) for n, m in summary["sequences"].items()]
         if "aggregate" in summary:
             rows.append(_score_row("ALL", summary["aggregate"], summary["fps_per_process"]))
-        print(format_table(header, rows, floatfmt=".3f"))
+        print(format_table(HEADER, rows, floatfmt=".2f"))
         print(f"{len(summary['sequences'])} sequences, {summary['frames']} frames, tracker {config.tracker}, "
               f"{summary['world_size']} process(es); wrote {out}/metrics.json and {out}/<sequence>/")
         if "trackers" in summary:
@@ -122,38 +127,60 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
         return 0
     if args.gt and args.truth_csv:
         raise TorchtrackError("give either --gt or --truth-csv, not both")
-    folder = OutputFolder(out, command, args.force, inputs=inputs)
-    strips = args.strips
-    with (strip_group() if strips else nullcontext(0)) as rank, \
-            (folder if rank == 0 else rank_output(rank, out, command, args.force, inputs)) as staging:
+    if args.strips:
+        result, files = _run_strips(args, config, command, inputs)
+        if result is None:  # a torchrun rank other than 0
+            return 0
+    else:
         source = open_frames(args.video or args.frames)
-        if args.truth_csv:
-            gt, ignore = wpafb_truth(args.truth_csv, len(source))
-        else:
-            gt, ignore = (read_mot(args.gt) if args.gt else None), None
-            if args.gt and Path(args.gt).with_name("velocity.txt").is_file() and rank == 0:
-                print(f"note: every vehicle of {args.gt} is a target, parked ones too, while the pipeline tracks "
-                      "moving objects; track --sequences on the sequence's folder scores the moving ones (the "
-                      "paper's protocol, with its velocity.txt)", file=sys.stderr)
-        camera = read_camera(args.camera) if args.camera else None
-        built = {}
-        if strips:
-            built["detector"], built["tracker"] = frame_strips(config, source.shape[0], args)
-            config = config if rank == 0 else config.replace(video=False)
-        result = track_video(source, staging, config, gt=gt, gt_path=str(args.truth_csv or args.gt), ignore=ignore,
-                             camera=camera, progress=not args.no_progress and rank == 0, **built)
-        if strips:
-            result.metrics.update(strip_metrics(built["tracker"]))
-            write_json(result.files["metrics"], result.metrics)
-    if rank != 0:
-        return 0
-    m = result.metrics
-    print(format_table(header, [_score_row(Path(source.path).name, m.get("clear_mot"), m["fps"]["end_to_end"])],
-                       floatfmt=".3f"))
+        gt, ignore = _truth(args, len(source))
+        result = track(frames=args.frames, video=args.video, tracker=config.tracker, gt=gt, ignore=ignore,
+                       device=args.device, pipeline_config=config, camera=_camera(args), out=out, force=args.force,
+                       inputs=inputs, progress=not args.no_progress)
+        files = result.files
+    m = result.report
+    name = Path(args.video or args.frames).name
+    print(format_table(HEADER, [_score_row(name, m.get("clear_mot"), m["fps"]["end_to_end"])], floatfmt=".2f"))
     timings = ", ".join(f"{k} {v:.2f}s" for k, v in m["timings_s"].items())
     print(f"{m['frames']} frames, tracker {config.tracker}: {timings}")
     if "registration_error_px" in m:
         print(f"registration error vs camera truth: median {m['registration_error_px']['median']:.3f} px")
-    print("wrote " + ", ".join(str(folder.final(p)) for p in result.files.values()))
+    print("wrote " + ", ".join(str(p) for p in files.values()))
     write_json(args.json, m)
     return 0
+
+
+def _truth(args: argparse.Namespace, frames: int) -> tuple[MOTData | None, np.ndarray | None]:
+    """``--gt`` or ``--truth-csv`` (with its don't-care mask) for a video of ``frames`` frames."""
+    if args.truth_csv:
+        return wpafb_truth(args.truth_csv, frames)
+    if args.gt and Path(args.gt).with_name("velocity.txt").is_file():
+        print(f"note: every vehicle of {args.gt} is a target, parked ones too, while the pipeline tracks "
+              "moving objects; track --sequences on the sequence's folder scores the moving ones (the "
+              "paper's protocol, with its velocity.txt)", file=sys.stderr)
+    return (read_mot(args.gt) if args.gt else None), None
+
+
+def _camera(args: argparse.Namespace) -> np.ndarray | None:
+    return read_camera(args.camera) if args.camera else None
+
+
+def _run_strips(args: argparse.Namespace, config: PipelineConfig, command: str, inputs: list[Path | None]
+                ) -> tuple[PipelineResult | None, dict[str, Path]]:
+    """``--strips``: the pipeline over the strips of the torchrun ranks; rank 0 writes the folder and gets the
+    result and its files' final paths, the other ranks ``(None, {})``."""
+    folder = OutputFolder(args.out, command, args.force, inputs=inputs)
+    with strip_group() as rank, \
+            (folder if rank == 0 else rank_output(rank, args.out, command, args.force, inputs)) as staging:
+        source = open_frames(args.video or args.frames)
+        gt, ignore = _truth(args, len(source)) if rank == 0 else (None, None)
+        built = {}
+        built["detector"], built["tracker"] = frame_strips(config, source.shape[0], args)
+        config = config if rank == 0 else config.replace(video=False)
+        result = track_video(source, staging, config, gt=gt, gt_path=str(args.truth_csv or args.gt), ignore=ignore,
+                             camera=_camera(args), progress=not args.no_progress and rank == 0, **built)
+        result.metrics.update(strip_metrics(built["tracker"]))
+        write_json(result.files["metrics"], result.metrics)
+    if rank != 0:
+        return None, {}
+    return result, {kind: folder.final(path) for kind, path in result.files.items()}

@@ -14,6 +14,7 @@ from torchtrack.metrics.clear_mot import KEYS
 from torchtrack.metrics.evaluation import OSPA_KEYS, EvalOptions, benchmark_sequences, combine, evaluate
 from torchtrack.metrics.hota import KEYS as HOTA_KEYS
 from torchtrack.metrics.table import format_table
+from torchtrack.pipeline import api as track_api
 
 NAME = "eval"
 HELP = "score tracks (MOTChallenge text) against ground truth: CLEAR-MOT, MT/PT/ML, IDF1, HOTA"
@@ -103,10 +104,15 @@ def run(args: argparse.Namespace) -> int:
     else:
         pairs = benchmark_sequences(args.gt_folder, args.pred_folder)
         print(f"{args.pred_folder} vs {args.gt_folder}: {len(pairs)} sequences {scored}")
-    evaluations = {name: evaluate(read_mot(gt), read_mot(pred), options) for name, gt, pred in pairs}
-    if len(pairs) > 1:
-        evaluations["COMBINED"] = combine(list(evaluations.values()))
-    rows = {name: e.scores() for name, e in evaluations.items()}
+    if args.gt is not None:
+        rows = {"": track_api.evaluate(args.gt, args.pred, threshold=options.threshold, iou=options.iou,
+                                       moving=options.moving, count_zero_conf=options.count_zero_conf,
+                                       ospa=options.ospa)}
+    else:
+        evaluations = {name: evaluate(read_mot(gt), read_mot(pred), options) for name, gt, pred in pairs}
+        if len(pairs) > 1:
+            evaluations["COMBINED"] = combine(list(evaluations.values()))
+        rows = {name: e.scores() for name, e in evaluations.items()}
     print(format_rows(rows, KEYS))
     print(format_rows(rows, HOTA_KEYS))
     if options.ospa is not None:
@@ -114,7 +120,7 @@ def run(args: argparse.Namespace) -> int:
         print(format_rows(rows, OSPA_KEYS, floatfmt=".3f"))
     about = {"gate": options.gate, "moving_only": bool(args.moving)}
     if args.gt is not None:
-        write_json(args.json, {**rows[""], **about})
+        write_json(args.json, rows[""])
     else:
         combined = rows.pop("COMBINED") if len(pairs) > 1 else next(iter(rows.values()))
         write_json(args.json, {"sequences": rows, "combined": combined, **about})

@@ -139,8 +139,9 @@ def run(args: argparse.Namespace) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     from torchtrack.io.mot import read_mot
+    from torchtrack.pipeline.api import track
     from torchtrack.pipeline.config import load_pipeline_config
-    from torchtrack.pipeline.detection_file import compare, detection_file_config, track_detections
+    from torchtrack.pipeline.detection_file import compare, detection_file_config
 
     fitted = fitted_tracker(args) if args.params is not None else None
     tracker_options = read_tracker_sections(args.config)
@@ -159,14 +160,17 @@ def _run(args: argparse.Namespace) -> int:
     config = detection_file_config(tracker_options, args.threshold, base).replace(device=args.device)
     if args.strips:
         return _run_strips(args, config, fitted)
+    if not args.compare:
+        result = track(detections=args.detections, tracker=fitted or args.tracker, tracker_name=args.tracker,
+                       config=tracker_options, gt=args.gt, device=args.device, threshold=args.threshold,
+                       pipeline_config=base, out=args.out, force=args.force, inputs=inputs(args))
+        _print_report(args, result.report, args.gt is not None)
+        return 0
     with OutputFolder(args.out, OUTPUT, args.force, inputs=inputs(args)) as staging:
         det = read_mot(args.detections)
         gt = read_mot(args.gt) if args.gt is not None else None
-        if args.compare:
-            report = compare(det, config, staging, gt, args.trackers or tracker_names())
-            write_json(staging / "comparison.json", report)
-        else:
-            report = track_detections(det, args.tracker, config, staging, gt, fitted)
+        report = compare(det, config, staging, gt, args.trackers or tracker_names())
+        write_json(staging / "comparison.json", report)
     _print_report(args, report, gt is not None)
     return 0
 

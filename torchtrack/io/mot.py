@@ -143,6 +143,38 @@ def from_points(
     return MOTData(frames, ids, cx - 0.5 * box, cy - 0.5 * box, size, size.copy(), conf, vx, vy)
 
 
+def as_rows(data: MOTData) -> np.ndarray:
+    """``(K, 10)`` float64 MOTChallenge rows of ``data``, sorted by frame then id, as :func:`write_motdata`
+    writes them (velocity in columns 8 and 9 where ``data`` has one, else ``-1``; column 10 ``-1``)."""
+    data = data.sorted()
+    rows = np.full((data.size, 10), -1.0)
+    rows[:, :7] = np.stack([data.frame, data.id, data.x, data.y, data.w, data.h, data.conf], axis=1)
+    if data.vx is not None and data.vy is not None:
+        rows[:, 7], rows[:, 8] = data.vx, data.vy
+    return rows
+
+
+def from_rows(rows, name: str = "rows") -> MOTData:
+    """MOTData from an array of MOTChallenge rows ``(K, 6..10)`` (``frame, id, x, y, w, h[, conf, c8, c9, c10]``,
+    the columns of a file): conf 1 where absent, velocity from ``c8, c9`` by the rule of :func:`read_mot`.
+    Errors name ``name``."""
+    rows = _numpy(rows, np.float64)
+    if rows.ndim != 2 or not 6 <= rows.shape[1] <= 10:
+        raise TorchtrackError(f"{name}: expected MOTChallenge rows of shape (K, 6..10), got {tuple(rows.shape)}")
+    if not np.all(np.isfinite(rows)):
+        raise TorchtrackError(f"{name}: NaN or infinite values")
+    full = np.full((rows.shape[0], 9), -1.0)
+    full[:, 6] = 1.0
+    full[:, :rows.shape[1] - (rows.shape[1] == 10)] = rows[:, :9]
+    frame, ident = _as_int_array(full[:, 0], f"{name} frame"), _as_int_array(full[:, 1], f"{name} id")
+    if np.any(frame < 0) or np.any(ident < -1):
+        raise TorchtrackError(f"{name}: frames must be >= 0 and ids >= 0 (or -1 for a detection)")
+    c8, c9 = full[:, 7], full[:, 8]
+    velocity = bool(np.any(c8 != -1.0) or np.any(c9 != -1.0))
+    return MOTData(frame, ident, *full[:, 2:7].T.copy(), c8.copy() if velocity else None,
+                   c9.copy() if velocity else None)
+
+
 def _numpy(a, dtype: type | None = None) -> np.ndarray:
     """An array-like or a tensor as a numpy array."""
     return np.asarray(a.detach().cpu() if hasattr(a, "detach") else a, dtype=dtype)
