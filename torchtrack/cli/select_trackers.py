@@ -6,7 +6,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, add_force_option, config_file
+from torchtrack.cli._common import PIPELINE_PRESETS, add_common_options, add_force_option, config_file
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import tracker_names
 from torchtrack.io.outputs import OutputFolder, check_output_file, write_json, write_yaml
@@ -40,7 +40,7 @@ Use sequences that are not the ones you report (docs/pipeline.md). Example:
 def add_arguments(parser) -> None:
     parser.add_argument("--sequences", type=Path, required=True, metavar="DIR", help="validation sequences")
     parser.add_argument("--out", type=Path, required=True, metavar="YAML", help="pipeline config to write")
-    parser.add_argument("--pipeline-config", type=config_file, default=None, metavar="YAML",
+    parser.add_argument("--pipeline-config", type=config_file(*PIPELINE_PRESETS), default=None, metavar="YAML",
                         help="starting pipeline settings (default: the embedded ones)")
     parser.add_argument("--trackers", nargs="+", choices=tracker_names(), default=None,
                         help="trackers to tune (default: all)")
@@ -60,7 +60,7 @@ def add_arguments(parser) -> None:
                         help="folder for the detection runs (default out/select-trackers)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
     add_force_option(parser)
-    add_common_options(parser)
+    add_common_options(parser, random=False)
 
 
 def config_mapping(config: PipelineConfig) -> dict:

@@ -37,9 +37,16 @@ Examples:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from torchtrack.cli._common import add_common_options, add_force_option, bounded, config_file, positive_int
+    from torchtrack.cli._common import (
+        TUNE_PRESETS,
+        add_common_options,
+        add_force_option,
+        bounded,
+        config_file,
+        positive_int,
+    )
 
-    parser.add_argument("--config", type=config_file, required=True, metavar="YAML",
+    parser.add_argument("--config", type=config_file(*TUNE_PRESETS), required=True, metavar="YAML",
                         help="tune config: a path or a preset name (configs/tune-*.yaml, e.g. tune-kalman)")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="output folder (default: the config's output.dir, else out/tune-FILTER)")
@@ -57,8 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override a config entry (dotted key, YAML value; repeatable), e.g. "
                              "--set data.held_out_frames=[1,128] --set 'data.train_frames=[[129,512]]'")
     add_force_option(parser)
-    add_common_options(parser, seed=None)
-    next(a for a in parser._actions if a.dest == "seed").help = "random seed (default: the config's seed, else 0)"
+    add_common_options(parser, seed=None, seed_help="random seed (default: the config's seed, else 0)")
 
 
 def _rows(report: dict) -> list[list]:
