@@ -22,9 +22,9 @@ from torchtrack.cli import build_parser, main
 TRACKERS = ("gmphd", "labelled-gmphd", "sort", "greedy", "pmb", "glmb")
 
 # Commands that draw no random number (no --seed) and those that draw a progress bar (--no-progress).
-DETERMINISTIC = {("convert-wpafb",), ("data", "fetch"), ("eval",), ("select-trackers",)}
-PROGRESS_BARS = {("demo",), ("track",), ("tune",), ("train-detector",), ("select-trackers",), ("simulate-video",),
-                 ("data", "fetch"), ("scenario", "formation"), ("scenario", "jtc"),
+DETERMINISTIC = {("convert-wpafb",), ("data", "fetch"), ("draw",), ("eval",), ("select-trackers",)}
+PROGRESS_BARS = {("demo",), ("draw",), ("track",), ("tune",), ("train-detector",), ("select-trackers",),
+                 ("simulate-video",), ("data", "fetch"), ("scenario", "formation"), ("scenario", "jtc"),
                  ("scenario", "pedestrian")}
 
 
