@@ -31,6 +31,7 @@ from torchtrack.cli._strips import (
     strip_metrics,
     strip_tracker,
 )
+from torchtrack.cli._wpafb_benchmark import benchmark_config
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.options import read_tracker_sections
 from torchtrack.filters.trackers.protocol import Tracker, tracker_names
@@ -92,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "comparison")
     parser.add_argument("--trackers", nargs="+", choices=tracker_names(), default=None,
                         help="trackers for --compare / --benchmark (default: all)")
-    parser.add_argument("--benchmark", default=None, metavar="CONFIG",
+    parser.add_argument("--benchmark", type=benchmark_config, default=None, metavar="CONFIG",
                         help="run the WPAFB real-data benchmark: wpafb (the shipped preset), another preset "
                              "name or a config path")
     parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1: the per-frame "
