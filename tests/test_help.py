@@ -81,7 +81,7 @@ def test_no_markup_internal_names_or_history_in_any_help():
     problems = []
     for path, parser in COMMANDS.items():
         text = parser.format_help()
-        for pattern, what in ((r"``|:[a-z]+:`|\*\*|^\s*\* ", "Sphinx markup"),
+        for pattern, what in ((r"`|:[a-z]+:`|\*\*|^\s*\* ", "Sphinx markup"),
                               (r"\bissues?\b|\bsessions?\b|#\d+|\bUTC\b|load average", "history")):
             for m in re.finditer(pattern, text, re.IGNORECASE | re.MULTILINE):
                 context = text[max(0, m.start() - 40):m.end() + 20]

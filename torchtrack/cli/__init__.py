@@ -103,8 +103,10 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     argv = sys.argv[1:] if argv is None else argv
     parser = CommandParser(
         prog="torchtrack",
-        description="Batched, differentiable target tracking: filters, scenarios from the papers, "
-        "a detector and a satellite-video pipeline.",
+        description="Batched, differentiable target tracking on PyTorch. Track the moving objects of a video or a\n"
+        "folder of frames (torchtrack track --video FILE or --frames DIR), or of a detection file, with one of six\n"
+        "trackers; score, draw and tune them; run the papers' experiments and the benchmarks.\n"
+        "torchtrack CMD --help says what a command does and takes.",
     )
     from torchtrack import __version__
 

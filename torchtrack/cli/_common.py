@@ -10,10 +10,11 @@ from torchtrack.config import Bounds, preset_path
 from torchtrack.errors import TorchtrackError
 
 
-def add_force_option(parser: argparse.ArgumentParser) -> None:
-    """``--force`` of the commands that write an output folder (:class:`torchtrack.io.outputs.OutputFolder`)."""
+def add_force_option(parser: argparse.ArgumentParser, flag: str = "--out") -> None:
+    """``--force`` of the commands that write an output folder, named ``flag`` in the help
+    (:class:`torchtrack.io.outputs.OutputFolder`)."""
     parser.add_argument("--force", action="store_true",
-                        help="replace --out even when it holds something other than this command's output")
+                        help=f"replace {flag} even when it holds something other than this command's output")
 
 
 def bounded(kind: type, **bounds) -> Callable[[str], int | float]:

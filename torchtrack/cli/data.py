@@ -16,8 +16,8 @@ DESCRIPTION = f"""Get the data sets that some commands need; they are not part o
 
   wpafb  {WPAFB.title}
          (WPAFB 2009, AFRL public release), as published in github.com/{WPAFB.repository}
-         (licence: {WPAFB.licence}). Needed by `track --benchmark wpafb`, `tune --config tune-gmphd-wpafb`
-         and the real-frame part of `eval-detector`.
+         (licence: {WPAFB.licence}). Needed by torchtrack track --benchmark wpafb, torchtrack tune
+         --config tune-gmphd-wpafb and the real-frame part of torchtrack eval-detector.
 
 Commands look for it in ./data/{WPAFB.folder} (also in the source checkout's data/), then in
 ${WPAFB.env}, then in ../shared/data/{WPAFB.folder}; data/README.md describes the files.

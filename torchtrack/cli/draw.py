@@ -53,7 +53,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--codec", choices=CODECS, default="auto",
                         help="auto: H.264 where PyAV is installed, else mp4v")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_force_option(parser)
+    add_force_option(parser, "a PNG folder --out")
     add_common_options(parser, random=False)
 
 

@@ -33,7 +33,7 @@ Example: torchtrack eval-detector --sequences 4 --frames 20 --json out/eval.json
 registered as the pipeline registers (finetune.registration of the weights' config), with the same
 two rows; --region X0 Y0 X1 Y1 counts only what lies inside (truth outside is don't-care, unmatched
 detections outside are no false positives). JSON: images: {all: {...}, moving: {...}}, region.
-Example: torchtrack eval-detector --images data/wpafb-aoi02/frames \
+Example: torchtrack eval-detector --images data/wpafb-aoi02/frames \\
   --truth-csv data/wpafb-aoi02/transformed_object_states.csv --region 300 0 585 496
 """
 

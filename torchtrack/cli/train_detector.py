@@ -22,8 +22,8 @@ Example: torchtrack train-detector --config configs/detector.yaml --seed 0
 optionally only inside --region), mixing in synthetic pairs; its settings are the finetune section of
 --config (built-in defaults where it has none); it writes OUT/last.pt (default
 finetune.out) and, with --export, the weights as the shipped file is written (decoding threshold kept).
-Example: torchtrack train-detector --finetune torchtrack/detector/weights/centertrack_small.pt \
-  --images data/wpafb-aoi02/frames --truth-csv data/wpafb-aoi02/transformed_object_states.csv \
+Example: torchtrack train-detector --finetune torchtrack/detector/weights/centertrack_small.pt \\
+  --images data/wpafb-aoi02/frames --truth-csv data/wpafb-aoi02/transformed_object_states.csv \\
   --region 0 0 284 496 --export out/finetuned.pt
 """
 

@@ -16,10 +16,9 @@ split into training and held-out sequences or windows), the loss (marginal log-l
 predictive likelihood, particle estimate, soft GOSPA) and the optimiser (adam or lbfgs, mini-batches,
 early stopping on the held-out loss). See docs/tune.md.
 
-Writes OUT/params.yaml (the fitted parameters; torchtrack.tuning.tune.load_params / load_filter,
-`torchtrack track --params` (GM-PHD) and `torchtrack scenario maneuver|formation --params` (Kalman,
-IMM) read it; for the GM-PHD OUT/track.yaml is also a `torchtrack track --config` file) and
-OUT/loss.png (the loss curve). An optional `refine` section adds a line search on the task metric
+Writes OUT/params.yaml (the fitted parameters, which torchtrack track --params (GM-PHD) and torchtrack
+scenario maneuver|formation --params (Kalman, IMM) read; for the GM-PHD OUT/track.yaml is also a torchtrack
+track --config file) and OUT/loss.png (the loss curve). An optional refine section adds a line search on the task metric
 (MOTA) over the training items after the gradient fit. A non-finite loss stops training, keeps the
 last parameters with a finite loss, writes them, and exits with status 1. The output folder appears as one
 set when the run completes (written in OUT.partial until then; the config's output.params/output.plot
