@@ -82,6 +82,18 @@ def test_draw_writes_h264_where_pyav_is_installed(sequence):
         assert sum(1 for _ in container.decode(stream)) == N
 
 
+def test_draw_over_a_video(sequence):
+    video = sequence / "in.mp4"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"mp4v"), 5.0, (W - 1, H - 1))
+    for _ in range(N):
+        writer.write(np.full((H - 1, W - 1, 3), 90, np.uint8))
+    writer.release()
+    out = sequence / "drawn.mp4"
+    rc = main(["draw", "--tracks", str(sequence / "tracks.txt"), "--video", str(video), "--out", str(out),
+               "--no-progress", "--trail", "0"])
+    assert rc == 0 and len(_decode(out)) == N
+
+
 def test_draw_pngs_one_per_frame_unpadded(sequence):
     out = sequence / "pngs"
     assert _draw(sequence, out, "--scale", "2") == 0

@@ -174,6 +174,18 @@ def test_unknown_argument_is_the_commands_usage_error(path, capsys):
     assert f"{prog}: error: unrecognized arguments: --no-such-option" in err
 
 
+def test_every_command_reports_an_unknown_argument_with_its_own_usage(capsys):
+    for path, parser in COMMANDS.items():
+        if _subparsers(parser) is not None:
+            continue
+        argv = [*path, "--no-such-option"]
+        with pytest.raises(SystemExit) as stop:
+            build_parser(argv).parse_args(argv)
+        err = capsys.readouterr().err
+        prog = _label(path)
+        assert stop.value.code == 2 and err.startswith(f"usage: {prog} ") and f"\n{prog}: error: " in err, err
+
+
 def test_wrong_preset_name_lists_only_the_commands_presets(capsys):
     checked = 0
     for path, parser in COMMANDS.items():
