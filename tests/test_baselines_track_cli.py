@@ -63,7 +63,7 @@ def test_track_compare_prints_table_one(tmp_path, capsys):
 
 def test_track_errors(tmp_path, capsys):
     assert main(["track", "--out", str(tmp_path)]) == 2
-    assert "give --detections" in capsys.readouterr().err
+    assert "give an input: --video FILE, --frames DIR" in capsys.readouterr().err
     bad = tmp_path / "bad.yaml"
     bad.write_text("nosuchtracker: {}\n")
     gt, det = scene(tmp_path)

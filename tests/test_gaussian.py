@@ -104,3 +104,17 @@ def test_kalman_gain_against_a_dense_solve(batch, m):
     torch.testing.assert_close(W @ W.transpose(-1, -2), K @ S @ K.transpose(-1, -2), rtol=1e-12, atol=1e-12)
     with pytest.raises(TorchtrackError, match="innovation covariance S"):
         kalman_gain(-S, C)
+
+
+def test_scalar_under_torch_compile_gives_no_warning():
+    """``bench kf`` compiles the filters: the cached constant must not make Dynamo warn about its cache."""
+    import warnings
+
+    from torchtrack.gaussian import scalar
+
+    x = torch.randn(5, dtype=torch.float64)
+    step = torch.compile(lambda t: t * scalar(0.5, t) + scalar(2.0, t), backend="eager", fullgraph=True)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        got = step(x)
+    torch.testing.assert_close(got, x * 0.5 + 2.0, rtol=0, atol=0)

@@ -50,7 +50,8 @@ def test_track_frames_end_to_end(sequence, tmp_path, capsys):
     assert m["clear_mot"]["TP"] > 0  # the detector and tracker find vehicles that are really there
     assert m["registration_error_px"]["median"] < 0.5
     frames = _decode(out / "annotated.mp4")
-    assert len(frames) == 5 and frames[0].shape == (256, 256, 3)
+    assert len(frames) == 5 and frames[0].shape[1:] == (256, 3)
+    assert frames[0].shape[0] > 256  # the legend band (torchtrack draw's) under the frame
 
 
 def test_video_input_and_tracker_choice(sequence, tmp_path):

@@ -22,7 +22,7 @@ from __future__ import annotations
 import dataclasses
 import types
 import typing
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import MISSING, dataclass
 from importlib import resources
 from pathlib import Path
@@ -128,18 +128,19 @@ def preset_names() -> list[str]:
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".yaml"))
 
 
-def preset_path(name_or_path: str | Path) -> Path:
+def preset_path(name_or_path: str | Path, presets: Sequence[str] | None = None) -> Path:
     """The file a ``--config`` value names: an existing path as given, otherwise a shipped preset by name
-    (``gmphd-paper``, ``gmphd-paper.yaml`` or ``configs/gmphd-paper.yaml``); an error naming the known
-    presets where it is neither."""
+    (``gmphd-paper``, ``gmphd-paper.yaml`` or ``configs/gmphd-paper.yaml``) among ``presets`` (default: all
+    of them); an error naming those presets where it is neither."""
     path = Path(name_or_path)
     if path.is_file():
         return path
+    known = preset_names() if presets is None else list(presets)
     stem = path.name[:-5] if path.name.endswith(".yaml") else path.name
     candidate = resources.files("torchtrack") / "configs" / f"{stem}.yaml"
-    if path.parent in (Path("."), Path("configs")) and candidate.is_file():
+    if path.parent in (Path("."), Path("configs")) and stem in known and candidate.is_file():
         return Path(str(candidate))
-    raise TorchtrackError(f"{name_or_path}: no such file or preset (presets: {', '.join(preset_names())})")
+    raise TorchtrackError(f"{name_or_path}: no such file or preset (presets: {', '.join(known)})")
 
 
 def read_mapping(path: str | Path, what: str) -> dict:

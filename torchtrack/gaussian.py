@@ -39,8 +39,11 @@ def scalar(value: float, like: Tensor) -> Tensor:
     """A cached 0-dim tensor ``value`` of ``like``'s dtype and device (no gradient).
 
     ``x * scalar(c, x)`` computes exactly what ``x * c`` does (a Python number is cast to ``x``'s dtype)
-    but with one tensor operation instead of five (the number is not converted on every call).
+    but with one tensor operation instead of five (the number is not converted on every call). Under
+    ``torch.compile`` the constant is traced directly (the compiler folds it; it does not trace the cache).
     """
+    if torch.compiler.is_compiling():
+        return torch.tensor(float(value), dtype=like.dtype, device=like.device)
     return _cached_scalar(float(value), like.dtype, like.device)
 
 

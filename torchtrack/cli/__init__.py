@@ -49,6 +49,35 @@ def discover(package: str) -> list[tuple[str, str, str]]:
     return sorted(found)
 
 
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions as written; every option's help ends with its default where it has one and does not
+    already say it."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        default = action.default
+        unset = any(default is v for v in (None, False, True, argparse.SUPPRESS)) or default in ([], ())
+        if action.option_strings and not unset and "default" not in text.lower():
+            shown = " ".join(map(str, default)) if isinstance(default, (list, tuple)) else str(default)
+            text += f" (default: {shown.replace('%', '%%')})"
+        return text
+
+
+class CommandParser(argparse.ArgumentParser):
+    """The parser of ``torchtrack`` and of each of its commands (sub-commands get the same class): an unknown
+    argument is reported by the command that was given it, with that command's usage
+    (``torchtrack track: error: unrecognized arguments: --bogus``), not by ``torchtrack`` itself."""
+
+    def __init__(self, *args, formatter_class=HelpFormatter, **kwargs) -> None:
+        super().__init__(*args, formatter_class=formatter_class, **kwargs)
+
+    def parse_args(self, args=None, namespace=None) -> argparse.Namespace:
+        namespace, extra = self.parse_known_args(args, namespace)
+        if extra:
+            getattr(namespace, "_parser", self).error(f"unrecognized arguments: {' '.join(extra)}")
+        return namespace
+
+
 def add_subcommands(parser: argparse.ArgumentParser, package: str, dest: str, argv: list[str],
                     options: Callable[[argparse.ArgumentParser, ModuleType], None] | None = None) -> None:
     """Attach the command modules of ``package`` to ``parser``; import only the one ``argv`` selects. Its
@@ -61,9 +90,8 @@ def add_subcommands(parser: argparse.ArgumentParser, package: str, dest: str, ar
             sub.add_parser(name, help=help_, description=help_)
             continue
         module = importlib.import_module(modname)
-        p = sub.add_parser(name, help=help_, description=getattr(module, "DESCRIPTION", help_),
-                           formatter_class=argparse.RawDescriptionHelpFormatter)
-        p.set_defaults(_run=module.run, _argv_rest=argv[argv.index(chosen) + 1:])
+        p = sub.add_parser(name, help=help_, description=getattr(module, "DESCRIPTION", help_))
+        p.set_defaults(_run=module.run, _argv_rest=argv[argv.index(chosen) + 1:], _parser=p)
         if hasattr(module, "add_arguments"):
             module.add_arguments(p)
         if options is not None:
@@ -73,10 +101,12 @@ def add_subcommands(parser: argparse.ArgumentParser, package: str, dest: str, ar
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The ``torchtrack`` parser, with the arguments of the command that ``argv`` selects."""
     argv = sys.argv[1:] if argv is None else argv
-    parser = argparse.ArgumentParser(
+    parser = CommandParser(
         prog="torchtrack",
-        description="Batched, differentiable target tracking: filters, scenarios from the papers, "
-        "a detector and a satellite-video pipeline.",
+        description="Batched, differentiable target tracking on PyTorch. Track the moving objects of a video or a\n"
+        "folder of frames (torchtrack track --video FILE or --frames DIR), or of a detection file, with one of six\n"
+        "trackers; score, draw and tune them; run the papers' experiments and the benchmarks.\n"
+        "torchtrack CMD --help says what a command does and takes.",
     )
     from torchtrack import __version__
 

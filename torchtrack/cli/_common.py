@@ -10,10 +10,11 @@ from torchtrack.config import Bounds, preset_path
 from torchtrack.errors import TorchtrackError
 
 
-def add_force_option(parser: argparse.ArgumentParser) -> None:
-    """``--force`` of the commands that write an output folder (:class:`torchtrack.io.outputs.OutputFolder`)."""
+def add_force_option(parser: argparse.ArgumentParser, flag: str = "--out") -> None:
+    """``--force`` of the commands that write an output folder, named ``flag`` in the help
+    (:class:`torchtrack.io.outputs.OutputFolder`)."""
     parser.add_argument("--force", action="store_true",
-                        help="replace --out even when it holds something other than this command's output")
+                        help=f"replace {flag} even when it holds something other than this command's output")
 
 
 def bounded(kind: type, **bounds) -> Callable[[str], int | float]:
@@ -43,9 +44,12 @@ nonnegative_float = bounded(float, ge=0)
 probability = bounded(float, ge=0, le=1)
 
 
-def add_common_options(parser: argparse.ArgumentParser, seed: int = 0) -> None:
-    """``--seed`` and ``--json PATH``, which every command takes."""
-    parser.add_argument("--seed", type=int, default=seed, help=f"random seed (default {seed})")
+def add_common_options(parser: argparse.ArgumentParser, seed: int | None = 0, random: bool = True,
+                       seed_help: str = "random seed; the same seed gives the same result") -> None:
+    """``--json PATH``, which every command takes, and ``--seed`` (default ``seed``) where the command draws
+    random numbers (``random=False``: it draws none and takes no ``--seed``)."""
+    if random:
+        parser.add_argument("--seed", type=int, default=seed, help=seed_help)
     parser.add_argument("--json", type=Path, default=None, metavar="PATH",
                         help="also write the reported numbers to this JSON file")
 
@@ -62,13 +66,29 @@ class _NoFittedParams(argparse.Action):
                      f"fitted parameters load into: {PARAMS_SCENARIOS}")
 
 
-def config_file(value: str) -> Path:
-    """argparse ``type`` of every ``--config``-like option: a YAML path, or a shipped preset's name
-    (``torchtrack.config.preset_path``)."""
-    try:
-        return preset_path(value)
-    except TorchtrackError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
+TRACKER_PRESETS = ("gmphd", "gmphd-paper")
+"""The presets that hold tracker options, one section per tracker name (``torchtrack track --config``)."""
+PIPELINE_PRESETS = ("pipeline", "pipeline-online", "pipeline-fewer-switches", "select-fewer-switches")
+"""The presets of the video pipeline's settings (``--pipeline-config``, ``torchtrack demo --config``)."""
+VIDEO_PRESETS = ("video",)
+"""The presets of the synthetic video generator (``simulate-video --config``, ``eval-detector --config``)."""
+TUNE_PRESETS = ("tune-gmphd-sim", "tune-gmphd-wpafb", "tune-imm-formation", "tune-kalman", "tune-kalman-wpafb")
+"""The presets of ``torchtrack tune --config``."""
+
+
+def config_file(*presets: str) -> Callable[[str], Path]:
+    """argparse ``type`` of a ``--config``-like option: a YAML path, or the name of one of ``presets``
+    (:func:`torchtrack.config.preset_path`); a wrong name is a usage error listing only those presets."""
+
+    def parse(value: str) -> Path:
+        try:
+            return preset_path(value, presets)
+        except TorchtrackError as exc:
+            raise argparse.ArgumentTypeError(str(exc)) from None
+
+    parse.__name__ = "config"
+    parse.presets = presets
+    return parse
 
 
 def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, runs: int = 100,
@@ -77,10 +97,10 @@ def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, 
     scenario`` takes; ``params`` says what a fitted-parameter file sets (None: the scenario has no tunable
     filter and ``--params`` is a usage error)."""
     parser.add_argument("--runs", type=int, default=runs, help=f"Monte Carlo runs, batched (default {runs})")
-    parser.add_argument("--config", type=config_file, default=default_config,
+    parser.add_argument("--config", type=config_file(default_config.stem), default=default_config,
                         help="scenario YAML or preset name (default: the preset of the scenario's name)")
     parser.add_argument("--plot", type=Path, default=None, metavar="DIR",
-                        help="write the figures into this folder, as one set (OutputFolder)")
+                        help="write the figures into this folder (they appear together when the run completes)")
     parser.add_argument("--force", action="store_true",
                         help="replace --plot even when it holds something other than this scenario's figures")
     if params is None:

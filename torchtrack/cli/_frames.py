@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from torchtrack.cli._common import config_file
+from torchtrack.cli._common import PIPELINE_PRESETS, config_file
 from torchtrack.cli._strips import frame_strips, rank_output, strip_group, strip_metrics
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import tracker_names
@@ -48,7 +48,7 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
                      help="evaluate every sequence folder in DIR and aggregate (shards over torchrun ranks)")
     # --compare and --trackers of torchtrack track also apply to --sequences: the detector runs once per
     # sequence and every tracker runs on its detections.
-    g.add_argument("--pipeline-config", type=config_file, metavar="YAML", default=None,
+    g.add_argument("--pipeline-config", type=config_file(*PIPELINE_PRESETS), metavar="YAML", default=None,
                    help="pipeline settings (configs/pipeline.yaml); default: the embedded ones, which write "
                         "tracks.txt 3 frames behind the video (fixed-lag output); configs/pipeline-online.yaml "
                         "writes each frame at once; configs/pipeline-fewer-switches.yaml trades a point of MOTA "

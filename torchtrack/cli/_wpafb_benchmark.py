@@ -3,9 +3,11 @@ located, :func:`torchtrack.pipeline.wpafb_benchmark.run_benchmark` run and one T
 
 from __future__ import annotations
 
+import argparse
 from pathlib import Path
 
 from torchtrack.config import preset_path, read_mapping
+from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.options import read_tracker_sections
 from torchtrack.io.datasets import WPAFB, wpafb_truth_csv
 from torchtrack.io.outputs import write_json
@@ -13,6 +15,22 @@ from torchtrack.metrics.table import format_table1
 
 PRESETS = {"wpafb": "wpafb-benchmark"}
 """Short names of ``--benchmark`` (the preset files are named after what they configure)."""
+BENCHMARK_PRESETS = ("wpafb-benchmark", "wpafb-positions")
+"""The presets that configure a benchmark."""
+
+
+def benchmark_config(value: str) -> str:
+    """argparse ``type`` of ``--benchmark``: ``value`` unchanged where it names a benchmark preset (or its short
+    name) or a file; otherwise a usage error listing the names ``--benchmark`` takes."""
+    try:
+        preset_path(PRESETS.get(value, value), BENCHMARK_PRESETS)
+    except TorchtrackError:
+        raise argparse.ArgumentTypeError(f"{value}: no such file or benchmark preset (presets: "
+                                         f"{', '.join(benchmark_config.presets)})") from None
+    return value
+
+
+benchmark_config.presets = (*PRESETS, *BENCHMARK_PRESETS)
 
 
 def truth_csv(config: dict) -> Path:
@@ -30,7 +48,7 @@ def run_benchmark(name_or_path: str | Path, out: Path, seed: int, trackers: list
     from torchtrack.pipeline.wpafb_benchmark import BenchmarkConfig, benchmark_payload
     from torchtrack.pipeline.wpafb_benchmark import run_benchmark as run
 
-    path = preset_path(PRESETS.get(str(name_or_path), name_or_path))
+    path = preset_path(PRESETS.get(str(name_or_path), name_or_path), BENCHMARK_PRESETS)
     raw = read_mapping(path, "benchmark config")
     config = BenchmarkConfig.from_mapping(raw, f"benchmark config {name_or_path}")
     tracker_options = read_tracker_sections(tracker_config or config.tracker_config)

@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="keep the CSV's frame numbers (100-611 for AOI 02) instead of 1, 2, ...")
     parser.add_argument("--box", type=positive_float, default=POINT_BOX_SIZE,
                         help=f"box side in px around each vehicle (default {POINT_BOX_SIZE:g})")
-    add_common_options(parser)
+    add_common_options(parser, random=False)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -16,8 +16,8 @@ DESCRIPTION = f"""Get the data sets that some commands need; they are not part o
 
   wpafb  {WPAFB.title}
          (WPAFB 2009, AFRL public release), as published in github.com/{WPAFB.repository}
-         (licence: {WPAFB.licence}). Needed by `track --benchmark wpafb`, `tune --config tune-gmphd-wpafb`
-         and the real-frame part of `eval-detector`.
+         (licence: {WPAFB.licence}). Needed by torchtrack track --benchmark wpafb, torchtrack tune
+         --config tune-gmphd-wpafb and the real-frame part of torchtrack eval-detector.
 
 Commands look for it in ./data/{WPAFB.folder} (also in the source checkout's data/), then in
 ${WPAFB.env}, then in ../shared/data/{WPAFB.folder}; data/README.md describes the files.
@@ -38,6 +38,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
     fetch = actions.add_parser("fetch", help="download a data set, checksums verified",
                                description="Download a data set into data/<folder>, checksums verified.")
+    fetch.set_defaults(_parser=fetch)
     fetch.add_argument("dataset", choices=sorted(DATASETS), help="the data set")
     fetch.add_argument("--out", type=Path, default=None, help="folder to fill (default data/<folder>, "
                        f"e.g. data/{WPAFB.folder})")
@@ -48,7 +49,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="copy from a local folder in the data set's layout instead of downloading")
     fetch.add_argument("--timeout", type=float, default=60.0, help="network timeout in seconds (default 60)")
     fetch.add_argument("--no-progress", action="store_true", help="no progress bar")
-    add_common_options(fetch)
+    add_common_options(fetch, random=False)
 
 
 def run(args: argparse.Namespace) -> int:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, add_force_option, config_file, positive_int
+from torchtrack.cli._common import PIPELINE_PRESETS, add_common_options, add_force_option, config_file, positive_int
 from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.pipeline.config import load_pipeline_config
 from torchtrack.pipeline.demo import format_demo, run_demo
@@ -31,7 +31,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--truth", choices=("moving", "all"), default="moving",
                         help="moving: the moving vehicles are the targets, parked ones don't-care (the "
                              "paper's protocol, default); all: every vehicle is a target")
-    parser.add_argument("--config", type=config_file, default=None, metavar="YAML",
+    parser.add_argument("--config", type=config_file(*PIPELINE_PRESETS), default=None, metavar="YAML",
                         help="pipeline settings, a path or a preset name (e.g. pipeline-online); default: the "
                              "embedded ones (the preset pipeline)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")

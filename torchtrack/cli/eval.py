@@ -70,7 +70,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ospa", type=positive_float, default=None, metavar="C",
                         help="also report the mean per-frame OSPA (p=1) and GOSPA (p=2, alpha=2) of the "
                              "centres with cut-off C px")
-    add_common_options(parser)
+    add_common_options(parser, random=False)
 
 
 def _percent(key: str, value: float) -> float:

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, bounded, config_file, positive_float, positive_int
+from torchtrack.cli._common import VIDEO_PRESETS, add_common_options, bounded, config_file, positive_float, positive_int
 from torchtrack.cli._labelled import add_labelled_options, check_labelled_options, load_labelled
 from torchtrack.detector.evaluate import PRIORS
 from torchtrack.io.outputs import write_json
@@ -33,7 +33,7 @@ Example: torchtrack eval-detector --sequences 4 --frames 20 --json out/eval.json
 registered as the pipeline registers (finetune.registration of the weights' config), with the same
 two rows; --region X0 Y0 X1 Y1 counts only what lies inside (truth outside is don't-care, unmatched
 detections outside are no false positives). JSON: images: {all: {...}, moving: {...}}, region.
-Example: torchtrack eval-detector --images data/wpafb-aoi02/frames \
+Example: torchtrack eval-detector --images data/wpafb-aoi02/frames \\
   --truth-csv data/wpafb-aoi02/transformed_object_states.csv --region 300 0 585 496
 """
 
@@ -42,7 +42,7 @@ COLUMNS = ("precision", "recall", "f1", "velocity_error_px", "frames", "fps")  #
 
 def add_arguments(parser) -> None:
     parser.add_argument("--weights", type=Path, default=None, help="checkpoint (default: shipped weights)")
-    parser.add_argument("--config", type=config_file, default=None,
+    parser.add_argument("--config", type=config_file(*VIDEO_PRESETS), default=None,
                         help="video config of the held-out sequences (default: the checkpoint's training data)")
     parser.add_argument("--sequences", type=positive_int, default=4, help="held-out synthetic sequences (default 4)")
     parser.add_argument("--frames", type=bounded(int, ge=2), default=20, help="frames per sequence (default 20)")

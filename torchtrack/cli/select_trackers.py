@@ -6,7 +6,7 @@ import dataclasses
 import json
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, add_force_option, config_file
+from torchtrack.cli._common import PIPELINE_PRESETS, add_common_options, add_force_option, config_file
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import tracker_names
 from torchtrack.io.outputs import OutputFolder, check_output_file, write_json, write_yaml
@@ -18,15 +18,15 @@ NAME = "select-trackers"
 HELP = "grid-search the video pipeline's moving-object gate and each tracker's options on validation sequences"
 DESCRIPTION = """\
 Run registration and the detector once on every sequence of --sequences (folders as for
-`torchtrack track --sequences`, with gt.txt and, for synthetic ones, velocity.txt), then every tracker
+torchtrack track --sequences, with gt.txt and, for synthetic ones, velocity.txt), then every tracker
 with every option set of its grid (torchtrack/pipeline/selection.py: GRIDS) at every combination of
 --min-speeds and --min-motions (the moving-object gate), scored by pooled CLEAR-MOT. Each tracker keeps
 the options with the best IDF1 among those within --mota-tolerance of its best MOTA (with --max-ids-ratio
 R, the pipeline's tracker only among the option sets with at most R times the identity switches of
 --ids-reference's chosen options: fewer switches for some MOTA); the gate is where
 the pipeline's tracker (--pipeline-config's, default gmphd) scores best, so all trackers are compared on
-the same detections. Writes --out, a pipeline config for `torchtrack demo --config` and
-`torchtrack track --pipeline-config`, and OUT.json with every run (each file appears whole: written under
+the same detections. Writes --out, a pipeline config for torchtrack demo --config and
+torchtrack track --pipeline-config, and OUT.json with every run (each file appears whole: written under
 a .partial name, then renamed; OUT.json first). The detection runs go to --work, one set written as
 WORK.partial and moved into place when the selection completes; an existing --work is replaced only when
 it holds the output of torchtrack select-trackers (or with --force).
@@ -40,7 +40,7 @@ Use sequences that are not the ones you report (docs/pipeline.md). Example:
 def add_arguments(parser) -> None:
     parser.add_argument("--sequences", type=Path, required=True, metavar="DIR", help="validation sequences")
     parser.add_argument("--out", type=Path, required=True, metavar="YAML", help="pipeline config to write")
-    parser.add_argument("--pipeline-config", type=config_file, default=None, metavar="YAML",
+    parser.add_argument("--pipeline-config", type=config_file(*PIPELINE_PRESETS), default=None, metavar="YAML",
                         help="starting pipeline settings (default: the embedded ones)")
     parser.add_argument("--trackers", nargs="+", choices=tracker_names(), default=None,
                         help="trackers to tune (default: all)")
@@ -59,8 +59,8 @@ def add_arguments(parser) -> None:
     parser.add_argument("--work", type=Path, default=Path("out/select-trackers"), metavar="DIR",
                         help="folder for the detection runs (default out/select-trackers)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bars")
-    add_force_option(parser)
-    add_common_options(parser)
+    add_force_option(parser, "--work")
+    add_common_options(parser, random=False)
 
 
 def config_mapping(config: PipelineConfig) -> dict:

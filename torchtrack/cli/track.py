@@ -14,7 +14,14 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from torchtrack.cli._common import add_common_options, add_force_option, config_file, positive_float, positive_int
+from torchtrack.cli._common import (
+    TRACKER_PRESETS,
+    add_common_options,
+    add_force_option,
+    config_file,
+    positive_float,
+    positive_int,
+)
 from torchtrack.cli._frames import add_frame_options, frame_inputs_given, run_frame_inputs
 from torchtrack.cli._strips import (
     add_strip_options,
@@ -24,6 +31,7 @@ from torchtrack.cli._strips import (
     strip_metrics,
     strip_tracker,
 )
+from torchtrack.cli._wpafb_benchmark import benchmark_config
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.options import read_tracker_sections
 from torchtrack.filters.trackers.protocol import Tracker, tracker_names
@@ -37,27 +45,31 @@ if TYPE_CHECKING:
 NAME = "track"
 OUTPUT = f"torchtrack {NAME}"
 """The command named in the marker of its output folders (:class:`torchtrack.io.outputs.OutputFolder`)."""
-HELP = "run a multi-target tracker (gmphd, labelled-gmphd, sort, greedy) on detections and score it"
-DESCRIPTION = """Run a tracker on a MOTChallenge detection file, one frame at a time.
+HELP = ("track the objects of a video, a folder of frames or a detection file with one of six trackers (gmphd, "
+        "labelled-gmphd, sort, greedy, pmb, glmb) and score them")
+DESCRIPTION = """Track the moving objects of a video (--video FILE) or a folder of frames (--frames DIR): each
+frame is registered to the first, the detector finds the objects and the tracker (--tracker) follows them.
+A MOTChallenge detection file (--detections DET) skips registration and detection; --sequences DIR runs
+every sequence folder in DIR; --benchmark wpafb runs the WPAFB real-data benchmark end to end.
 
-Writes DIR/tracks.txt (MOTChallenge, one line per reported target) and DIR/metrics.json (CLEAR-MOT
-against --gt at --threshold px, plus the tracker's frames per second). A run's files appear in --out as
-one set when it completes (written in DIR.partial until then); an existing DIR is replaced only when it
-holds the output of torchtrack track (or with --force). With --compare every tracker
-runs on the same detections (DIR/<tracker>/...) and the paper's Table 1 is printed. With
---benchmark wpafb (a preset name or a config path) the WPAFB real-data benchmark runs end to end. A
-detection file runs without the video pipeline's moving-object gate and fixed-lag output unless
---pipeline-config sets them.
+Trackers: gmphd (the enhanced GM-PHD, default), labelled-gmphd, sort, greedy, pmb and glmb. With --compare
+every tracker (or those of --trackers) runs on the same detections and one table compares them.
+
+Writes OUT/tracks.txt (MOTChallenge, one line per reported target), OUT/metrics.json (CLEAR-MOT and HOTA
+against --gt at --threshold px, and the frames per second) and, from frames or a video, OUT/detections.txt
+and OUT/annotated.mp4 (see torchtrack draw). The files appear in --out together when the run completes
+(written in OUT.partial until then); an existing --out is replaced only when it holds the output of
+torchtrack track (or with --force).
 
 Examples:
-  torchtrack track --detections det.txt --tracker gmphd --gt gt.txt --out out/track
+  torchtrack track --video clip.mp4 --out out/clip
+  torchtrack track --frames seq/frames --gt seq/gt.txt --tracker glmb --out out/seq
+  torchtrack track --sequences out/val --compare --out out/val-compare
   torchtrack track --detections det.txt --gt gt.txt --compare --out out/compare
   torchtrack track --detections det.txt --gt gt.txt --params out/tune-gmphd/params.yaml
   torchtrack track --benchmark wpafb --out out/wpafb-benchmark
   OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m torchtrack track --strips \\
-      --detections det.txt --gt gt.txt --out out/strips   # two ranks over strips; rank 0 writes
-  OMP_NUM_THREADS=1 torchrun --standalone --nproc_per_node 2 -m torchtrack track --strips \\
-      --frames seq/frames --gt seq/gt.txt --no-video --out out/strips-frames   # each rank detects its strip
+      --frames seq/frames --gt seq/gt.txt --no-video --out out/strips   # each rank tracks a strip
 """
 
 
@@ -66,7 +78,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "velocity vx, vy in columns 8-9 where the detector gives one)")
     parser.add_argument("--tracker", choices=tracker_names(), default="gmphd",
                         help="tracker (default gmphd: the enhanced GM-PHD)")
-    parser.add_argument("--config", type=config_file, default=None, metavar="YAML",
+    parser.add_argument("--config", type=config_file(*TRACKER_PRESETS), default=None, metavar="YAML",
                         help="tracker options: a YAML mapping with one section per tracker name, a path or a "
                              "preset name (e.g. gmphd); defaults are the built-in values")
     parser.add_argument("--params", type=Path, default=None, metavar="FITTED",
@@ -81,7 +93,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "comparison")
     parser.add_argument("--trackers", nargs="+", choices=tracker_names(), default=None,
                         help="trackers for --compare / --benchmark (default: all)")
-    parser.add_argument("--benchmark", default=None, metavar="CONFIG",
+    parser.add_argument("--benchmark", type=benchmark_config, default=None, metavar="CONFIG",
                         help="run the WPAFB real-data benchmark: wpafb (the shipped preset), another preset "
                              "name or a config path")
     parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1: the per-frame "
@@ -155,7 +167,8 @@ def _run(args: argparse.Namespace) -> int:
         write_json(args.json, payload)
         return 0
     if args.detections is None:
-        raise TorchtrackError("give --detections DET (or --benchmark CONFIG)")
+        raise TorchtrackError("give an input: --video FILE, --frames DIR, --sequences DIR, --detections DET "
+                              "or --benchmark CONFIG")
     base = load_pipeline_config(args.pipeline_config) if args.pipeline_config else None
     config = detection_file_config(tracker_options, args.threshold, base).replace(device=args.device)
     if args.strips:

@@ -20,16 +20,16 @@ Example: torchtrack train-detector --config configs/detector.yaml --seed 0
 
 --finetune WEIGHTS adapts trained weights to labelled real frames (--images with --gt or --truth-csv,
 optionally only inside --region), mixing in synthetic pairs; its settings are the finetune section of
---config (defaults: torchtrack.detector.config.FinetuneConfig); it writes OUT/last.pt (default
+--config (built-in defaults where it has none); it writes OUT/last.pt (default
 finetune.out) and, with --export, the weights as the shipped file is written (decoding threshold kept).
-Example: torchtrack train-detector --finetune torchtrack/detector/weights/centertrack_small.pt \
-  --images data/wpafb-aoi02/frames --truth-csv data/wpafb-aoi02/transformed_object_states.csv \
+Example: torchtrack train-detector --finetune torchtrack/detector/weights/centertrack_small.pt \\
+  --images data/wpafb-aoi02/frames --truth-csv data/wpafb-aoi02/transformed_object_states.csv \\
   --region 0 0 284 496 --export out/finetuned.pt
 """
 
 
 def add_arguments(parser) -> None:
-    parser.add_argument("--config", type=config_file, default="detector",
+    parser.add_argument("--config", type=config_file("detector"), default="detector",
                         help="YAML config or preset name (default: the preset detector, configs/detector.yaml)")
     parser.add_argument("--out", type=Path, default=None, help="checkpoint folder (overrides train.out)")
     parser.add_argument("--epochs", type=positive_int, default=None, help="number of epochs (overrides train.epochs)")

@@ -16,10 +16,9 @@ split into training and held-out sequences or windows), the loss (marginal log-l
 predictive likelihood, particle estimate, soft GOSPA) and the optimiser (adam or lbfgs, mini-batches,
 early stopping on the held-out loss). See docs/tune.md.
 
-Writes OUT/params.yaml (the fitted parameters; torchtrack.tuning.tune.load_params / load_filter,
-`torchtrack track --params` (GM-PHD) and `torchtrack scenario maneuver|formation --params` (Kalman,
-IMM) read it; for the GM-PHD OUT/track.yaml is also a `torchtrack track --config` file) and
-OUT/loss.png (the loss curve). An optional `refine` section adds a line search on the task metric
+Writes OUT/params.yaml (the fitted parameters, which torchtrack track --params (GM-PHD) and torchtrack
+scenario maneuver|formation --params (Kalman, IMM) read; for the GM-PHD OUT/track.yaml is also a torchtrack
+track --config file) and OUT/loss.png (the loss curve). An optional refine section adds a line search on the task metric
 (MOTA) over the training items after the gradient fit. A non-finite loss stops training, keeps the
 last parameters with a finite loss, writes them, and exits with status 1. The output folder appears as one
 set when the run completes (written in OUT.partial until then; the config's output.params/output.plot
@@ -37,9 +36,16 @@ Examples:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from torchtrack.cli._common import add_common_options, add_force_option, bounded, config_file, positive_int
+    from torchtrack.cli._common import (
+        TUNE_PRESETS,
+        add_common_options,
+        add_force_option,
+        bounded,
+        config_file,
+        positive_int,
+    )
 
-    parser.add_argument("--config", type=config_file, required=True, metavar="YAML",
+    parser.add_argument("--config", type=config_file(*TUNE_PRESETS), required=True, metavar="YAML",
                         help="tune config: a path or a preset name (configs/tune-*.yaml, e.g. tune-kalman)")
     parser.add_argument("--out", type=Path, default=None, metavar="DIR",
                         help="output folder (default: the config's output.dir, else out/tune-FILTER)")
@@ -57,8 +63,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="override a config entry (dotted key, YAML value; repeatable), e.g. "
                              "--set data.held_out_frames=[1,128] --set 'data.train_frames=[[129,512]]'")
     add_force_option(parser)
-    add_common_options(parser, seed=None)
-    next(a for a in parser._actions if a.dest == "seed").help = "random seed (default: the config's seed, else 0)"
+    add_common_options(parser, seed=None, seed_help="random seed (default: the config's seed, else 0)")
 
 
 def _rows(report: dict) -> list[list]:

@@ -120,8 +120,9 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
     stream = TrackerStream(tracker, cfg)
     truth = _truth_by_frame(gt if ignore is None or gt is None else gt.select(~ignore))
     files = {"tracks": out / "tracks.txt", "detections": out / "detections.txt"}
+    marks = ["tracks", *(["trails"] if cfg.trail else []), *(["truth"] if gt is not None and cfg.draw_truth else [])]
     video = AnnotatedVideoWriter(out / "annotated.mp4", fps=cfg.video_fps, trail=cfg.trail, box=cfg.box,
-                                 scale=cfg.scale) if cfg.video else None
+                                 scale=cfg.scale, legend=marks) if cfg.video else None
     kept: list[FrameDetections] = []
     reg_errors: list[float] = []
     waiting: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frames whose tracks are not final: image, H_k

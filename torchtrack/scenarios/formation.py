@@ -216,9 +216,9 @@ class FormationReport(NamedTuple):
     params: Path | None
 
 
-def run_gates(config: Path, runs: int, seed: int, params: Path | None = None) -> FormationReport:
+def run_gates(config: Path, runs: int, seed: int, params: Path | None = None, progress: bool = True) -> FormationReport:
     """Simulate ``runs`` runs of the scenario YAML ``config`` (seed ``seed``) and track them with every gate;
-    ``params``: a fitted-parameter file for the class IMMs (:func:`build_bank`)."""
+    ``params``: a fitted-parameter file for the class IMMs (:func:`build_bank`); ``progress``: a bar over the gates."""
     cfg = load_config(config)
     cfg["params"] = params
     gen = torch.Generator().manual_seed(seed)
@@ -226,7 +226,7 @@ def run_gates(config: Path, runs: int, seed: int, params: Path | None = None) ->
     data = simulate_formation(scfg, runs, gen)
     num_classes = len(scfg.confusion)
     results = {gate: track_formation(data, cfg, gate, torch.Generator().manual_seed(seed + 1))
-               for gate in tqdm(GATES, desc="gates")}
+               for gate in tqdm(GATES, desc="gates", disable=not progress)}
     main_cc = f"class_conditioned_{cfg['association']['cc_region']}"
     names = {g: "class_conditioned" if g == main_cc else g for g in GATES}
     prob = {names[g]: association_probability(results[g], data.target_class, num_classes) for g in GATES}

@@ -116,10 +116,12 @@ class JTCReport(NamedTuple):
 
 
 def run_jtc(config: Path, runs: int, seed: int, *, speed_constraints: bool = True, particles: int | None = None,
-            threads: int = 1, timing_repeats: int = 5, compile_step: bool = False) -> JTCReport:
+            threads: int = 1, timing_repeats: int = 5, compile_step: bool = False,
+            progress: bool = True) -> JTCReport:
     """The scenario YAML ``config``: ``runs`` runs filtered by the bank with and without speed likelihoods
     (``speed_constraints``: the main result's setting), then the time per update of one run; ``particles``
-    per class (None: the config's) on ``threads`` torch threads (restored afterwards)."""
+    per class (None: the config's) on ``threads`` torch threads (restored afterwards); ``progress``: a bar per
+    setting."""
     with torch_threads(threads):
         cfg = load_sections(config, "jtc")
         if particles is not None:
@@ -139,7 +141,7 @@ def run_jtc(config: Path, runs: int, seed: int, *, speed_constraints: bool = Tru
         for setting in (speed_constraints, not speed_constraints):
             label = "with" if setting else "without"
             out, wall, cpu = filter_runs(make_bank(cfg, setting, compile_step), z, mean, cov, traj.dt, gen,
-                                         f"{runs} runs, {label} speed constraints")
+                                         f"{runs} runs, {label} speed constraints" if progress else None)
             results[setting] = summarize(out, traj, true_class)
             scan_times[setting] = (wall, cpu)
         timing_bank = make_bank(cfg, speed_constraints, compile_step)

@@ -180,9 +180,10 @@ class PedestrianReport(NamedTuple):
 
 
 def run_variants(config: Path, runs: int, seed: int, *, steps: int | None = None, p_survival: float | None = None,
-                 threads: int = 1) -> PedestrianReport:
+                 threads: int = 1, progress: bool = True) -> PedestrianReport:
     """Simulate ``runs`` recordings of the scenario YAML ``config`` (``steps`` long; None: the config's) and run
-    every variant on them, on ``threads`` torch threads; ``p_survival`` None: the config's."""
+    every variant on them, on ``threads`` torch threads; ``p_survival`` None: the config's; ``progress``: a bar per
+    variant."""
     with torch_threads(threads):
         cfg = load_config(config)
         scene, fcfg = cfg["scene"], cfg["filter"]
@@ -196,7 +197,7 @@ def run_variants(config: Path, runs: int, seed: int, *, steps: int | None = None
         filt = build_filter(fcfg, scene, p_survival)
         variants, per_step, mean = {}, {}, {}
         for variant in VARIANTS + EXTRA_VARIANTS:
-            variants[variant] = run_variant(variant, filt, rec, cfg)
+            variants[variant] = run_variant(variant, filt, rec, cfg, progress)
             o = ospa_per_step(truth, variants[variant], cfg["ospa"]["c"], cfg["ospa"]["p"])
             per_step[variant] = o.mean(1)
             mean[variant] = float(o.mean())

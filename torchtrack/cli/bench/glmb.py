@@ -8,7 +8,16 @@ from torchtrack.cli.bench import report
 
 NAME = "glmb"
 HELP = "GLMB tracker frames/s at WPAFB scale against a per-hypothesis NumPy GLMB"
-DESCRIPTION = glmb.__doc__
+DESCRIPTION = """Frames per second of the glmb tracker at WPAFB scale against a NumPy delta-GLMB that loops over
+hypotheses and tracks as the published codes do, timed in the same run.
+
+Workload: 100 vehicles with constant-velocity motion in 1000 x 1000 px, detected with p_D 0.9 and 1 px
+noise, Poisson clutter of mean 60 (about 150 measurements a frame). Both trackers start empty, run
+--warmup frames untimed, then the timed frames one step at a time. Also printed: hypotheses, groups and
+estimated tracks per frame of each.
+
+Example: torchtrack bench glmb --frames 20
+"""
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

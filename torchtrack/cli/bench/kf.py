@@ -5,7 +5,16 @@ from torchtrack.cli.bench import report
 
 NAME = "kf"
 HELP = "batched Kalman filter throughput vs NumPy and a per-track loop"
-DESCRIPTION = kf.__doc__
+DESCRIPTION = """Batched Kalman filter throughput (track-steps per second) against a batched NumPy implementation of
+the same equations, timed in the same run.
+
+Workload: 2-D nearly-constant-velocity targets (state x, y, vx, vy), position measurements, float32,
+--tracks tracks over --steps steps. Also printed: the general path (full 4 x 4 matrices, compiled unless
+--no-compile) and FilterPy's Kalman filter run one track at a time on --loop-tracks tracks, where FilterPy is
+installed.
+
+Example: torchtrack bench kf --tracks 10000 --steps 20
+"""
 
 
 def add_arguments(parser) -> None:

@@ -5,7 +5,15 @@ from torchtrack.cli.bench import report
 
 NAME = "registration"
 HELP = "registration frames/s and error vs the true camera motion (ours LK vs OpenCV ORB+RANSAC)"
-DESCRIPTION = registration.__doc__
+DESCRIPTION = """Frame registration speed and accuracy on synthetic sequences with a known camera motion, against
+OpenCV's classic feature pipeline (ORB features, brute-force matching, RANSAC homography), timed in the
+same run on the same frames.
+
+Ours: keyframe corners, Lucas-Kanade tracking and RANSAC. Also printed: the error of each against the true
+camera motion (median transfer error on a 16 px grid) and of ours with ECC refinement.
+
+Example: torchtrack bench registration --sequences 2 --frames 10
+"""
 
 
 def add_arguments(parser) -> None:

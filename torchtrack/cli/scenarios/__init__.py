@@ -3,7 +3,8 @@ experiments themselves are library modules of ``torchtrack.scenarios``).
 
 Every scenario takes ``--runs``, ``--config``, ``--plot``, ``--params``, ``--seed`` and ``--json``, with the
 defaults its command module declares: ``DEFAULT_CONFIG``, ``RUNS`` and ``PARAMS`` (what a fitted-parameter file
-sets; absent where ``torchtrack tune`` fits none of its filters).
+sets; absent where ``torchtrack tune`` fits none of its filters); ``PROGRESS = True`` where the scenario draws a
+progress bar adds ``--no-progress``.
 """
 
 import importlib
@@ -24,6 +25,8 @@ R = TypeVar("R")
 
 def _scenario_options(parser, module) -> None:
     add_scenario_options(parser, module.DEFAULT_CONFIG, runs=module.RUNS, params=getattr(module, "PARAMS", None))
+    if getattr(module, "PROGRESS", False):
+        parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     add_common_options(parser)
 
 
