@@ -1,8 +1,8 @@
 """torchtrack: batched, differentiable target tracking on PyTorch.
 
 The main job from Python: :func:`track` runs a tracker on frames, a video or detections (as ``torchtrack track``)
-and :func:`evaluate` scores tracks (as ``torchtrack eval``); both live in :mod:`torchtrack.pipeline.api` and are
-imported on first use, so ``import torchtrack`` stays light.
+and :func:`evaluate` scores tracks (as ``torchtrack eval``): :func:`torchtrack.pipeline.api.track` and
+:func:`torchtrack.metrics.evaluation.evaluate_scores`, imported on first use so ``import torchtrack`` stays light.
 """
 
 from torchtrack.errors import TorchtrackError
@@ -12,8 +12,12 @@ __all__ = ["TorchtrackError", "__version__", "evaluate", "track"]
 
 
 def __getattr__(name: str):
-    if name in ("track", "evaluate", "TrackResult"):
+    if name in ("track", "TrackResult"):
         from torchtrack.pipeline import api
 
         return getattr(api, name)
+    if name == "evaluate":
+        from torchtrack.metrics.evaluation import evaluate_scores
+
+        return evaluate_scores
     raise AttributeError(f"module 'torchtrack' has no attribute {name!r}")

@@ -29,7 +29,7 @@ from torchtrack.metrics.table import TABLE1_HEADER, format_table, format_table1,
 from torchtrack.pipeline.api import track
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.sequences import destroy, run_sequences, shared_output
-from torchtrack.pipeline.track_video import PipelineResult, track_video
+from torchtrack.pipeline.track_video import track_video
 from torchtrack.pipeline.truth import wpafb_truth
 from torchtrack.sim.video import read_camera
 
@@ -128,17 +128,17 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
     if args.gt and args.truth_csv:
         raise TorchtrackError("give either --gt or --truth-csv, not both")
     if args.strips:
-        result, files = _run_strips(args, config, command, inputs)
-        if result is None:  # a torchrun rank other than 0
+        m, files = _run_strips(args, config, command, inputs)
+        if m is None:  # a torchrun rank other than 0
             return 0
     else:
         source = open_frames(args.video or args.frames)
         gt, ignore = _truth(args, len(source))
         result = track(frames=args.frames, video=args.video, tracker=config.tracker, gt=gt, ignore=ignore,
+                       gt_name=str(args.truth_csv or args.gt),
                        device=args.device, pipeline_config=config, camera=_camera(args), out=out, force=args.force,
                        inputs=inputs, progress=not args.no_progress)
-        files = result.files
-    m = result.report
+        m, files = result.report, result.files
     name = Path(args.video or args.frames).name
     print(format_table(HEADER, [_score_row(name, m.get("clear_mot"), m["fps"]["end_to_end"])], floatfmt=".2f"))
     timings = ", ".join(f"{k} {v:.2f}s" for k, v in m["timings_s"].items())
@@ -166,9 +166,9 @@ def _camera(args: argparse.Namespace) -> np.ndarray | None:
 
 
 def _run_strips(args: argparse.Namespace, config: PipelineConfig, command: str, inputs: list[Path | None]
-                ) -> tuple[PipelineResult | None, dict[str, Path]]:
+                ) -> tuple[dict | None, dict[str, Path]]:
     """``--strips``: the pipeline over the strips of the torchrun ranks; rank 0 writes the folder and gets the
-    result and its files' final paths, the other ranks ``(None, {})``."""
+    metrics and the files' final paths, the other ranks ``(None, {})``."""
     folder = OutputFolder(args.out, command, args.force, inputs=inputs)
     with strip_group() as rank, \
             (folder if rank == 0 else rank_output(rank, args.out, command, args.force, inputs)) as staging:
@@ -183,4 +183,4 @@ def _run_strips(args: argparse.Namespace, config: PipelineConfig, command: str, 
         write_json(result.files["metrics"], result.metrics)
     if rank != 0:
         return None, {}
-    return result, {kind: folder.final(path) for kind, path in result.files.items()}
+    return result.metrics, {kind: folder.final(path) for kind, path in result.files.items()}

@@ -11,10 +11,16 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import read_mot
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.clear_mot import KEYS
-from torchtrack.metrics.evaluation import OSPA_KEYS, EvalOptions, benchmark_sequences, combine, evaluate
+from torchtrack.metrics.evaluation import (
+    OSPA_KEYS,
+    EvalOptions,
+    benchmark_sequences,
+    combine,
+    evaluate,
+    evaluate_scores,
+)
 from torchtrack.metrics.hota import KEYS as HOTA_KEYS
 from torchtrack.metrics.table import format_table
-from torchtrack.pipeline import api as track_api
 
 NAME = "eval"
 HELP = "score tracks (MOTChallenge text) against ground truth: CLEAR-MOT, MT/PT/ML, IDF1, HOTA"
@@ -105,9 +111,9 @@ def run(args: argparse.Namespace) -> int:
         pairs = benchmark_sequences(args.gt_folder, args.pred_folder)
         print(f"{args.pred_folder} vs {args.gt_folder}: {len(pairs)} sequences {scored}")
     if args.gt is not None:
-        rows = {"": track_api.evaluate(args.gt, args.pred, threshold=options.threshold, iou=options.iou,
-                                       moving=options.moving, count_zero_conf=options.count_zero_conf,
-                                       ospa=options.ospa)}
+        rows = {"": evaluate_scores(args.gt, args.pred, threshold=options.threshold, iou=options.iou,
+                                    moving=options.moving, count_zero_conf=options.count_zero_conf,
+                                    ospa=options.ospa)}
     else:
         evaluations = {name: evaluate(read_mot(gt), read_mot(pred), options) for name, gt, pred in pairs}
         if len(pairs) > 1:

@@ -175,6 +175,16 @@ def from_rows(rows, name: str = "rows") -> MOTData:
                    c9.copy() if velocity else None)
 
 
+def as_mot(value: str | os.PathLike | MOTData | np.ndarray, name: str) -> MOTData:
+    """A MOTChallenge file's path, a :class:`MOTData` or an array of its rows (:func:`from_rows`) as
+    :class:`MOTData`; ``name`` names an array in errors."""
+    if isinstance(value, MOTData):
+        return value
+    if isinstance(value, str | os.PathLike):
+        return read_mot(value)
+    return from_rows(value, name)
+
+
 def _numpy(a, dtype: type | None = None) -> np.ndarray:
     """An array-like or a tensor as a numpy array."""
     return np.asarray(a.detach().cpu() if hasattr(a, "detach") else a, dtype=dtype)

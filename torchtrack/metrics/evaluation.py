@@ -15,6 +15,7 @@ NumPy only unless OSPA is asked for, so that ``torchtrack eval`` starts without 
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -22,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from torchtrack.errors import TorchtrackError
-from torchtrack.io.mot import MOTData
+from torchtrack.io.mot import MOTData, as_mot
 from torchtrack.io.wpafb import moving_mask
 from torchtrack.metrics import clear_mot, hota
 from torchtrack.metrics.clear_mot import combine as combine_clear_mot
@@ -95,6 +96,18 @@ def evaluate(gt: MOTData, pred: MOTData, options: EvalOptions = EvalOptions()) -
     common = {"threshold": options.threshold, "iou": options.iou, "count_zero_conf": options.count_zero_conf}
     return Evaluation(clear_mot(gt, pred, **common), hota(gt, pred, **common),
                       _ospa_frames(gt, pred, options.ospa) if options.ospa is not None else None)
+
+
+def evaluate_scores(gt: str | os.PathLike | MOTData | np.ndarray, pred: str | os.PathLike | MOTData | np.ndarray,
+                    *, threshold: float = 10.0, iou: float | None = None, moving: bool = False,
+                    count_zero_conf: bool = False, ospa: float | None = None) -> dict:
+    """``torchtrack.evaluate``: the scores of ``torchtrack eval --json`` (CLEAR-MOT, MT/PT/ML, FRAG, IDF1, HOTA,
+    and OSPA/GOSPA with ``ospa``; ratios as fractions; ``gate`` and ``moving_only`` say how it was scored) of the
+    tracks ``pred`` against ``gt``, each a MOTChallenge file's path, a :class:`MOTData` or an array of its rows.
+    Options as :class:`EvalOptions`."""
+    options = EvalOptions(threshold, iou, moving, count_zero_conf, ospa)
+    scores = evaluate(as_mot(gt, "gt"), as_mot(pred, "pred"), options).scores()
+    return {**scores, "gate": options.gate, "moving_only": bool(moving)}
 
 
 def combine(evaluations: Sequence[Evaluation]) -> Evaluation:

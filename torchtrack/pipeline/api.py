@@ -1,5 +1,6 @@
 """The Python face of the main job: :func:`track` runs one tracker on frames, a video or detections, as
-``torchtrack track`` does (the command calls it), and :func:`evaluate` scores tracks as ``torchtrack eval`` does.
+``torchtrack track`` does (the command calls it); ``torchtrack.evaluate``
+(:func:`torchtrack.metrics.evaluation.evaluate_scores`) scores tracks as ``torchtrack eval`` does.
 
 ::
 
@@ -34,10 +35,8 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.options import read_tracker_sections
 from torchtrack.filters.trackers.protocol import Tracker
 from torchtrack.io.frames import ArraySource, FrameSource, open_frames
-from torchtrack.io.mot import MOTData, as_rows, from_rows, read_mot
+from torchtrack.io.mot import MOTData, as_mot, as_rows, read_mot
 from torchtrack.io.outputs import OutputFolder
-from torchtrack.metrics.evaluation import EvalOptions
-from torchtrack.metrics.evaluation import evaluate as evaluate_tracks
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.detection_file import detection_file_config, track_detections
 from torchtrack.pipeline.track_video import track_video
@@ -47,15 +46,6 @@ COMMAND = "torchtrack track"
 (:class:`torchtrack.io.outputs.OutputFolder`): ``torchtrack track --out`` may replace them."""
 
 MOTInput = str | os.PathLike | MOTData | np.ndarray
-
-
-def as_mot(value: MOTInput, name: str) -> MOTData:
-    """A MOTChallenge file's path, a :class:`MOTData` or an array of its rows, as :class:`MOTData`."""
-    if isinstance(value, MOTData):
-        return value
-    if isinstance(value, str | os.PathLike):
-        return read_mot(value)
-    return from_rows(value, name)
 
 
 @dataclass
@@ -113,6 +103,7 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
           video: str | os.PathLike | None = None, detections: MOTInput | None = None, *,
           tracker: str | Tracker = "gmphd", tracker_name: str | None = None,
           config: str | os.PathLike | Mapping | Any | None = None, gt: MOTInput | None = None,
+          gt_name: str | None = None,
           device: str = "cpu", threshold: float = 10.0,
           pipeline_config: str | os.PathLike | PipelineConfig | None = None,
           weights: str | os.PathLike | None = None, draw_video: bool | None = None, threads: int | None = None,
@@ -130,7 +121,7 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
             ``tracker_name`` (default its ``name`` attribute or class name).
         config: the trackers' options (:func:`tracker_options`); default the built-in ones.
         gt: truth to score against (a path, :class:`MOTData` or rows); ``ignore (K,)`` marks its don't-care
-            lines (video pipeline).
+            lines (video pipeline); ``gt_name`` names it in errors (default: its path).
         device: where the tracker (and the detector) run: ``cpu``, ``cuda`` or ``cuda:N``.
         threshold: the CLEAR-MOT centre distance in px (detections; frames take the pipeline config's).
         pipeline_config: the video pipeline's settings (a YAML path or preset name, or a :class:`PipelineConfig`).
@@ -166,7 +157,7 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
                        "detector_weights": None if weights is None else str(weights)}
             run_config = _pipeline_config(pipeline_config).replace(
                 **{key: value for key, value in changes.items() if value is not None})
-            result = track_video(source, staging, run_config, gt=truth, gt_path=str(gt), ignore=ignore,
+            result = track_video(source, staging, run_config, gt=truth, gt_path=gt_name or str(gt), ignore=ignore,
                                  camera=camera, tracker=built, progress=progress)
             report, files, tracks = result.metrics, result.files, result.tracks
             given = read_mot(files["detections"])
@@ -178,14 +169,3 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
 
 def _pipeline_config(value: str | os.PathLike | PipelineConfig | None) -> PipelineConfig:
     return value if isinstance(value, PipelineConfig) else load_pipeline_config(value)
-
-
-def evaluate(gt: MOTInput, pred: MOTInput, *, threshold: float = 10.0, iou: float | None = None,
-             moving: bool = False, count_zero_conf: bool = False, ospa: float | None = None) -> dict:
-    """The scores of ``torchtrack eval`` (the keys of its JSON: CLEAR-MOT, MT/PT/ML, FRAG, IDF1, HOTA, and
-    OSPA/GOSPA with ``ospa``; ratios as fractions; ``gate`` and ``moving_only`` say how it was scored) of the
-    tracks ``pred`` against ``gt`` (paths, :class:`MOTData` or MOTChallenge rows). Options as
-    :class:`~torchtrack.metrics.evaluation.EvalOptions`."""
-    options = EvalOptions(threshold, iou, moving, count_zero_conf, ospa)
-    scores = evaluate_tracks(as_mot(gt, "gt"), as_mot(pred, "pred"), options).scores()
-    return {**scores, "gate": options.gate, "moving_only": bool(moving)}
