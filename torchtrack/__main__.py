@@ -1,5 +1,8 @@
+"""``python -m torchtrack``: the ``torchtrack`` command."""
+
 import sys
 
 from torchtrack.cli import main
 
-sys.exit(main())
+if __name__ == "__main__":
+    sys.exit(main())

@@ -2,14 +2,14 @@
 
 Each class stores an unconstrained ``nn.Parameter`` and returns the constrained value when called:
 
-=====================  =========================================  ===========================
-class                  transform                                  use
-=====================  =========================================  ===========================
-:class:`Positive`      ``softplus(θ)`` (+ floor)                  standard deviations, rates
-:class:`Probability`   ``sigmoid(θ)``                             p_D, p_S, existence
-:class:`RowStochastic` ``softmax(Θ, dim=-1)``                     Markov transition matrices
-:class:`Covariance`    ``L Lᵀ``, ``L`` lower, ``diag(L) = softplus``  full covariances
-=====================  =========================================  ===========================
+=========================  =============================================  ===========================
+class                      transform                                      use
+=========================  =============================================  ===========================
+:class:`Positive`          ``softplus(θ)`` (+ floor)                      standard deviations, rates
+:class:`Probability`       ``sigmoid(θ)``                                 p_D, p_S, existence
+:class:`RowStochastic`     ``softmax(Θ, dim=-1)``                         Markov transition matrices
+:class:`Covariance`        ``L Lᵀ``, ``L`` lower, ``diag(L) = softplus``  full covariances
+=========================  =============================================  ===========================
 
 ``requires_grad=False`` freezes a parameter (it stays a buffer-like ``nn.Parameter``).
 """

@@ -1,6 +1,6 @@
 """``torchtrack bench scale --frame-sizes``: the video pipeline as the frames grow from 512² to 4096² px.
 
-The workload (issue #28): for each frame side ``S``, ``n_S`` synthetic sequences of ``S × S`` px
+The workload: for each frame side ``S``, ``n_S`` synthetic sequences of ``S × S`` px
 (:func:`torchtrack.sim.video.write_sequence`, the generator's defaults, which keep the scene's density above
 512²), each of the same number of frames at every size (so that the start-up of tracks weighs the same),
 seeded by the held-out test seeds of the detector (:func:`torchtrack.detector.dataset.split_seed`, split

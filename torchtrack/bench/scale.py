@@ -1,6 +1,6 @@
 """``torchtrack bench scale``: the trackers as the number of vehicles per frame grows at constant density.
 
-The workload (issue #28): ``N`` vehicles, one per 60 × 60 px, on a square of side ``60 √N`` px, each moving on
+The workload: ``N`` vehicles, one per 60 × 60 px, on a square of side ``60 √N`` px, each moving on
 a straight line at 2.5–3.5 px/frame with a uniformly random heading; each frame a vehicle is detected with
 probability ``p_D = 0.9`` at its position plus ``N(0, σ² I)``, ``σ = 1`` px, with the detector's velocity plus
 ``N(0, 1)`` px/frame; ``N / 4`` clutter detections per frame, uniform over the square, with velocities uniform

@@ -4,7 +4,7 @@ The velocity head gives a coarse ``v`` (px/frame); each detection's velocity is 
 ``(2p+1)^2`` patch of the current frame centred on the detection against the previous frame, at the
 integer displacements ``s = round(-v) + d``, ``d`` in ``[-R, R]^2`` (the object at ``r`` in frame ``k``
 was at ``r + s`` in frame ``k-1``). The cost is the mean squared difference of zero-mean patches
-(insensitive to gain and offset drift) plus a weak pull towards the network's estimate,
+(insensitive to gain and offset drift) plus a weak pull towards the network's estimate::
 
     C(s) = 1/n sum_u ((I_k(r+u) - m_k) - (I_{k-1}(r+s+u) - m_{k-1}(s)))^2 + lam |s + v|^2
          = 1/n [sum c^2 - n m_c^2 + sum t^2 - n m_t^2 - 2 (sum c t - n m_c m_t)] + lam |s + v|^2,

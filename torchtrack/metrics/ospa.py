@@ -38,7 +38,7 @@ from torchtrack.io.mot import MOTData
 
 
 class OSPAResult(NamedTuple):
-    """Per-set-pair OSPA, shapes (*,)."""
+    """Per-set-pair OSPA, each of shape ``(*,)``."""
 
     total: torch.Tensor
     localisation: torch.Tensor
@@ -50,7 +50,7 @@ class OSPAResult(NamedTuple):
 
 
 class GOSPAResult(NamedTuple):
-    """Per-set-pair GOSPA, shapes (*,); parts in distance^p, counts as float tensors."""
+    """Per-set-pair GOSPA, each of shape ``(*,)``; parts in distance^p, counts as float tensors."""
 
     total: torch.Tensor
     localisation: torch.Tensor
@@ -107,7 +107,8 @@ def ospa(X: torch.Tensor, Y: torch.Tensor, c: float, p: float = 1.0,
          x_mask: torch.Tensor | None = None, y_mask: torch.Tensor | None = None) -> OSPAResult:
     """OSPA distance of order ``p`` with cut-off ``c`` between the sets ``X`` and ``Y`` (module docstring).
 
-    Shapes: X (*, N, d), Y (*, M, d), masks (*, N) and (*, M) (default: all present); result (*,).
+    Shapes: ``X (*, N, d)``, ``Y (*, M, d)``, masks ``(*, N)`` and ``(*, M)`` (default: all present); result
+    ``(*,)``.
     """
     batch, _, dc_p, xm, ym = _prepare(X, Y, x_mask, y_mask, c, p)
     assigned = _assign(dc_p, xm, ym)
@@ -134,7 +135,8 @@ def gospa(X: torch.Tensor, Y: torch.Tensor, c: float, p: float = 2.0, alpha: flo
           x_mask: torch.Tensor | None = None, y_mask: torch.Tensor | None = None) -> GOSPAResult:
     """GOSPA of order ``p``, cut-off ``c`` and ``alpha`` between truth ``X`` and estimates ``Y``.
 
-    Shapes: X (*, N, d), Y (*, M, d), masks (*, N) and (*, M) (default: all present); result fields (*,).
+    Shapes: ``X (*, N, d)``, ``Y (*, M, d)``, masks ``(*, N)`` and ``(*, M)`` (default: all present); result
+    fields ``(*,)``.
     ``localisation``, ``missed`` and ``false`` are in distance^p (module docstring); NaN unless alpha = 2.
     """
     if not 0 < alpha <= 2:

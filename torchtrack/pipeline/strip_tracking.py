@@ -1,5 +1,5 @@
-"""Tracking over horizontal strips, one strip per rank of a process group (``torchrun``, ``torch.distributed``;
-issue #28 item 5, tracking half), with identities agreed across the strips' seams.
+"""Tracking over horizontal strips, one strip per rank of a process group, with identities agreed across the
+strips' seams (under ``torchrun``, ``torch.distributed``).
 
 **Strips.** The seams are the inner boundaries of ``strip_rows(height, W)`` (:mod:`torchtrack.pipeline.strips`).
 Rank ``r`` *owns* the rows ``[s_r, s_{r+1})`` between its seams (the first strip reaches up to −∞, the last
@@ -91,7 +91,7 @@ has filtered the band), below the spacing of most vehicles (one per 60 × 60 px 
 
 @dataclass(frozen=True)
 class StripConfig:
-    """``height``: rows ``0 .. height`` split by :func:`~torchtrack.pipeline.strips.strip_rows` (the seams; the
+    """``height``: rows ``0`` to ``height`` split by :func:`~torchtrack.pipeline.strips.strip_rows` (the seams; the
     outer strips reach past them); ``band``: px each side of a strip its tracker also sees; ``match_distance``:
     px within which two ranks' tracks are one vehicle (module docstring)."""
 

@@ -1,5 +1,5 @@
-"""Detection of a frame stream over horizontal strips, one strip per rank of a process group (``torchrun``,
-``torch.distributed``; issue #28 item 5, detection half).
+"""Detection of a frame stream over horizontal strips, one strip per rank of a process group (under
+``torchrun``, ``torch.distributed``).
 
 Rank ``r`` of ``W`` detects the strip ``strip_rows(H, W)[r]`` of every frame (every rank reads the whole frame:
 the strip's network window reaches ``HALO`` px past its rows, and velocities are refined on the whole frames),
@@ -26,7 +26,7 @@ from torchtrack.errors import TorchtrackError
 
 
 def strip_rows(height: int, parts: int) -> list[tuple[int, int]]:
-    """``parts`` strips ``(y0, y1)`` that partition the rows ``0 .. height`` of a frame, as equal as the
+    """``parts`` strips ``(y0, y1)`` that partition the rows ``0`` to ``height`` of a frame, as equal as the
     boundaries allow: multiples of 16 (the network's stride), the last strip ending at ``height``."""
     cells = -(-height // MULTIPLE)
     if not 1 <= parts <= cells:

@@ -51,7 +51,7 @@ class Reparametrised:
     """Optimise ``u`` (starting at 0) with ``raw = raw₀ + s u`` for the selected parameters.
 
     While active, each parameter module's ``raw`` is a plain tensor recomputed from ``u`` by
-    :meth:`apply`; :meth:`close` puts back ``nn.Parameter``s holding the final values.
+    :meth:`apply`; :meth:`close` puts back parameters (``nn.Parameter``) holding the final values.
     """
 
     def __init__(self, params: Mapping[str, nn.Module]):

@@ -17,25 +17,25 @@ alternatives.
 
 One frame (:meth:`GLMBFilter.step`), births ``B`` (rows of existence ``r_B``) given:
 
-(G1) prediction of every table row and birth row: ``m⁻ = F m``, ``P⁻ = F P Fᵀ + Q``;
-(G2) for each of the ``N = T + B`` predicted rows ``i`` and measurement ``z_j`` (gated: NIS ≤ χ²(gate)):
+| (G1) prediction of every table row and birth row: ``m⁻ = F m``, ``P⁻ = F P Fᵀ + Q``;
+| (G2) for each of the ``N = T + B`` predicted rows ``i`` and measurement ``z_j`` (gated: NIS ≤ χ²(gate)):
      ``η_i(0) = 1 − p_S`` (absent; births ``1 − r_B``), ``η_i(1) = p_S (1 − p_D)`` (missed; births
      ``r_B (1 − p_D)``), ``η_i(j) = p_S p_D N(z_j; H m⁻_i, S_i) / κ(z_j)`` (births with ``r_B``)
      — the per-track weights of the joint prediction–update;
-(G3) this frame's groups are the connected components of the label–measurement gating graph; the prior of a
+| (G3) this frame's groups are the connected components of the label–measurement gating graph; the prior of a
      group is the product of the old groups' hypotheses projected onto it (exact where old groups join; where an
      old group splits, its parts are its marginals, the one approximation, exact when the parts were
      independent). For each hypothesis ``h``, ``c_h ∝ √w_h`` (``chains`` per group) Gibbs chains
      (:mod:`torchtrack.association.gibbs`, the paper's sampler) draw joint choices ``γ`` over the group's
      labels and births;
-(G4) each distinct ``(h, γ)`` (duplicates kept once) is a new hypothesis with
+| (G4) each distinct ``(h, γ)`` (duplicates kept once) is a new hypothesis with
      ``log w_{h,γ} = log w_h + Σ_{i ∈ I_h ∪ B_g} log η_i(γ_i)``, normalised in the log domain within its group;
      hypotheses of a group that end as the same set of new rows are merged (weights added);
-(G5) new table rows are the distinct ``(i, γ_i)`` with ``γ_i ≠ absent``: the predicted density (missed) or
+| (G5) new table rows are the distinct ``(i, γ_i)`` with ``γ_i ≠ absent``: the predicted density (missed) or
      its Kalman update with ``z_j`` (:func:`torchtrack.gaussian.kalman_update`);
-(G6) per group: pruning (``w < prune_threshold``, the heaviest always kept) and the cap (``max_hypotheses``
+| (G6) per group: pruning (``w < prune_threshold``, the heaviest always kept) and the cap (``max_hypotheses``
      heaviest; hits counted and warned once), renormalisation; unused table rows dropped;
-(G7) estimate, per group: the MAP cardinality ``n* = argmax_n Σ_{|I_h| = n} w_h`` and the heaviest hypothesis of
+| (G7) estimate, per group: the MAP cardinality ``n* = argmax_n Σ_{|I_h| = n} w_h`` and the heaviest hypothesis of
      that cardinality; the frame's estimate is their union.
 
 Stop-gradient steps: the gating, the grouping, the sampled choices ``γ`` and every selection made from them

@@ -1,6 +1,6 @@
 """Kalman, extended and unscented Kalman filters, batched over any batch shape.
 
-Filters are stateless ``nn.Module``s holding a motion and a measurement model (whose noise levels are
+Filters are stateless modules (``nn.Module``) holding a motion and a measurement model (whose noise levels are
 learnable); the state is passed explicitly as a :class:`GaussianState`.
 
 Equations (the maneuver paper, eq. 3–7; Bar-Shalom et al. 2001, §5.2)::
