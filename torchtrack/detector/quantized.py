@@ -1,0 +1,250 @@
+"""Int8 inference of a trained :class:`~torchtrack.detector.network.CenterTrackNet` on the CPU (post-training
+static quantisation in torch's eager mode, ``x86`` engine: oneDNN's VNNI kernels where the CPU has them).
+
+The same weights and operations as the float network: every convolution but one runs in int8 (weights per output
+channel, symmetric; activations per tensor, their ranges calibrated on synthetic frames), the ReLUs fused into the
+convolutions, the adds and the concatenation quantised. In float: the siamese encoder's high-pass, the
+correlation, its softmax and soft-argmax flow (small maps at strides 4 and 8), the velocity head's convolution
+(its output scale is a tenth of the heatmap logits'), and the pixel shuffle and sums after the heads. Every
+tensor between layers is channels-last, the layout in which both the int8 kernels and the float ones are fast.
+
+A calibration is the table ``{quantisation point: [scale, zero_point]}`` (:func:`calibrate`); with it
+:func:`quantize` builds the int8 network from the float weights, deterministically, in a fraction of a second —
+a checkpoint carries the table and the digest of the weights it belongs to (:func:`calibrated_checkpoint`,
+``torchtrack quantize-detector``), not int8 tensors.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import warnings
+from collections.abc import Iterable
+
+import torch
+from torch import nn
+from torch.ao import quantization as tq
+from torch.ao.nn import intrinsic as nni
+from torch.nn import functional as F
+
+from torchtrack.detector.network import VELOCITY_SCALE, CenterTrackNet, correlation_last
+from torchtrack.errors import TorchtrackError
+
+ENGINE = "x86"
+
+
+def _fused(seq: nn.Module) -> list[nn.Module]:
+    """The convolutions of a ``Sequential`` (nested ``Conv2d, ReLU`` pairs) as ``ConvReLU2d`` where a ReLU follows."""
+    flat = [m for m in seq.modules() if isinstance(m, (nn.Conv2d, nn.ReLU))]
+    out = []
+    for m in flat:
+        if isinstance(m, nn.ReLU):
+            out[-1] = nni.ConvReLU2d(out[-1], nn.ReLU())
+        else:
+            out.append(copy.deepcopy(m))
+    return out
+
+
+class QuantisableNet(nn.Module):
+    """:class:`CenterTrackNet`'s forward with quantisation points (``QuantStub``/``DeQuantStub``, ``FloatFunctional``),
+    built from a trained network's weights; :func:`quantize` converts it. Every tensor between the layers is
+    channels-last (the layout the int8 kernels and the float ones after them are fast in)."""
+
+    def __init__(self, net: CenterTrackNet) -> None:
+        super().__init__()
+        self.radius, self.fine = net.radius, net.fine
+        self.log_temperature = nn.Parameter(net.log_temperature.detach().clone(), requires_grad=False)
+        self.register_buffer("displacement", net.displacement.clone(), persistent=False)
+        self.quant_x, self.quant_cost = tq.QuantStub(), tq.QuantStub()
+        self.stem = nn.Sequential(*_fused(net.stem))
+        self.siamese4 = nn.Sequential(*_fused(net.siamese4))
+        self.siamese8 = nn.Sequential(*_fused(net.siamese8))
+        self.quant_frames = tq.QuantStub()
+        self.dequant_f4, self.quant_f4, self.dequant_f8 = tq.DeQuantStub(), tq.QuantStub(), tq.DeQuantStub()
+        self.down3 = nn.Sequential(*_fused(net.down3))
+        self.cat3 = nn.quantized.FloatFunctional()
+        self.fuse3 = nn.Sequential(*_fused(net.fuse3))
+        self.down4 = nn.Sequential(*_fused(net.down4))
+        self.lat4 = copy.deepcopy(net.lat4)
+        self.add3, self.add2 = nn.quantized.FloatFunctional(), nn.quantized.FloatFunctional()
+        self.up3 = nn.Sequential(*_fused(net.up3))
+        self.up2 = nn.Sequential(*_fused(net.up2))
+        # the heads in two convolutions with their own output ranges: heatmap and offset (12 channels before the
+        # pixel shuffle), velocity (8 channels, whose range is a tenth of the heatmap logits')
+        self.heads_map, self.heads_velocity = _split(net.heads, 12)
+        self.heads_velocity.qconfig = None
+        self.dequant_map, self.dequant_u2 = tq.DeQuantStub(), tq.DeQuantStub()
+        if self.fine:
+            self.fine_in, self.fine_mix = copy.deepcopy(net.fine_in), copy.deepcopy(net.fine_mix)
+            self.fine_out = copy.deepcopy(net.fine_out)
+            self.add_fine = nn.quantized.FloatFunctional()
+            self.dequant_fine = tq.DeQuantStub()
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        xq = self.quant_x(x.contiguous(memory_format=torch.channels_last))
+        d2 = self.stem(xq)
+        frames = torch.cat([x[:, :1], x[:, 1:2]], dim=0).contiguous(memory_format=torch.channels_last)
+        f4 = self.dequant_f4(self.siamese4(self.quant_frames(frames)))          # both frames in one batch
+        cur, prev = self.dequant_f8(self.siamese8(self.quant_f4(high_pass(f4)))).chunk(2, dim=0)
+        cost = correlation_last(cur, prev, self.radius)                          # (B, h, w, K)
+        w = torch.softmax(cost * self.log_temperature.exp(), dim=-1)
+        flow = -(w @ self.displacement.T).permute(0, 3, 1, 2).contiguous()
+        d3 = self.fuse3(self.cat3.cat([self.down3(d2), self.quant_cost(cost.permute(0, 3, 1, 2))], dim=1))
+        d4 = self.down4(d3)
+        u3 = self.up3(self.add3.add(d3, F.interpolate(self.lat4(d4), size=d3.shape[-2:], mode="nearest")))
+        u2 = self.up2(self.add2.add(d2, F.interpolate(u3, size=d2.shape[-2:], mode="nearest")))
+        hm_off = _shuffle(self.dequant_map(self.heads_map(u2)))
+        velocity = _shuffle(self.heads_velocity(self.dequant_u2(u2)))
+        if self.fine:
+            ctx = F.interpolate(self.fine_mix(u2), size=hm_off.shape[-2:], mode="nearest")
+            hm_off = hm_off + self.dequant_fine(self.fine_out(self.add_fine.add_relu(self.fine_in(xq), ctx)))
+        flow = F.interpolate(flow, size=hm_off.shape[-2:], mode="bilinear", align_corners=False)
+        return hm_off[:, :1], hm_off[:, 1:3], flow + velocity * VELOCITY_SCALE
+
+
+def _shuffle(maps: torch.Tensor) -> torch.Tensor:
+    """``F.pixel_shuffle(maps, 2)`` of channels-last maps ``(B, 4C, h, w)``, as one copy into ``(B, C, 2h, 2w)``."""
+    b, c4, h, w = maps.shape
+    cells = maps.permute(0, 2, 3, 1).reshape(b, h, w, c4 // 4, 2, 2)
+    return cells.permute(0, 3, 1, 4, 2, 5).reshape(b, -1, 2 * h, 2 * w)
+
+
+def high_pass(f: torch.Tensor) -> torch.Tensor:
+    """``f - F.avg_pool2d(f, 3, 1, 1, count_include_pad=False)`` of channels-last ``f`` ``(B, C, h, w)``: the mean
+    over the zero-padded 3x3 window (a depthwise convolution) times ``9 / count`` (1 inside, 3/2 on the edges, 9/4
+    at the corners), subtracted in the channels-last layout (several times faster than the pooling there)."""
+    c, (h, w) = f.shape[1], f.shape[-2:]
+    mean = F.conv2d(f, f.new_full((c, 1, 3, 3), 1 / 9), None, 1, 1, 1, c)
+    edge_h, edge_w = f.new_ones(h), f.new_ones(w)
+    edge_h[[0, -1]], edge_w[[0, -1]] = 1.5, 1.5
+    return torch.addcmul(f.permute(0, 2, 3, 1), mean.permute(0, 2, 3, 1), (edge_h[:, None] * edge_w)[..., None],
+                         value=-1).permute(0, 3, 1, 2)
+
+
+def _split(conv: nn.Conv2d, k: int) -> tuple[nn.Conv2d, nn.Conv2d]:
+    """A ``1x1`` convolution as two: its first ``k`` output channels and the rest."""
+    parts = []
+    for lo, hi in ((0, k), (k, conv.out_channels)):
+        part = nn.Conv2d(conv.in_channels, hi - lo, 1)
+        with torch.no_grad():
+            part.weight.copy_(conv.weight[lo:hi])
+            part.bias.copy_(conv.bias[lo:hi])
+        parts.append(part.to(memory_format=torch.channels_last))
+    return parts[0], parts[1]
+
+
+def _qconfig() -> tq.QConfig:
+    return tq.QConfig(activation=tq.HistogramObserver.with_args(reduce_range=False),
+                      weight=tq.PerChannelMinMaxObserver.with_args(dtype=torch.qint8,
+                                                                    qscheme=torch.per_channel_symmetric))
+
+
+def _converted(model: nn.Module) -> nn.Module:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")    # torch's notice that its quantised tensors will move to torchao
+        return tq.convert(model)
+
+
+def calibrate(net: CenterTrackNet, inputs: Iterable[torch.Tensor]) -> dict[str, list[float]]:
+    """The activations' quantisation ``{quantisation point: [scale, zero_point]}`` that minimises the
+    quantisation error of the histograms observed over ``inputs`` (network inputs ``(B, 3, H, W)``)."""
+    torch.backends.quantized.engine = ENGINE
+    model = QuantisableNet(net).eval()
+    model.qconfig = _qconfig()
+    model = tq.prepare(model)
+    with torch.inference_mode():
+        for x in inputs:
+            model(x)
+    table = {}
+    for name, m in model.named_modules():
+        if isinstance(m, tq.ObserverBase):
+            scale, zero = m.calculate_qparams()
+            table[name.removesuffix(".activation_post_process")] = [float(scale), int(zero)]
+    return table
+
+
+def quantize(net: CenterTrackNet, table: dict[str, list[float]]) -> nn.Module:
+    """The int8 network of ``net``'s weights with the activations' quantisation of ``table`` (:func:`calibrate`)."""
+    torch.backends.quantized.engine = ENGINE
+    model = QuantisableNet(net).eval()
+    model.qconfig = tq.QConfig(activation=tq.MinMaxObserver, weight=_qconfig().weight)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")    # the observers saw no data: their parameters are replaced below
+        model = _converted(tq.prepare(model))
+    modules = dict(model.named_modules())
+    points = {name for name, m in modules.items() if hasattr(m, "scale") and hasattr(m, "zero_point")}
+    if set(table) != points:
+        raise TorchtrackError(f"int8 calibration does not fit the network: {len(table)} entries for "
+                              f"{len(points)} quantisation points")
+    for name, (scale, zero) in table.items():
+        m = modules[name]
+        if isinstance(m.scale, torch.Tensor):
+            m.scale.fill_(scale)
+            m.zero_point.fill_(zero)
+        else:
+            m.scale, m.zero_point = float(scale), int(zero)
+    return model.eval()
+
+
+def weights_digest(state: dict[str, torch.Tensor]) -> str:
+    """SHA-256 of a state dict's names and tensors' bytes: which weights a calibration belongs to."""
+    h = hashlib.sha256()
+    for name in sorted(state):
+        h.update(name.encode())
+        h.update(state[name].detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
+
+
+def int8_unavailable(checkpoint: dict) -> str | None:
+    """Why a checkpoint's weights cannot run in int8 here (``None``: they can): no calibration, one made for other
+    weights, or no ``x86`` quantisation engine in this torch."""
+    entry = checkpoint.get("int8")
+    if not isinstance(entry, dict) or not isinstance(entry.get("table"), dict):
+        return "the checkpoint has no int8 calibration (torchtrack quantize-detector adds one)"
+    if entry.get("weights") != weights_digest(checkpoint["model"]):
+        return "the checkpoint's int8 calibration was made for other weights (torchtrack quantize-detector renews it)"
+    if ENGINE not in torch.backends.quantized.supported_engines:
+        return f"this torch has no {ENGINE} quantisation engine"
+    return None
+
+
+def calibration_inputs(detector, video_config, seeds: Iterable[int]) -> list[torch.Tensor]:
+    """The network inputs of ``detector`` (float) streamed over synthetic sequences, one per generator seed, as
+    :func:`~torchtrack.detector.evaluate.evaluate_synthetic` streams them (registered where the detector is)."""
+    from torchtrack.detector.evaluate import registered_motions, stream
+    from torchtrack.sim.video import generate_sequence
+
+    inputs: list[torch.Tensor] = []
+    hook = detector.net.register_forward_pre_hook(lambda _, args: inputs.append(args[0].clone()))
+    try:
+        with torch.inference_mode():
+            for seed in seeds:
+                seq = list(generate_sequence(video_config, torch.Generator().manual_seed(seed)))
+                motions = registered_motions([f.homography for f in seq]) if detector.config.data.register else None
+                for _ in stream(detector, (f.image for f in seq), motions=motions):
+                    pass
+    finally:
+        hook.remove()
+    return inputs
+
+
+def calibrated_checkpoint(path, out, sequences: int = 4, frames: int = 10, seed: int = 0) -> dict:
+    """Add an int8 calibration to the detector checkpoint at ``path`` and write it to ``out`` (atomically; the
+    float weights unchanged). Calibrated on ``sequences`` synthetic sequences of ``frames`` frames from the
+    training split of generator seeds (never the held-out test split), of the checkpoint's training video
+    config, streamed through the float network. Returns the entry written under ``"int8"``."""
+    from torchtrack.detector.checkpoint import load_checkpoint, save_checkpoint
+    from torchtrack.detector.dataset import split_seed
+    from torchtrack.detector.inference import detector_from_checkpoint
+    from torchtrack.sim.video_config import from_dict
+
+    data = load_checkpoint(path)
+    det = detector_from_checkpoint(data, backend="float")
+    video = from_dict(dict(det.config.data.video)).replace(frames=frames)
+    inputs = calibration_inputs(det, video, [split_seed(seed, "train", i) for i in range(sequences)])
+    entry = {"table": calibrate(det.net, inputs), "weights": weights_digest(data["model"]), "engine": ENGINE,
+             "calibration": {"split": "train", "seed": seed, "sequences": sequences, "frames": frames,
+                             "inputs": len(inputs)}}
+    raw = torch.load(path, map_location="cpu", weights_only=True)   # as stored (validated above)
+    save_checkpoint(out, {**{k: v for k, v in raw.items() if k not in ("format", "version")}, "int8": entry})
+    return entry
