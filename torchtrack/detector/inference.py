@@ -211,8 +211,9 @@ class Detector(nn.Module):
 
 
 def _versions(net: nn.Module) -> list[int]:
-    """The parameters' version counters (any in-place change of a weight moves its counter)."""
-    return [p._version for p in net.parameters()]
+    """The parameters' version counters (any in-place change of a weight moves its counter; -1 for tensors made
+    under ``torch.inference_mode``, which have none and cannot be trained)."""
+    return [-1 if p.is_inference() else p._version for p in net.parameters()]
 
 
 BACKENDS = ("auto", "float", "int8")
