@@ -59,9 +59,10 @@ def add_arguments(parser) -> None:
                              "none (empty); velocities are continued only with stream; the real frames always "
                              "stream")
     add_labelled_options(parser, "to score instead of the synthetic sequences and the WPAFB frames")
-    parser.add_argument("--backend", choices=BACKENDS, default="auto",
-                        help="the network in float or int8 (needs the checkpoint's int8 calibration, torchtrack "
-                             "quantize-detector); auto (default): int8 where calibrated, else float")
+    parser.add_argument("--backend", choices=BACKENDS, default="float",
+                        help="the network in float (default) or int8 on the CPU (needs the checkpoint's int8 "
+                             "calibration: the shipped weights have one, torchtrack quantize-detector adds one); "
+                             "auto: int8 where calibrated, else float")
     parser.add_argument("--threads", type=positive_int, default=1,
                         help="torch intra-op threads (default 1: fastest when other processes load the CPU)")
     add_common_options(parser)

@@ -23,9 +23,13 @@ from collections.abc import Iterable
 
 import torch
 from torch import nn
-from torch.ao import quantization as tq
-from torch.ao.nn import intrinsic as nni
 from torch.nn import functional as F
+
+try:   # torch's eager-mode quantisation, announced to move to torchao; without it the detector runs in float
+    from torch.ao import quantization as tq
+    from torch.ao.nn import intrinsic as nni
+except ImportError:   # pragma: no cover - absent only from torch versions after the one this was built on
+    tq = nni = None
 
 from torchtrack.detector.network import VELOCITY_SCALE, CenterTrackNet, correlation_last
 from torchtrack.errors import TorchtrackError
@@ -139,19 +143,15 @@ def _qconfig() -> tq.QConfig:
                                                                     qscheme=torch.per_channel_symmetric))
 
 
-def _converted(model: nn.Module) -> nn.Module:
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")    # torch's notice that its quantised tensors will move to torchao
-        return tq.convert(model)
-
-
 def calibrate(net: CenterTrackNet, inputs: Iterable[torch.Tensor]) -> dict[str, list[float]]:
     """The activations' quantisation ``{quantisation point: [scale, zero_point]}`` that minimises the
     quantisation error of the histograms observed over ``inputs`` (network inputs ``(B, 3, H, W)``)."""
     torch.backends.quantized.engine = ENGINE
     model = QuantisableNet(net).eval()
     model.qconfig = _qconfig()
-    model = tq.prepare(model)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")    # torch's notice that its quantisation will move to torchao
+        model = tq.prepare(model)
     with torch.inference_mode():
         for x in inputs:
             model(x)
@@ -169,8 +169,8 @@ def quantize(net: CenterTrackNet, table: dict[str, list[float]]) -> nn.Module:
     model = QuantisableNet(net).eval()
     model.qconfig = tq.QConfig(activation=tq.MinMaxObserver, weight=_qconfig().weight)
     with warnings.catch_warnings():
-        warnings.simplefilter("ignore")    # the observers saw no data: their parameters are replaced below
-        model = _converted(tq.prepare(model))
+        warnings.simplefilter("ignore")    # the observers saw no data (their parameters are replaced below), and
+        model = tq.convert(tq.prepare(model))   # torch's notice that its quantisation will move to torchao
     modules = dict(model.named_modules())
     points = {name for name, m in modules.items() if hasattr(m, "scale") and hasattr(m, "zero_point")}
     if set(table) != points:
@@ -203,8 +203,8 @@ def int8_unavailable(checkpoint: dict) -> str | None:
         return "the checkpoint has no int8 calibration (torchtrack quantize-detector adds one)"
     if entry.get("weights") != weights_digest(checkpoint["model"]):
         return "the checkpoint's int8 calibration was made for other weights (torchtrack quantize-detector renews it)"
-    if ENGINE not in torch.backends.quantized.supported_engines:
-        return f"this torch has no {ENGINE} quantisation engine"
+    if tq is None or ENGINE not in torch.backends.quantized.supported_engines:
+        return f"this torch has no eager-mode quantisation with the {ENGINE} engine"
     return None
 
 
