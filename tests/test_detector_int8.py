@@ -24,7 +24,8 @@ def test_correlation_last_is_the_cost_volume(w):
         ref = correlation(a, b, 3)
         # brute force: the cost of displacement (dy, dx) at p is <a(p), b(p + d)> / C, zero outside the frame
         pad = F.pad(b, (3, 3, 3, 3))
-        brute = torch.stack([(a * pad[:, :, dy:dy + 12, dx:dx + w]).sum(1) / 5 for dy in range(7) for dx in range(7)], 1)
+        brute = torch.stack([(a * pad[:, :, dy:dy + 12, dx:dx + w]).sum(1) / 5
+                             for dy in range(7) for dx in range(7)], 1)
         torch.testing.assert_close(ref, brute, rtol=0, atol=1e-12)
         torch.testing.assert_close(correlation_last(a, b, 3).permute(0, 3, 1, 2), ref, rtol=0, atol=1e-12)
 

@@ -15,8 +15,8 @@ Streams the float network over synthetic sequences of the training split (genera
 held-out scores) at the checkpoint's training frame size, observes the range of every activation that the
 int8 network quantises, and writes the checkpoint with that table (and the digest of the weights it belongs
 to) to --out. load_detector(path, backend="int8") then runs the network in int8 on the CPU;
-eval-detector --backend float|int8 scores either. A checkpoint whose weights change afterwards (fine-tuning) runs in float
-until it is calibrated again.
+eval-detector --backend float|int8 scores either. A checkpoint whose weights change afterwards
+(fine-tuning) runs in float until it is calibrated again.
 Example: torchtrack quantize-detector --weights out/detector-train/best.pt --out weights.pt
 """
 
