@@ -34,9 +34,10 @@ def test_high_pass_and_shuffle_are_the_networks_operations():
     g = torch.Generator().manual_seed(1)
     f = torch.randn(2, 6, 9, 13, generator=g, dtype=torch.float64).contiguous(memory_format=torch.channels_last)
     ref = f - F.avg_pool2d(f, 3, 1, 1, count_include_pad=False)
-    torch.testing.assert_close(high_pass(f), ref, rtol=0, atol=1e-12)
-    maps = torch.randn(2, 12, 5, 7, generator=g).contiguous(memory_format=torch.channels_last)
-    assert torch.equal(_shuffle(maps), F.pixel_shuffle(maps, 2))
+    torch.testing.assert_close(high_pass(f, torch.full((6, 1, 3, 3), 1 / 9, dtype=torch.float64)), ref,
+                               rtol=0, atol=1e-12)
+    maps = torch.randn(2, 12, 5, 7, generator=g)
+    assert torch.equal(_shuffle(maps.permute(0, 2, 3, 1)), F.pixel_shuffle(maps, 2))
 
 
 @pytest.fixture(scope="module")

@@ -73,11 +73,11 @@ class QuantisableNet(nn.Module):
         self.add3, self.add2 = nn.quantized.FloatFunctional(), nn.quantized.FloatFunctional()
         self.up3 = nn.Sequential(*_fused(net.up3))
         self.up2 = nn.Sequential(*_fused(net.up2))
-        # the heads in two convolutions with their own output ranges: heatmap and offset (12 channels before the
-        # pixel shuffle), velocity (8 channels, whose range is a tenth of the heatmap logits')
-        self.heads_map, self.heads_velocity = _split(net.heads, 12)
-        self.heads_velocity.qconfig = None
-        self.dequant_map, self.dequant_u2 = tq.DeQuantStub(), tq.DeQuantStub()
+        # the heads' 1x1 convolution in float, as a matrix product of the channels-last features
+        self.register_buffer("heads_weight", net.heads.weight.detach()[:, :, 0, 0].T.clone(), persistent=False)
+        self.register_buffer("heads_bias", net.heads.bias.detach().clone(), persistent=False)
+        self.register_buffer("box", torch.full((net.siamese8[0][0].in_channels, 1, 3, 3), 1 / 9), persistent=False)
+        self.dequant_u2 = tq.DeQuantStub()
         if self.fine:
             self.fine_in, self.fine_mix = copy.deepcopy(net.fine_in), copy.deepcopy(net.fine_mix)
             self.fine_out = copy.deepcopy(net.fine_out)
@@ -89,7 +89,7 @@ class QuantisableNet(nn.Module):
         d2 = self.stem(xq)
         frames = torch.cat([x[:, :1], x[:, 1:2]], dim=0).contiguous(memory_format=torch.channels_last)
         f4 = self.dequant_f4(self.siamese4(self.quant_frames(frames)))          # both frames in one batch
-        cur, prev = self.dequant_f8(self.siamese8(self.quant_f4(high_pass(f4)))).chunk(2, dim=0)
+        cur, prev = self.dequant_f8(self.siamese8(self.quant_f4(high_pass(f4, self.box)))).chunk(2, dim=0)
         cost = correlation_last(cur, prev, self.radius)                          # (B, h, w, K)
         w = torch.softmax(cost * self.log_temperature.exp(), dim=-1)
         flow = -(w @ self.displacement.T).permute(0, 3, 1, 2).contiguous()
@@ -97,8 +97,9 @@ class QuantisableNet(nn.Module):
         d4 = self.down4(d3)
         u3 = self.up3(self.add3.add(d3, F.interpolate(self.lat4(d4), size=d3.shape[-2:], mode="nearest")))
         u2 = self.up2(self.add2.add(d2, F.interpolate(u3, size=d2.shape[-2:], mode="nearest")))
-        hm_off = _shuffle(self.dequant_map(self.heads_map(u2)))
-        velocity = _shuffle(self.heads_velocity(self.dequant_u2(u2)))
+        heads = torch.addmm(self.heads_bias, self.dequant_u2(u2).permute(0, 2, 3, 1).flatten(0, 2), self.heads_weight)
+        maps = _shuffle(heads.view(*u2.shape[:1], *u2.shape[2:], -1))             # (B, 5, H/2, W/2)
+        hm_off, velocity = maps[:, :3], maps[:, 3:]
         if self.fine:
             ctx = F.interpolate(self.fine_mix(u2), size=hm_off.shape[-2:], mode="nearest")
             hm_off = hm_off + self.dequant_fine(self.fine_out(self.add_fine.add_relu(self.fine_in(xq), ctx)))
@@ -107,34 +108,22 @@ class QuantisableNet(nn.Module):
 
 
 def _shuffle(maps: torch.Tensor) -> torch.Tensor:
-    """``F.pixel_shuffle(maps, 2)`` of channels-last maps ``(B, 4C, h, w)``, as one copy into ``(B, C, 2h, 2w)``."""
-    b, c4, h, w = maps.shape
-    cells = maps.permute(0, 2, 3, 1).reshape(b, h, w, c4 // 4, 2, 2)
-    return cells.permute(0, 3, 1, 4, 2, 5).reshape(b, -1, 2 * h, 2 * w)
+    """``F.pixel_shuffle`` by 2 of maps given channels last, ``(B, h, w, 4C)``, as one copy into ``(B, C, 2h, 2w)``."""
+    b, h, w, c4 = maps.shape
+    return maps.reshape(b, h, w, c4 // 4, 2, 2).permute(0, 3, 1, 4, 2, 5).reshape(b, -1, 2 * h, 2 * w)
 
 
-def high_pass(f: torch.Tensor) -> torch.Tensor:
+def high_pass(f: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
     """``f - F.avg_pool2d(f, 3, 1, 1, count_include_pad=False)`` of channels-last ``f`` ``(B, C, h, w)``: the mean
-    over the zero-padded 3x3 window (a depthwise convolution) times ``9 / count`` (1 inside, 3/2 on the edges, 9/4
-    at the corners), subtracted in the channels-last layout (several times faster than the pooling there)."""
+    over the zero-padded 3x3 window (a depthwise convolution with ``box``, ``(C, 1, 3, 3)`` of 1/9) times
+    ``9 / count`` (1 inside, 3/2 on the edges, 9/4 at the corners), subtracted in the channels-last layout
+    (several times faster than the pooling there)."""
     c, (h, w) = f.shape[1], f.shape[-2:]
-    mean = F.conv2d(f, f.new_full((c, 1, 3, 3), 1 / 9), None, 1, 1, 1, c)
+    mean = F.conv2d(f, box, None, 1, 1, 1, c)
     edge_h, edge_w = f.new_ones(h), f.new_ones(w)
     edge_h[[0, -1]], edge_w[[0, -1]] = 1.5, 1.5
     return torch.addcmul(f.permute(0, 2, 3, 1), mean.permute(0, 2, 3, 1), (edge_h[:, None] * edge_w)[..., None],
                          value=-1).permute(0, 3, 1, 2)
-
-
-def _split(conv: nn.Conv2d, k: int) -> tuple[nn.Conv2d, nn.Conv2d]:
-    """A ``1x1`` convolution as two: its first ``k`` output channels and the rest."""
-    parts = []
-    for lo, hi in ((0, k), (k, conv.out_channels)):
-        part = nn.Conv2d(conv.in_channels, hi - lo, 1)
-        with torch.no_grad():
-            part.weight.copy_(conv.weight[lo:hi])
-            part.bias.copy_(conv.bias[lo:hi])
-        parts.append(part.to(memory_format=torch.channels_last))
-    return parts[0], parts[1]
 
 
 def _qconfig() -> tq.QConfig:
