@@ -44,25 +44,29 @@ def measure(size: int, repeats: int = 5, seed: int = 0, weights=None, threads: i
         det._int8 = None                                   # the float network gives the inputs
         video = from_dict(dict(det.config.data.video)).replace(width=size, height=size, frames=2)
         inputs = calibration_inputs(det, video, [seed])
-        tiles = [x.contiguous(memory_format=torch.channels_last) for x in inputs[len(inputs) // 2:]]
-        ref = [torch.cat(det.net(x), 1) for x in tiles]
-        out = [torch.cat(fast(x), 1) for x in tiles]
-        _pass(det.net, tiles), _pass(fast, tiles)          # warm-up
+        # each network's tiles as Detector.tiles gives them: channels-last to the float one, contiguous to int8
+        tiles = {"int8": [x.contiguous() for x in inputs[len(inputs) // 2:]]}
+        tiles["float"] = [x.contiguous(memory_format=torch.channels_last) for x in tiles["int8"]]
+        nets = {"float": det.net, "int8": fast}
+        ref, out = ([torch.cat(nets[k](x), 1) for x in tiles[k]] for k in ("float", "int8"))
         best = {"float": [float("inf")] * 2, "int8": [float("inf")] * 2}
+        for k in nets:
+            _pass(nets[k], tiles[k])                        # warm-up
         for _ in range(repeats):
-            for name, net in (("float", det.net), ("int8", fast)):
-                best[name] = [min(a, b) for a, b in zip(best[name], _pass(net, tiles))]
+            for k in nets:
+                best[k] = [min(a, b) for a, b in zip(best[k], _pass(nets[k], tiles[k]))]
     threshold = det.config.decode.threshold
     score = max((a[:, :1].sigmoid() - b[:, :1].sigmoid()).abs().max().item() for a, b in zip(ref, out))
     peaks = [(a[:, :1].sigmoid() >= threshold).expand(-1, 2, -1, -1) for a in ref]    # where the float detects
     diff = [score] + [max(float((a[:, sl] - b[:, sl]).abs()[m].max()) if m.any() else 0.0
                           for a, b, m in zip(ref, out, peaks)) for sl in (slice(1, 3), slice(3, 5))]
-    extra = {"size": size, "tiles": [list(x.shape[-2:]) for x in tiles], "threads": threads, "repeats": repeats,
+    extra = {"size": size, "tiles": [list(x.shape[-2:]) for x in tiles["int8"]], "threads": threads, "repeats": repeats,
              "seed": seed, "clock": "process CPU time",
              "wall_frames_per_s": {k: 1 / v[1] for k, v in best.items()},
              "max_abs_diff": dict(zip(("heatmap_score", "offset_cells_at_peaks", "velocity_px_at_peaks"), diff)),
              "load_average": load_average()}
-    return BenchResult(f"detector network, {size}x{size} frame ({len(tiles)} tile{'s' * (len(tiles) > 1)}), "
+    n = len(tiles["int8"])
+    return BenchResult(f"detector network, {size}x{size} frame ({n} tile{'s' * (n > 1)}), "
                        f"{threads} thread{'s' * (threads > 1)}", 1 / best["int8"][0], "float network",
                        1 / best["float"][0], "frames", extra)
 

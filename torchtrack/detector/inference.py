@@ -126,7 +126,8 @@ class Detector(nn.Module):
         d = self.config.decode
         tiled = d.tile > 0 and (hp > d.tile + 2 * HALO or wp > d.tile + 2 * HALO)
         side = d.tile if tiled else max(hp, wp)                # one tile: the whole frame
-        runner = self._int8[0] if self.backend == "int8" else self.net
+        int8 = self.backend == "int8"
+        runner = self._int8[0] if int8 else self.net
         groups: dict[tuple[int, int], list[tuple[slice, slice, int, int]]] = {}
         for y0 in range(0, hp, side):
             for x0 in range(0, wp, side):
@@ -137,7 +138,7 @@ class Detector(nn.Module):
             for b in range(0, len(group), d.tile_batch):
                 batch = group[b: b + d.tile_batch]
                 x = torch.stack([self._window(cur, prev, pts, rows, cols, shape) for rows, cols, _, _ in batch])
-                maps = torch.cat(runner(x.contiguous(memory_format=torch.channels_last)), 1).cpu()
+                maps = torch.cat(runner(x if int8 else x.contiguous(memory_format=torch.channels_last)), 1).cpu()
                 for m, (rows, cols, y0, x0) in zip(maps, batch):
                     cy, cx = y0 // STRIDE, x0 // STRIDE                        # the core's cells: cy .. ey, cx .. ex
                     ey, ex = min(cy + side // STRIDE, mh), min(cx + side // STRIDE, mw)

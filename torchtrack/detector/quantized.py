@@ -85,10 +85,11 @@ class QuantisableNet(nn.Module):
             self.dequant_fine = tq.DeQuantStub()
 
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-        xq = self.quant_x(x.contiguous(memory_format=torch.channels_last))
+        """As :meth:`CenterTrackNet.forward`; ``x`` contiguous (NCHW) is read fastest."""
+        xq = self.quant_x(x).contiguous(memory_format=torch.channels_last)     # the layout's copy in int8
         d2 = self.stem(xq)
-        frames = torch.cat([x[:, :1], x[:, 1:2]], dim=0).contiguous(memory_format=torch.channels_last)
-        f4 = self.dequant_f4(self.siamese4(self.quant_frames(frames)))          # both frames in one batch
+        frames = x[:, :2].transpose(0, 1).reshape(-1, 1, *x.shape[-2:])         # (2B, 1, H, W): current, previous
+        f4 = self.dequant_f4(self.siamese4(self.quant_frames(frames)))
         cur, prev = self.dequant_f8(self.siamese8(self.quant_f4(high_pass(f4, self.box)))).chunk(2, dim=0)
         cost = correlation_last(cur, prev, self.radius)                          # (B, h, w, K)
         w = torch.softmax(cost * self.log_temperature.exp(), dim=-1)
@@ -102,7 +103,8 @@ class QuantisableNet(nn.Module):
         hm_off, velocity = maps[:, :3], maps[:, 3:]
         if self.fine:
             ctx = F.interpolate(self.fine_mix(u2), size=hm_off.shape[-2:], mode="nearest")
-            hm_off = hm_off + self.dequant_fine(self.fine_out(self.add_fine.add_relu(self.fine_in(xq), ctx)))
+            fine = self.dequant_fine(self.fine_out(self.add_fine.add_relu(self.fine_in(xq), ctx)))
+            hm_off = hm_off + fine.contiguous()
         flow = F.interpolate(flow, size=hm_off.shape[-2:], mode="bilinear", align_corners=False)
         return hm_off[:, :1], hm_off[:, 1:3], flow + velocity * VELOCITY_SCALE
 
