@@ -31,8 +31,8 @@ def add_arguments(parser) -> None:
 
 
 def run(args) -> int:
+    from torchtrack.detector.calibration import calibrated_checkpoint
     from torchtrack.detector.inference import DEFAULT_WEIGHTS
-    from torchtrack.detector.quantized import calibrated_checkpoint
     from torchtrack.threads import torch_threads
 
     with torch_threads(args.threads):
