@@ -10,7 +10,7 @@ from torchtrack.detector.checkpoint import load_checkpoint
 from torchtrack.detector.evaluate import match
 from torchtrack.detector.inference import DEFAULT_WEIGHTS, detector_from_checkpoint, load_detector
 from torchtrack.detector.network import correlation, correlation_last
-from torchtrack.detector.quantized import _shuffle, high_pass, quantize, weights_digest
+from torchtrack.detector.quantized import _coarse_fine, _shuffle, high_pass, quantize, weights_digest
 from torchtrack.errors import TorchtrackError
 from torchtrack.sim.video import generate_sequence
 from torchtrack.sim.video_config import from_dict
@@ -38,6 +38,18 @@ def test_high_pass_and_shuffle_are_the_networks_operations():
                                rtol=0, atol=1e-12)
     maps = torch.randn(2, 12, 5, 7, generator=g)
     assert torch.equal(_shuffle(maps.permute(0, 2, 3, 1)), F.pixel_shuffle(maps, 2))
+
+
+def test_the_stride2_branch_at_stride4_is_the_networks():
+    net = load_detector().net.double()
+    fine_in, fine_mix, fine_out = (m.double() for m in _coarse_fine(net))
+    g = torch.Generator().manual_seed(2)
+    x, u = torch.randn(2, 3, 64, 48, generator=g, dtype=torch.float64), torch.randn(2, 32, 16, 12, generator=g,
+                                                                                     dtype=torch.float64)
+    with torch.no_grad():
+        ref = net.fine_out(F.relu(net.fine_in(x) + F.interpolate(net.fine_mix(u), scale_factor=2, mode="nearest")))
+        coarse = fine_out(F.relu(fine_in(x) + fine_mix(u)))                 # (2, 4 * 3, 16, 12)
+    torch.testing.assert_close(F.pixel_shuffle(coarse, 2), ref, rtol=0, atol=1e-12)
 
 
 @pytest.fixture(scope="module")

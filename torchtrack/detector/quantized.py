@@ -80,8 +80,8 @@ class QuantisableNet(nn.Module):
         self.register_buffer("box", torch.full((net.siamese8[0][0].in_channels, 1, 3, 3), 1 / 9), persistent=False)
         self.dequant_u2 = tq.DeQuantStub()
         if self.fine:
-            self.fine_in, self.fine_mix = copy.deepcopy(net.fine_in), copy.deepcopy(net.fine_mix)
-            self.fine_out = copy.deepcopy(net.fine_out)
+            # the stride-2 branch at stride 4, its four stride-2 cells as channels (see _coarse_fine)
+            self.fine_in, self.fine_mix, self.fine_out = _coarse_fine(net)
             self.add_fine = nn.quantized.FloatFunctional()
             self.dequant_fine = tq.DeQuantStub()
 
@@ -100,14 +100,13 @@ class QuantisableNet(nn.Module):
         u3 = self.up3(self.add3.add(d3, F.interpolate(self.lat4(d4), size=d3.shape[-2:], mode="nearest")))
         u2 = self.up2(self.add2.add(d2, F.interpolate(u3, size=d2.shape[-2:], mode="nearest")))
         heads = torch.addmm(self.heads_bias, self.dequant_u2(u2).permute(0, 2, 3, 1).flatten(0, 2), self.heads_weight)
-        maps = _shuffle(heads.view(*u2.shape[:1], *u2.shape[2:], -1))             # (B, 5, H/2, W/2)
-        hm_off, velocity = maps[:, :3], maps[:, 3:]
+        heads = heads.view(*u2.shape[:1], *u2.shape[2:], -1)                      # (B, H/4, W/4, 5 * 4)
         if self.fine:
-            ctx = F.interpolate(self.fine_mix(u2), size=hm_off.shape[-2:], mode="nearest")
-            fine = self.dequant_fine(self.fine_out(self.add_fine.add_relu(self.fine_in(xq), ctx)))
-            hm_off = hm_off + fine.contiguous()
-        flow = F.interpolate(flow, size=hm_off.shape[-2:], mode="bilinear", align_corners=False)
-        return hm_off[:, :1], hm_off[:, 1:3], flow + velocity * VELOCITY_SCALE
+            fine = self.fine_out(self.add_fine.add_relu(self.fine_in(xq), self.fine_mix(u2)))
+            heads[..., :12] += self.dequant_fine(fine).permute(0, 2, 3, 1)         # heatmap and offset
+        maps = _shuffle(heads)                                                     # (B, 5, H/2, W/2)
+        flow = F.interpolate(flow, size=maps.shape[-2:], mode="bilinear", align_corners=False)
+        return maps[:, :1], maps[:, 1:3], flow + maps[:, 3:] * VELOCITY_SCALE
 
 
 def _shuffle(maps: torch.Tensor) -> torch.Tensor:
@@ -127,6 +126,43 @@ def high_pass(f: torch.Tensor, box: torch.Tensor) -> torch.Tensor:
     edge_h[[0, -1]], edge_w[[0, -1]] = 1.5, 1.5
     return torch.addcmul(f.permute(0, 2, 3, 1), mean.permute(0, 2, 3, 1), (edge_h[:, None] * edge_w)[..., None],
                          value=-1).permute(0, 3, 1, 2)
+
+
+def _coarse_fine(net: CenterTrackNet) -> tuple[nn.Conv2d, nn.Conv2d, nn.Conv2d]:
+    """The stride-2 branch's convolutions as convolutions at stride 4 whose channels ``4c + 2i + j`` are the
+    channel ``c`` of the stride-2 cell ``(i, j)`` of each stride-4 cell (``F.pixel_shuffle``'s order): the same
+    sums of the same products, so in int8 the same integers, with every tensor at the trunk's resolution (no
+    stride-2 tensor, upsampling or pixel shuffle of its own).
+
+    ``fine_in`` (3x3, stride 2, padding 1 on the input) -> 5x5, stride 4, padding 1: cell ``(i, j)`` reads input
+    rows ``2i - 1 + ky`` of the 4-pixel block, i.e. kernel row ``2i + ky``. ``fine_mix`` (1x1 on the stride-4
+    features, then nearest upsampling to stride 2) -> its rows repeated for the four cells. ``fine_out`` (3x3,
+    padding 1, at stride 2) -> 3x3 at stride 4 from cell channels ``4c + 2q + r`` to ``4o + 2i + j``: the stride-2
+    row ``2Y + i - 1 + ky`` is the row ``2(Y + dy) + q``, so kernel row ``ky = 2 dy + q - i + 1``."""
+    c_in, c_mix, c_out = net.fine_in, net.fine_mix, net.fine_out
+    f, n_in, n_out = c_in.out_channels, c_in.in_channels, c_out.out_channels
+    fine_in = nn.Conv2d(n_in, 4 * f, 5, 4, 1)
+    fine_mix = nn.Conv2d(c_mix.in_channels, 4 * f, 1)
+    fine_out = nn.Conv2d(4 * f, 4 * n_out, 3, 1, 1)
+    with torch.no_grad():
+        for m in (fine_in, fine_out):
+            m.weight.zero_()
+        fine_in.bias.copy_(c_in.bias.repeat_interleave(4))
+        fine_mix.weight.copy_(c_mix.weight.repeat_interleave(4, 0))
+        fine_mix.bias.copy_(c_mix.bias.repeat_interleave(4))
+        fine_out.bias.copy_(c_out.bias.repeat_interleave(4))
+        for i in range(2):
+            for j in range(2):
+                fine_in.weight[2 * i + j::4, :, 2 * i:2 * i + 3, 2 * j:2 * j + 3] = c_in.weight
+                for q in range(2):
+                    for r in range(2):
+                        for dy in range(3):
+                            for dx in range(3):
+                                ky, kx = 2 * (dy - 1) + q - i + 1, 2 * (dx - 1) + r - j + 1
+                                if 0 <= ky < 3 and 0 <= kx < 3:
+                                    fine_out.weight[2 * i + j::4, 2 * q + r::4, dy, dx] = c_out.weight[:, :, ky, kx]
+    return (fine_in.to(memory_format=torch.channels_last), fine_mix.to(memory_format=torch.channels_last),
+            fine_out.to(memory_format=torch.channels_last))
 
 
 def _qconfig() -> tq.QConfig:
