@@ -1,6 +1,8 @@
 """Int8 inference of the detector's network (torchtrack.detector.quantized): its float pieces against the
 network's own, the int8 maps and detections against the float network's, and which checkpoints run in int8."""
 
+import json
+
 import pytest
 import torch
 from torch.nn import functional as F
@@ -139,3 +141,12 @@ def test_quantize_detector_writes_a_calibrated_copy(tmp_path):
     assert set(written["int8"]["table"]) == set(load_checkpoint(DEFAULT_WEIGHTS)["int8"]["table"])
     assert detector_from_checkpoint(written, backend="int8").backend == "int8"
     assert main(["quantize-detector", "--weights", str(tmp_path / "absent.pt"), "--out", str(out)]) == 2
+
+
+def test_bench_detector_reports_both_networks(tmp_path):
+    out = tmp_path / "bench.json"
+    assert main(["bench", "detector", "--sizes", "128", "--repeats", "1", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["reference"] == "float network" and r["unit"] == "frames" and r["tiles"] == [[128, 128]]
+    assert r["ours_per_s"] > 0 and r["reference_per_s"] > 0 and r["ratio"] == r["ours_per_s"] / r["reference_per_s"]
+    assert 0 < r["max_abs_diff"]["heatmap_score"] < 0.5
