@@ -125,6 +125,10 @@ def test_a_table_that_does_not_fit_is_refused():
     net = load_detector().net
     with pytest.raises(TorchtrackError, match="does not fit"):
         quantize(net, {"quant_x": [0.1, 0]})
+    table = load_checkpoint(DEFAULT_WEIGHTS)["int8"]["table"]
+    for bad in (["x", 0], [0.1], [0.0, 3], [0.1, 300]):
+        with pytest.raises(TorchtrackError, match="quant_x"):
+            quantize(net, {**table, "quant_x": bad})
 
 
 def test_quantize_detector_writes_a_calibrated_copy(tmp_path):

@@ -204,13 +204,20 @@ def quantize(net: CenterTrackNet, table: dict[str, list[float]]) -> nn.Module:
     if set(table) != points:
         raise TorchtrackError(f"int8 calibration does not fit the network: {len(table)} entries for "
                               f"{len(points)} quantisation points")
-    for name, (scale, zero) in table.items():
+    for name, entry in table.items():
+        try:
+            scale, zero = float(entry[0]), int(entry[1])
+        except (TypeError, ValueError, IndexError):
+            raise TorchtrackError(f"int8 calibration: {name} is not [scale, zero_point]: {entry!r}") from None
+        if not (scale > 0 and 0 <= zero <= 255):
+            raise TorchtrackError(f"int8 calibration: {name} has scale {scale} and zero point {zero} (need a "
+                                  "positive scale and a zero point in 0..255)")
         m = modules[name]
         if isinstance(m.scale, torch.Tensor):
             m.scale.fill_(scale)
             m.zero_point.fill_(zero)
         else:
-            m.scale, m.zero_point = float(scale), int(zero)
+            m.scale, m.zero_point = scale, zero
     return model.eval()
 
 
