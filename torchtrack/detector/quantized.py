@@ -1,12 +1,14 @@
 """Int8 inference of a trained :class:`~torchtrack.detector.network.CenterTrackNet` on the CPU (post-training
 static quantisation in torch's eager mode, ``x86`` engine: oneDNN's VNNI kernels where the CPU has them).
 
-The same weights and operations as the float network: every convolution but one runs in int8 (weights per output
-channel, symmetric; activations per tensor, their ranges calibrated on synthetic frames), the ReLUs fused into the
-convolutions, the adds and the concatenation quantised. In float: the siamese encoder's high-pass, the
-correlation, its softmax and soft-argmax flow (small maps at strides 4 and 8), the velocity head's convolution
-(its output scale is a tenth of the heatmap logits'), and the pixel shuffle and sums after the heads. Every
-tensor between layers is channels-last, the layout in which both the int8 kernels and the float ones are fast.
+The same weights and operations as the float network: every convolution but the heads' runs in int8 (weights per
+output channel, symmetric; activations per tensor, their ranges calibrated on synthetic frames), the ReLUs fused
+into the convolutions, the adds and the concatenation quantised; the stride-2 branch runs at stride 4 with its
+four stride-2 cells as channels (:func:`_coarse_fine`: the same integers). In float: the siamese encoder's
+high-pass, the correlation, its softmax and soft-argmax flow (small maps at strides 4 and 8), the heads' 1x1
+convolution (as one matrix product: the velocity's output scale is a tenth of the heatmap logits'), and the
+pixel shuffle and sums after it. Every tensor between layers is channels-last, the layout in which both the int8
+kernels and the float ones are fast.
 
 A calibration is the table ``{quantisation point: [scale, zero_point]}`` (:func:`calibrate`); with it
 :func:`quantize` builds the int8 network from the float weights, deterministically, in a fraction of a second —
