@@ -144,7 +144,7 @@ def measure(sizes: Sequence[int], work: Path, frames: int = FRAMES, sequences: S
     per size (default :func:`default_sequences`); ``progress(row)`` after each size."""
     counts = list(sequences) if sequences is not None else default_sequences(sizes)
     config = pipeline_config(device, threads)
-    detector = load_detector(config.detector_weights, config.detector_tile)
+    detector = load_detector(config.detector_weights, config.detector_tile, config.detector_backend)
     detector.net.to(config.device)
     run_size(min(sizes), 1, WARMUP_FRAMES, seed, work / "warmup", config, detector)
     rows = []

@@ -109,6 +109,6 @@ def frame_strips(config: PipelineConfig, height: int, args: argparse.Namespace) 
     seam, not when the camera moves (at the first frame the tracker's and the detector's seams coincide). As the
     camera drifts, a seam moves in the image and may leave it (the outer strips reach past the frame, so every
     position keeps an owner): the ranks' shares of the tracking then differ, not the result."""
-    detector = StripDetector(load_detector(config.detector_weights, config.detector_tile))
+    detector = StripDetector(load_detector(config.detector_weights, config.detector_tile, config.detector_backend))
     tracker = make_tracker(config.tracker, config.options_for(config.tracker))
     return detector, StripTracker(tracker, StripConfig(args.strip_height or height, band=args.band))

@@ -7,6 +7,7 @@ from pathlib import Path
 from torchtrack.cli._common import VIDEO_PRESETS, add_common_options, bounded, config_file, positive_float, positive_int
 from torchtrack.cli._labelled import add_labelled_options, check_labelled_options, load_labelled
 from torchtrack.detector.evaluate import PRIORS
+from torchtrack.detector.inference import BACKENDS
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table
 
@@ -58,6 +59,10 @@ def add_arguments(parser) -> None:
                              "none (empty); velocities are continued only with stream; the real frames always "
                              "stream")
     add_labelled_options(parser, "to score instead of the synthetic sequences and the WPAFB frames")
+    parser.add_argument("--backend", choices=BACKENDS, default="float",
+                        help="the network in float (default) or int8 on the CPU (needs the checkpoint's int8 "
+                             "calibration: the shipped weights have one, torchtrack quantize-detector adds one); "
+                             "auto: int8 where calibrated, else float")
     parser.add_argument("--threads", type=positive_int, default=1,
                         help="torch intra-op threads (default 1: fastest when other processes load the CPU)")
     add_common_options(parser)
@@ -98,7 +103,8 @@ def run(args) -> int:
         result = evaluate_synthetic(det, video.replace(frames=args.frames), seeds, args.radius, prior=args.prior)
         real = evaluate_wpafb(det, path, args.radius) if path is not None else None
     scored = {"synthetic (held out)": result, "synthetic, moving vehicles": result["moving"]}
-    payload = {**{k: result[k] for k in (*COLUMNS, "fps_cpu_time")}, "synthetic": {**result, "prior": args.prior}}
+    payload = {**{k: result[k] for k in (*COLUMNS, "fps_cpu_time")}, "backend": det.backend,
+               "synthetic": {**result, "prior": args.prior}}
     if real is not None:
         payload["wpafb"] = real
         scored.update({f"WPAFB real, {name} vehicles": real[name] for name in ("all", "moving")})
@@ -116,7 +122,7 @@ def _detector(args):
 
     from torchtrack.detector.inference import load_detector
 
-    det = load_detector(args.weights)
+    det = load_detector(args.weights, backend=args.backend)
     if args.threshold is not None:
         det.config = dataclasses.replace(det.config, decode=dataclasses.replace(det.config.decode,
                                                                                  threshold=args.threshold))

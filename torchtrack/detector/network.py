@@ -49,6 +49,23 @@ def correlation(a: torch.Tensor, b: torch.Tensor, radius: int) -> torch.Tensor:
     return out
 
 
+def correlation_last(a: torch.Tensor, b: torch.Tensor, radius: int, block: int = 16) -> torch.Tensor:
+    """:func:`correlation` without autograd, channels last: ``(B, C, h, w), (B, C, h, w) -> (B, h, w, (2r+1)^2)``.
+
+    One batched matrix product: each block of ``block`` pixels of a row of ``a`` against the ``2r + 1`` rows of
+    ``block + 2r`` pixels of ``b`` around it; the ``2r + 1`` diagonals of each row's product are its costs."""
+    k, n = 2 * radius + 1, a.shape[1]
+    a = a.permute(0, 2, 3, 1) / n                                               # (B, h, w, C)
+    bsz, h, w, _ = a.shape
+    block = math.gcd(w, block)
+    b = F.pad(b, (radius, radius, radius, radius)).permute(0, 2, 3, 1).contiguous()   # (B, h + 2r, w + 2r, C)
+    blocks, span, s = w // block, block + 2 * radius, b.stride()
+    windows = b.as_strided((bsz, h, blocks, k, span, n), (s[0], s[1], block * n, s[1], n, 1))
+    prod = torch.bmm(a.reshape(-1, block, n), windows.reshape(-1, k * span, n).transpose(1, 2))  # (., block, k span)
+    costs = prod.as_strided((prod.shape[0], block, k, k), (block * k * span, k * span + 1, span, 1))
+    return costs.reshape(bsz, h, w, k * k)
+
+
 class CenterTrackNet(nn.Module):
     """``forward(x) -> (heatmap_logits (B,1,H/2,W/2), offset (B,2,H/2,W/2), velocity (B,2,H/2,W/2))``.
 

@@ -186,7 +186,7 @@ def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, det
     sequences = find_sequences(root)
     rank, world = _distributed()
     if detector is None:
-        detector = load_detector(config.detector_weights, config.detector_tile)
+        detector = load_detector(config.detector_weights, config.detector_tile, config.detector_backend)
     others = [n for n in compare if n != config.tracker]
     mine = [run_sequence(s, out, config, detector, progress and rank == 0, others) for s in sequences[rank::world]]
     if world > 1:

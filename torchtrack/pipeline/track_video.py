@@ -111,7 +111,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
     if gt is not None and n_frames:
         check_truth_frames(gt, gt_path, n_frames)
     if detector is None:
-        detector = load_detector(cfg.detector_weights, cfg.detector_tile)
+        detector = load_detector(cfg.detector_weights, cfg.detector_tile, cfg.detector_backend)
     timer = StageTimer()
     detection = Detection(detector, Registration(cfg.registration), timer, cfg.detection_threshold,
                           cfg.weak_threshold)
