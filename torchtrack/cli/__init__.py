@@ -14,6 +14,7 @@ import argparse
 import ast
 import importlib
 import importlib.util
+import os
 import pkgutil
 import sys
 from collections.abc import Callable
@@ -116,17 +117,34 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """Run the command of ``argv``. Every failure ends as one line ``torchtrack COMMAND: error: ...`` on stderr:
+    exit 2 for bad input (a :class:`~torchtrack.errors.TorchtrackError`, a file that cannot be read or written),
+    1 for an internal failure (any other exception; ``TORCHTRACK_DEBUG=1`` lets its traceback through), 130 when
+    interrupted."""
     argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser(argv).parse_args(argv)
     try:
         check_output_file(getattr(args, "json", None), "--json")
         return int(args._run(args) or 0)
     except TorchtrackError as exc:
-        print(f"torchtrack {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return _error(args.command, str(exc), 2)
     except KeyboardInterrupt:
         print("torchtrack: interrupted", file=sys.stderr)
         return 130
+    except OSError as exc:  # a file or folder the command could not use: the input's fault, named
+        where = f"{os.fsdecode(exc.filename)}: " if exc.filename is not None else ""
+        return _error(args.command, f"{where}{exc.strerror or exc}", 2)
+    except Exception as exc:
+        if os.environ.get("TORCHTRACK_DEBUG"):
+            raise
+        return _error(args.command, f"internal failure ({type(exc).__name__}: {exc}); please report it with the "
+                      "command line that caused it (TORCHTRACK_DEBUG=1 shows the traceback)", 1)
+
+
+def _error(command: str, message: str, code: int) -> int:
+    """``torchtrack COMMAND: error: MESSAGE`` on one line of stderr; returns the exit status ``code``."""
+    print(f"torchtrack {command}: error: {' '.join(message.split())}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

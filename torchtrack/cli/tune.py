@@ -121,10 +121,11 @@ def run(args) -> int:
 
     from torchtrack.io.outputs import OutputFolder, write_json
     from torchtrack.metrics.table import format_table
+    from torchtrack.threads import clamp_threads
     from torchtrack.tuning.config import read_tune_config
     from torchtrack.tuning.tune import output_dir, tune
 
-    torch.set_num_threads(args.threads)
+    torch.set_num_threads(clamp_threads(args.threads))
     config = read_tune_config(args.config, args.set)
     if args.loss:
         config["loss"] = args.loss

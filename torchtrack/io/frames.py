@@ -176,7 +176,13 @@ class FolderSource(FrameSource):
 
 
 def _read_image(file: Path) -> np.ndarray:
-    image = cv2.imread(str(file), cv2.IMREAD_UNCHANGED)
+    """Decode ``file`` from its bytes: the name is opened by Python, which takes any name the file system gives
+    (bytes that are not UTF-8 included), never by OpenCV's ``imread``, which crashes on such a name."""
+    try:
+        data = np.fromfile(file, dtype=np.uint8)
+    except OSError as exc:
+        raise TorchtrackError(f"{file}: cannot read: {exc.strerror or exc}") from exc
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
     if image is None or image.size == 0:
         raise TorchtrackError(f"{file}: cannot decode this image file")
     return image

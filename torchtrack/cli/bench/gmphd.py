@@ -7,6 +7,7 @@ import torch
 from torchtrack.bench import gmphd
 from torchtrack.bench.gmphd import WORKLOADS
 from torchtrack.io.outputs import write_json
+from torchtrack.threads import clamp_threads
 
 NAME = "gmphd"
 HELP = "GM-PHD steps/s (Stone Soup tutorial setting and a WPAFB-scale frame) vs a per-component NumPy GM-PHD"
@@ -23,7 +24,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args) -> int:
-    torch.set_num_threads(max(1, args.threads))
+    torch.set_num_threads(clamp_threads(max(1, args.threads)))
     overhead = gmphd.op_overhead_us()
     print(f"one tiny torch op costs {overhead:.1f} us of CPU now (about 1-2 us on an idle core)")
     results = {}

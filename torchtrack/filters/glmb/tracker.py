@@ -82,6 +82,8 @@ class GLMBTracker:
         if self._last_frame is not None and frame != self._last_frame + 1:
             for skipped in range(self._last_frame + 1, frame):       # frames without detections
                 self._advance(skipped, torch.empty(0, 2, dtype=self.dtype), None)
+                if self._empty():   # a fixed point: the frames left in the gap change nothing (any gap, bounded)
+                    break
         self._last_frame = frame
         z = torch.as_tensor(positions, dtype=self.dtype, device="cpu").reshape(-1, 2)
         v = None
@@ -89,6 +91,12 @@ class GLMBTracker:
             v = torch.as_tensor(velocities, dtype=self.dtype, device="cpu").reshape(-1, 2)
         ids, estimates = self._advance(frame, z, v)
         return ids.to(device), estimates.to(device)
+
+    def _empty(self) -> bool:
+        """No table row, birth or estimate streak left: a frame without detections leaves the tracker as it is.
+        Without detections every track's existence falls by ``p_S (1 - p_D)`` a frame until it is pruned, so a
+        gap is crossed in a number of steps set by those probabilities, not by its length."""
+        return not (self.state.mean.shape[0] or self.births.mean.shape[0] or len(self.streak))
 
     def _advance(self, frame: int, z: Tensor, v: Tensor | None) -> tuple[Tensor, Tensor]:
         c = self.config

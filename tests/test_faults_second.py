@@ -1,0 +1,96 @@
+"""The second fault suite, one test per kind: crashes by signal (frame names that are not UTF-8, thousands of
+threads), a hang (a tracker across a gap of 10⁹ frames), and foreign exceptions turned into one-line errors."""
+
+import os
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from torchtrack.cli import main
+from torchtrack.filters.trackers.protocol import make_tracker, tracker_names
+from torchtrack.io.frames import open_frames
+from torchtrack.threads import available_cores, torch_threads
+
+
+def test_frame_names_that_are_not_utf8_are_read(tmp_path):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    image = (np.arange(64 * 48) % 251).astype(np.uint8).reshape(48, 64)
+    for k in (1, 2):
+        name = os.fsdecode(b"frame\xff" + str(k).encode() + b".png")     # a surrogate-escaped byte, as the OS gives
+        ok, data = cv2.imencode(".png", image)
+        (folder / name).write_bytes(data.tobytes())
+    frames = list(open_frames(folder))
+    assert len(frames) == 2 and np.array_equal(frames[0].image, image)
+
+
+def test_frame_names_that_are_not_utf8_do_not_crash_the_command(tmp_path):
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    ok, data = cv2.imencode(".png", np.zeros((40, 40), np.uint8))
+    (folder / os.fsdecode(b"a\xff.png")).write_bytes(data.tobytes())
+    proc = subprocess.run([sys.executable, "-m", "torchtrack", "track", "--frames", str(folder), "--out",
+                           str(tmp_path / "out"), "--no-progress", "--no-video"], capture_output=True, text=True)
+    assert proc.returncode in (0, 2), proc.stderr          # a result or a one-line error, never a signal
+    assert "Traceback" not in proc.stderr
+
+
+def test_more_threads_than_cores_are_clamped_with_a_note(capsys):
+    before = torch.get_num_threads()
+    with torch_threads(10_000):
+        assert torch.get_num_threads() == available_cores()
+    assert torch.get_num_threads() == before
+    assert "10000 threads asked for" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("name", tracker_names())
+def test_every_tracker_crosses_a_gap_of_a_billion_frames(name):
+    tracker = make_tracker(name)
+    z = torch.tensor([[10.0, 10.0], [50.0, 50.0]], dtype=torch.float64)
+    for frame in (1, 2, 3):
+        tracker.step(frame, z + frame)
+    ids, positions = tracker.step(1_000_000_000, z)
+    assert positions.shape[-1] == 2 and ids.shape[0] == positions.shape[0]
+
+
+def test_the_glmb_skips_the_empty_frames_of_a_gap_only_where_nothing_changes():
+    """Stepping through every frame of a gap and stopping at the fixed point give the same tracks after it."""
+    rng = np.random.default_rng(3)
+    frames = {k: torch.as_tensor(np.array([[20.0 + 3 * k, 30.0], [80.0, 20.0 + 2 * k]]) + rng.normal(0, 0.5, (2, 2)))
+              for k in list(range(1, 9)) + list(range(300, 306))}
+
+    def run(stop_early: bool):
+        tracker = make_tracker("glmb")
+        if not stop_early:
+            tracker._empty = lambda: False
+        return [tuple(t.tolist() for t in tracker.step(k, z)) for k, z in frames.items()]
+
+    assert run(True) == run(False)
+
+
+def test_a_foreign_exception_is_one_line_with_exit_1(monkeypatch, capsys):
+    import torchtrack.cli.eval as eval_command
+
+    def broken(args):
+        raise ZeroDivisionError("division by zero\nin a second line")
+
+    monkeypatch.setattr(eval_command, "run", broken)
+    assert main(["eval", "--gt", "a", "--pred", "b"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("torchtrack eval: error: internal failure (ZeroDivisionError")
+    assert "report" in err
+
+
+def test_an_os_error_is_an_input_error_naming_the_file(monkeypatch, capsys, tmp_path):
+    import torchtrack.cli.eval as eval_command
+
+    def unreadable(args):
+        raise PermissionError(13, "Permission denied", str(tmp_path / "gt.txt"))
+
+    monkeypatch.setattr(eval_command, "run", unreadable)
+    assert main(["eval", "--gt", "a", "--pred", "b"]) == 2
+    assert capsys.readouterr().err.strip() == f"torchtrack eval: error: {tmp_path / 'gt.txt'}: Permission denied"
