@@ -94,3 +94,29 @@ def test_an_os_error_is_an_input_error_naming_the_file(monkeypatch, capsys, tmp_
     monkeypatch.setattr(eval_command, "run", unreadable)
     assert main(["eval", "--gt", "a", "--pred", "b"]) == 2
     assert capsys.readouterr().err.strip() == f"torchtrack eval: error: {tmp_path / 'gt.txt'}: Permission denied"
+
+
+def test_two_runs_on_one_output_folder_the_second_is_refused_and_a_killed_holder_frees_it(tmp_path):
+    from torchtrack.errors import TorchtrackError
+    from torchtrack.io.outputs import OutputFolder
+
+    out = tmp_path / "out"
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import sys, time; from torchtrack.io.outputs import OutputFolder\n"
+        f"with OutputFolder(r'{out}', 'torchtrack track') as staging:\n"
+        "    (staging / 'tracks.txt').write_text('1,1,0,0,8,8,1,-1,-1,-1\\n')\n"
+        "    print('in', flush=True); time.sleep(600)")],
+        stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "in"
+        with pytest.raises(TorchtrackError, match=rf"another run is writing there \(process {holder.pid}\)"):
+            with OutputFolder(out, "torchtrack track"):
+                pass
+        assert (tmp_path / "out.partial" / "tracks.txt").is_file()       # the holder's work is untouched
+    finally:
+        holder.kill()                                                     # kill -9: the lock dies with it
+        holder.wait()
+    with OutputFolder(out, "torchtrack track") as staging:               # taken over; the stale staging cleared
+        assert not (staging / "tracks.txt").exists()
+        (staging / "tracks.txt").write_text("2,1,0,0,8,8,1,-1,-1,-1\n")
+    assert (out / "tracks.txt").read_text().startswith("2,1") and sorted(p.name for p in tmp_path.iterdir()) == ["out"]

@@ -17,6 +17,7 @@ work, so that a path that cannot be written is a one-line error rather than a tr
 
 from __future__ import annotations
 
+import fcntl
 import json
 import math
 import os
@@ -165,8 +166,12 @@ class OutputFolder:
     entering — it finishes an interrupted commit, removes ``OUT.replaced`` and a stale ``OUT.partial`` —
     before it starts; a reader can do the same by hand.
 
+    **One run at a time.** A run holds an exclusive lock (``flock``) on ``.OUT.lock`` beside ``out`` from entering
+    to the end of its commit; a second run on the same ``out`` is refused with an error naming the holder's
+    process id. The operating system releases the lock when its holder dies (``kill -9`` included), so a stale
+    lock is never in the way.
+
     **Limits.** The commit is two renames, not one: for that instant ``out`` does not exist (above).
-    Two runs into the same ``out`` at the same time are not supported (they share ``OUT.partial``).
     The names ``OUT.partial`` and ``OUT.replaced`` belong to the run on ``out``: a non-empty
     ``OUT.partial`` without a marker is refused, but an ``OUT.replaced`` is always removed.
     Nothing is fsync'ed, so after a power cut the operating system decides what reached the disk.
@@ -196,24 +201,36 @@ class OutputFolder:
     def __enter__(self) -> Path:
         if self.commit:
             self._check()
-            self._recover()
-            self._check_owner()
-            self.staging.mkdir(parents=True)
-            self._mark(complete=False)
+            self._lock = OutputLock(self._real.with_name(f".{self._real.name}.lock"), self.flag, self.target)
+            self._lock.acquire()
+            try:
+                self._enter()
+            except BaseException:
+                self._lock.release()
+                raise
         return self.staging
+
+    def _enter(self) -> None:
+        self._recover()
+        self._check_owner()
+        self.staging.mkdir(parents=True)
+        self._mark(complete=False)
 
     def __exit__(self, exc_type: type[BaseException] | None, exc: BaseException | None,
                  tb: TracebackType | None) -> None:
         if not self.commit:
             return
-        if exc_type is not None:
-            shutil.rmtree(self.staging, ignore_errors=True)
-            return
-        self._mark(complete=True)
-        if self._real.exists():
-            os.replace(self._real, self.replaced)
-        os.replace(self.staging, self._real)
-        shutil.rmtree(self.replaced, ignore_errors=True)
+        try:
+            if exc_type is not None:
+                shutil.rmtree(self.staging, ignore_errors=True)
+                return
+            self._mark(complete=True)
+            if self._real.exists():
+                os.replace(self._real, self.replaced)
+            os.replace(self.staging, self._real)
+            shutil.rmtree(self.replaced, ignore_errors=True)
+        finally:
+            self._lock.release()
 
     def _mark(self, complete: bool) -> None:
         write_json(self.staging / MARKER, {"command": self.command, "complete": complete})
@@ -259,3 +276,44 @@ class OutputFolder:
         what = f"the output of {marker['command']}" if marker else "not a torchtrack output folder"
         raise TorchtrackError(f"{self.flag} {self.target}: exists and is {what}; give another {self.flag} "
                               f"or --force to replace it")
+
+
+class OutputLock:
+    """An exclusive, non-blocking ``flock`` on ``path`` (created if needed, removed on release), holding the
+    owner's process id; :meth:`acquire` raises :class:`TorchtrackError` naming the holder while another process
+    has it. The lock dies with its process, so a run killed by ``kill -9`` leaves no lock behind that counts."""
+
+    def __init__(self, path: Path, flag: str, target: Path) -> None:
+        self.path, self.flag, self.target = path, flag, target
+        self.fd: int | None = None
+
+    def acquire(self) -> None:
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.read(fd, 32).decode(errors="replace").strip() or "another process"
+                os.close(fd)
+                raise TorchtrackError(f"{self.flag} {self.target}: another run is writing there (process "
+                                      f"{holder}); wait for it to end or give another {self.flag}") from None
+            try:   # the file may have been removed by its previous holder between open and flock: take the new one
+                same = os.path.samestat(os.fstat(fd), os.stat(self.path))
+            except FileNotFoundError:
+                same = False
+            if same:
+                break
+            os.close(fd)
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        self.fd = fd
+
+    def release(self) -> None:
+        if self.fd is None:
+            return
+        try:
+            os.unlink(self.path)
+        except FileNotFoundError:
+            pass
+        os.close(self.fd)
+        self.fd = None
