@@ -38,6 +38,8 @@ def bounded(kind: type, **bounds) -> Callable[[str], int | float]:
 
 
 positive_int = bounded(int, ge=1)
+SEED = bounded(int, ge=0, lt=2**63)
+"""A ``--seed``: a whole number that torch's and NumPy's generators both take (0 to 2⁶³ − 1)."""
 nonnegative_int = bounded(int, ge=0)
 positive_float = bounded(float, gt=0)
 nonnegative_float = bounded(float, ge=0)
@@ -49,7 +51,7 @@ def add_common_options(parser: argparse.ArgumentParser, seed: int | None = 0, ra
     """``--json PATH``, which every command takes, and ``--seed`` (default ``seed``) where the command draws
     random numbers (``random=False``: it draws none and takes no ``--seed``)."""
     if random:
-        parser.add_argument("--seed", type=int, default=seed, help=seed_help)
+        parser.add_argument("--seed", type=SEED, default=seed, help=seed_help)
     parser.add_argument("--json", type=Path, default=None, metavar="PATH",
                         help="also write the reported numbers to this JSON file")
 
