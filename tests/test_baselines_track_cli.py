@@ -73,7 +73,8 @@ def test_track_errors(tmp_path, capsys):
 
 def test_gmphd_on_real_wpafb_trajectories_short(wpafb_data, tmp_path):
     """40 frames of real moving vehicles, simulated detections at the benchmark's defaults."""
-    from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
+    from torchtrack.io.moving import moving_mask
+    from torchtrack.io.wpafb import read_wpafb_csv
     from torchtrack.pipeline.detection_file import detection_file_config, track_detections
     from torchtrack.sim.detections import simulate_detections
 

@@ -131,6 +131,54 @@ def test_an_unreachable_server_is_a_one_line_error(tmp_path):
     assert not (tmp_path / "toy").exists()
 
 
+NEXT_STEP = "`torchtrack data fetch toy --from DIR`, or set TORCHTRACK_TOY=DIR"
+
+
+@pytest.mark.parametrize("where", ["the server", "the transfer"])
+def test_a_failed_download_names_the_next_step(tmp_path, monkeypatch, where):
+    if where == "the transfer":                             # the connection breaks while a file arrives
+        class Broken:
+            def __enter__(self):
+                return self
+
+            def __exit__(self, *exc):
+                return False
+
+            def read(self, n):
+                raise ConnectionResetError("connection reset by peer")
+
+        monkeypatch.setattr(fetch_module.urllib.request, "urlopen", lambda request, timeout: Broken())
+    with pytest.raises(TorchtrackError) as caught:
+        fetch_dataset(TOY, tmp_path / "toy", base_url="http://127.0.0.1:9", progress=False, timeout=2)
+    message = str(caught.value)
+    assert message.startswith("cannot download http://127.0.0.1:9/pub/GT/truth.csv: ")
+    assert message.endswith(NEXT_STEP + " to use it where it is") and "\n" not in message
+    assert not (tmp_path / "toy").exists()
+
+
+def test_from_a_folder_that_does_not_exist_says_so(tmp_path):
+    with pytest.raises(TorchtrackError, match=r"^--from \S*absent: the folder does not exist$"):
+        fetch_dataset(TOY, tmp_path / "toy", source=tmp_path / "absent", progress=False)
+    (tmp_path / "a-file").write_text("x")
+    with pytest.raises(TorchtrackError, match=r"^--from \S*a-file: not a folder$"):
+        fetch_dataset(TOY, tmp_path / "toy", source=tmp_path / "a-file", progress=False)
+    assert not (tmp_path / "toy").exists()
+
+
+def test_cli_data_messages_name_the_next_step(tmp_path, capsys):
+    out = tmp_path / "wpafb"
+    assert main(["data", "fetch", "wpafb", "--url", "http://127.0.0.1:9", "--timeout", "2", "--out", str(out),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("torchtrack data: error: cannot download http://127.0.0.1:9/") and "\n" not in err
+    assert "torchtrack data fetch wpafb --from DIR" in err and "TORCHTRACK_WPAFB=DIR" in err
+    assert main(["data", "fetch", "wpafb", "--from", str(tmp_path / "nowhere"), "--out", str(out),
+                 "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == f"torchtrack data: error: --from {tmp_path / 'nowhere'}: the folder does not exist"
+    assert not out.exists()
+
+
 def test_an_interrupted_fetch_leaves_no_file_under_a_final_name(server, tmp_path, monkeypatch):
     url, root = server
     publish(root, TOY, {"truth.csv": TRUTH, "frames/f1.png": FRAME})

@@ -9,7 +9,8 @@ import pytest
 from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import read_mot
-from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
+from torchtrack.io.moving import moving_mask
+from torchtrack.io.wpafb import read_wpafb_csv
 
 
 def write_csv(path: Path, rows, ids=(7, 3)) -> Path:

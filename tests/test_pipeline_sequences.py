@@ -9,11 +9,11 @@ import torch
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import read_mot
+from torchtrack.io.moving import moving_mask
 from torchtrack.io.outputs import MARKER
 from torchtrack.metrics import clear_mot
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.sequences import concatenate, find_sequences, run_sequences
-from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import VideoConfig, write_sequence
 
 # A test-only stand-in detector: the brightest local maxima of the frame (no weights needed).
@@ -94,7 +94,7 @@ def test_single_process_and_torchrun_agree(root, tmp_path, run_on_two_ranks):
     assert single["registration_error_px"]["median_of_sequence_medians"] < 0.5
     names = ("a_seq", "b_seq", "c_seq")
     gts = [read_mot(root / n / "gt.txt") for n in names]
-    parked = np.concatenate([parked_mask(g, root / n / "velocity.txt") for g, n in zip(gts, names)])
+    parked = np.concatenate([~moving_mask(g, root / n / "velocity.txt") for g, n in zip(gts, names)])
     pooled = clear_mot(*concatenate([(g, read_mot(tmp_path / "one" / n / "tracks.txt")) for g, n in zip(gts, names)]),
                        ignore=parked)
     assert single["aggregate"]["MOTA"] == pytest.approx(pooled["MOTA"])

@@ -9,8 +9,9 @@ import numpy as np
 
 from torchtrack.cli._common import add_common_options, positive_float
 from torchtrack.io.mot import POINT_BOX_SIZE, write_motdata
+from torchtrack.io.moving import moving_mask
 from torchtrack.io.outputs import check_output_file, write_json
-from torchtrack.io.wpafb import moving_mask, read_wpafb_csv
+from torchtrack.io.wpafb import read_wpafb_csv
 from torchtrack.metrics.table import format_table
 
 NAME = "convert-wpafb"

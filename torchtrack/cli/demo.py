@@ -29,8 +29,9 @@ def add_arguments(parser) -> None:
     parser.add_argument("--frames", type=positive_int, default=None, metavar="N",
                         help="frames to generate (default: the embedded default, 60)")
     parser.add_argument("--truth", choices=("moving", "all"), default="moving",
-                        help="moving: the moving vehicles are the targets, parked ones don't-care (the "
-                             "paper's protocol, default); all: every vehicle is a target")
+                        help="moving: the vehicles that the sequence's velocity.txt flags as driving are the "
+                             "targets, parked ones don't-care (the paper's protocol, as eval --moving scores "
+                             "them; default); all: every vehicle is a target")
     parser.add_argument("--config", type=config_file(*PIPELINE_PRESETS), default=None, metavar="YAML",
                         help="pipeline settings, a path or a preset name (e.g. pipeline-online); default: the "
                              "embedded ones (the preset pipeline)")

@@ -9,6 +9,7 @@ from pathlib import Path
 from torchtrack.cli._common import add_common_options, bounded, positive_float
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import read_mot
+from torchtrack.io.moving import flags_beside
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.clear_mot import KEYS
 from torchtrack.metrics.evaluation import (
@@ -40,8 +41,10 @@ as the JSON keys HOTA, DetA, AssA, LocA, DetRe, DetPr, AssRe, AssPr (fractions, 
 Ground-truth lines with conf 0 are don't-care objects, as in MOTChallenge and TrackEval: a prediction
 matched to one is dropped (neither a hit nor a false positive); --count-zero-conf scores them as objects.
 
---moving keeps only ground-truth objects that moved more than 5 px over the last 15 frames (the
-paper's evaluation); predictions matched to the other objects are ignored, not counted as false.
+--moving scores only the moving vehicles (the paper's evaluation), as track, demo and the WPAFB benchmark
+do: where a velocity.txt of simulate-video lies beside gt.txt, the vehicles it flags as driving; otherwise
+the objects that moved more than 5 px over the last 15 frames. The other objects are don't-care:
+predictions matched to them are ignored, not counted as false.
 
 A whole benchmark in the MOTChallenge layout: --gt-folder DIR with DIR/SEQ/gt/gt.txt for every sequence,
 --pred-folder DIR with the tracker's DIR/SEQ.txt; one row per sequence and a COMBINED row, combined as
@@ -70,7 +73,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     gate.add_argument("--iou", type=bounded(float, gt=0, le=1), default=None, metavar="T",
                       help="IoU gate instead (e.g. 0.5)")
     parser.add_argument("--moving", action="store_true",
-                        help="score only objects that moved > 5 px over the last 15 frames (paper's rule)")
+                        help="score only moving vehicles: those flagged in the velocity.txt beside gt.txt, else those "
+                             "that moved more than 5 px over the last 15 frames (default: all)")
     parser.add_argument("--count-zero-conf", action="store_true",
                         help="score ground-truth lines with conf 0 as objects (default: ignored, as MOTChallenge)")
     parser.add_argument("--ospa", type=positive_float, default=None, metavar="C",
@@ -115,7 +119,8 @@ def run(args: argparse.Namespace) -> int:
                                     moving=options.moving, count_zero_conf=options.count_zero_conf,
                                     ospa=options.ospa)}
     else:
-        evaluations = {name: evaluate(read_mot(gt), read_mot(pred), options) for name, gt, pred in pairs}
+        evaluations = {name: evaluate(read_mot(gt), read_mot(pred), options, flags_beside(gt))
+                       for name, gt, pred in pairs}
         if len(pairs) > 1:
             evaluations["COMBINED"] = combine(list(evaluations.values()))
         rows = {name: e.scores() for name, e in evaluations.items()}

@@ -25,7 +25,7 @@ from torchtrack.detector.region import Region
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import FolderSource
 from torchtrack.io.mot import MOTData
-from torchtrack.io.wpafb import MOVING_DISPLACEMENT, MOVING_WINDOW
+from torchtrack.io.moving import MOVING_DISPLACEMENT, MOVING_WINDOW
 
 
 class LabelledFrames(NamedTuple):

@@ -8,6 +8,9 @@ failed or interrupted fetch leaves no file under a final name. Files already pre
 kept; a present file whose sum differs is fetched anew and replaced. Beside the data, ``SOURCE.md``
 records the repository, commit, licence, origin and date of the fetch, and ``SHA256SUMS`` the sums
 (``sha256sum -c SHA256SUMS`` checks them).
+
+A failed download says the next step (:func:`offline_hint`): copy a local copy with ``--from DIR``, or point
+the data set's environment variable (``TORCHTRACK_WPAFB``) at one.
 """
 
 from __future__ import annotations
@@ -65,6 +68,16 @@ def is_verified(folder: Path, f: DataFile) -> bool:
     return path.is_file() and path.stat().st_size == f.size and sha256_of(path) == f.sha256
 
 
+class _DownloadFailed(TorchtrackError):
+    """The network failed (no answer, an HTTP error, a broken transfer): :func:`fetch_dataset` adds the next step."""
+
+
+def offline_hint(dataset: Dataset) -> str:
+    """What to do when ``dataset`` cannot be downloaded."""
+    return (f"without network access, copy a local copy with `torchtrack data fetch {dataset.name} --from DIR`, "
+            f"or set {dataset.env}=DIR to use it where it is")
+
+
 def _one_line(reason: object) -> str:
     return " ".join(str(reason).split())
 
@@ -82,9 +95,9 @@ def _open(f: DataFile, base_url: str | None, source: Path | None, timeout: float
     try:
         return urllib.request.urlopen(request, timeout=timeout), url
     except urllib.error.HTTPError as exc:
-        raise TorchtrackError(f"cannot download {url}: HTTP {exc.code} {_one_line(exc.reason)}") from None
+        raise _DownloadFailed(f"cannot download {url}: HTTP {exc.code} {_one_line(exc.reason)}") from None
     except (OSError, http.client.HTTPException) as exc:
-        raise TorchtrackError(f"cannot download {url}: {_one_line(getattr(exc, 'reason', exc))}") from None
+        raise _DownloadFailed(f"cannot download {url}: {_one_line(getattr(exc, 'reason', exc))}") from None
 
 
 def _receive(stream: BinaryIO, name: str, dest: Path, f: DataFile, bar) -> None:
@@ -101,7 +114,7 @@ def _receive(stream: BinaryIO, name: str, dest: Path, f: DataFile, bar) -> None:
                 out.write(block)
                 bar.update(len(block))
     except (OSError, http.client.HTTPException) as exc:
-        raise TorchtrackError(f"cannot download {name}: {_one_line(exc)} (nothing was kept)") from None
+        raise _DownloadFailed(f"cannot download {name}: {_one_line(exc)} (nothing was kept)") from None
     if size != f.size or digest.hexdigest() != f.sha256:
         raise TorchtrackError(f"{name}: SHA-256 {digest.hexdigest()} ({size} bytes) is not the expected "
                               f"{f.sha256} ({f.size} bytes); corrupt or changed file, nothing was kept")
@@ -131,9 +144,13 @@ def fetch_dataset(dataset: Dataset, out: str | os.PathLike, base_url: str | None
     """Bring ``dataset``'s files into ``out`` from ``base_url`` (default :attr:`Dataset.base_url`; a file
     is at ``base_url/<its source path>``) or, with ``source``, from a local folder in the data set's own
     layout (module docstring for the guarantees). Raises :class:`TorchtrackError` in one line on a
-    network error, a missing local file or a wrong checksum."""
+    network error (with :func:`offline_hint`), a ``source`` folder that does not exist, a missing local file
+    or a wrong checksum."""
     out = Path(out)
     source = None if source is None else Path(source)
+    if source is not None and not source.is_dir():
+        raise TorchtrackError(f"--from {source}: " + ("not a folder" if source.exists() else
+                                                      "the folder does not exist"))
     origin = str(source) if source is not None else (base_url or dataset.base_url)
     if out.exists() and not out.is_dir():
         raise TorchtrackError(f"--out {out}: exists and is not a folder")
@@ -156,8 +173,11 @@ def fetch_dataset(dataset: Dataset, out: str | os.PathLike, base_url: str | None
         with tqdm(total=sum(f.size for f in todo), unit="B", unit_scale=True, desc=f"fetch {dataset.name}",
                   file=sys.stderr, disable=not progress, leave=False) as bar:
             for i, f in enumerate(todo):
-                stream, name = _open(f, base_url or dataset.base_url, source, timeout)
-                _receive(stream, name, staging / str(i), f, bar)
+                try:
+                    stream, name = _open(f, base_url or dataset.base_url, source, timeout)
+                    _receive(stream, name, staging / str(i), f, bar)
+                except _DownloadFailed as exc:
+                    raise TorchtrackError(f"{exc}; {offline_hint(dataset)}") from None
         for i, f in enumerate(todo):
             final = out / f.path
             final.parent.mkdir(parents=True, exist_ok=True)

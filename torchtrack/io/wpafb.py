@@ -1,4 +1,5 @@
-"""The WPAFB 2009 truth CSV (as published with Aguilar, Ortner & Zerubia, ICASSP 2023) and the "moving" rule.
+"""The WPAFB 2009 truth CSV (as published with Aguilar, Ortner & Zerubia, ICASSP 2023); the "moving" rule of
+its evaluation is in :mod:`torchtrack.io.moving`.
 
 CSV layout: header ``Frame Number,obj_<id>_px,obj_<id>_py,obj_<id>_vx,obj_<id>_vy,obj_<id>_ax,obj_<id>_ay,...``
 (six columns per object), one row per frame. ``px`` is the image **row** and ``py`` the image **column**,
@@ -20,10 +21,6 @@ from torchtrack.io.mot import POINT_BOX_SIZE, MOTData, from_points
 
 _COLUMN = re.compile(r"obj_(\d+)_(px|py|vx|vy|ax|ay)$")
 _ORDER = ("px", "py", "vx", "vy", "ax", "ay")
-
-MOVING_DISPLACEMENT = 5.0
-"""Pixels an object must have moved over :data:`MOVING_WINDOW` frames to count as moving (the paper's rule)."""
-MOVING_WINDOW = 15
 
 
 def read_wpafb_csv(path: str | os.PathLike, keep_frame_numbers: bool = False,
@@ -79,24 +76,3 @@ def read_wpafb_csv(path: str | os.PathLike, keep_frame_numbers: bool = False,
     if not keep_frame_numbers:
         frames = frames - int(frame_numbers[0]) + 1
     return from_points(frames, np.asarray(ids, dtype=np.int64)[oi], py[fi, oi], px[fi, oi], box=box).sorted()
-
-
-def moving_mask(truth: MOTData, min_displacement: float = MOVING_DISPLACEMENT,
-                window: int = MOVING_WINDOW) -> np.ndarray:
-    """(K,) bool: the object of each line moved more than ``min_displacement`` px over the last ``window`` frames.
-
-    The displacement of object ``i`` at frame ``k`` is ``||p_i(k) - p_i(k0)||`` with ``k0`` the earliest frame
-    of ``i`` in ``[k - window, k]`` (the object's first frame when it is younger than the window), so an
-    object is never moving on its first frame. This is the paper's selection of "objects that moved more
-    than 5 pixels during the last 15 frames" (Aguilar et al. 2023, Sec. 3.1). Lines in ``truth``'s order.
-    """
-    order = np.lexsort((truth.frame, truth.id))
-    ids, frames = truth.id[order], truth.frame[order]
-    centres = truth.centers()[order]
-    span = int(frames.max() - frames.min()) + window + 2 if frames.size else 1
-    key = (ids - ids.min() if ids.size else ids) * span + (frames - (frames.min() if frames.size else 0))
-    start = np.searchsorted(key, key - window, side="left")  # same id: frames are within one span block
-    moved = np.linalg.norm(centres - centres[start], axis=1) > min_displacement
-    out = np.empty(truth.size, dtype=bool)
-    out[order] = moved
-    return out

@@ -219,7 +219,7 @@ def clear_mot(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | 
         threshold: centre-distance gate in pixels (used unless ``iou`` is given).
         iou: IoU gate ``T`` in (0, 1]; a pair matches when ``IoU >= T``.
         ignore: optional (K,) bool over ``gt``'s lines marking don't-care objects (e.g. the vehicles that
-            are not moving, :func:`torchtrack.io.wpafb.moving_mask`): in each frame, predictions assigned
+            are not moving, :func:`torchtrack.io.moving.moving_mask`): in each frame, predictions assigned
             to them (Hungarian, same gate) are dropped, and so are they, before scoring.
         count_zero_conf: score ground-truth lines whose ``conf`` is 0 as real objects. By default they are
             don't-care objects, as in MOTChallenge ground truth (``conf`` 0: ignore) and TrackEval: handled

@@ -3,7 +3,8 @@ benchmark in the MOTChallenge layout, its sequences combined as TrackEval combin
 
 One sequence: CLEAR-MOT, MT/PT/ML, FRAG and IDF1 (:func:`~torchtrack.metrics.clear_mot.clear_mot`), HOTA
 (:func:`~torchtrack.metrics.hota.hota`) with the same gate (a centre distance, or an IoU), optionally only the
-objects that move (:func:`torchtrack.io.wpafb.moving_mask`, the paper's rule) and the per-frame OSPA / GOSPA
+moving objects (:func:`torchtrack.io.moving.moving_mask`: a synthetic sequence's ``velocity.txt`` flags, else
+the paper's rule; the others are don't-care, as in every command that tracks and scores) and the per-frame OSPA / GOSPA
 of the box centres. Several sequences (:func:`combine`): CLEAR-MOT's counts summed and its ratios recomputed,
 HOTA from summed per-alpha counts with association and localisation weighted by TP (TrackEval's
 ``combine_sequences``), OSPA / GOSPA averaged over the frames of all sequences.
@@ -24,10 +25,9 @@ import numpy as np
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.mot import MOTData, as_mot
-from torchtrack.io.wpafb import moving_mask
+from torchtrack.io.moving import flags_beside, moving_mask
 from torchtrack.metrics import clear_mot, hota
 from torchtrack.metrics.clear_mot import combine as combine_clear_mot
-from torchtrack.metrics.clear_mot import drop_ignored
 from torchtrack.metrics.hota import KEYS as HOTA_KEYS
 from torchtrack.metrics.hota import combine as combine_hota
 
@@ -42,8 +42,8 @@ class EvalOptions:
     Attributes:
         threshold: centre-distance gate of CLEAR-MOT and ``D`` of HOTA's similarity ``max(0, 1 - d / D)``, px.
         iou: an IoU gate instead (HOTA's similarity is then the IoU).
-        moving: score only the objects that moved > 5 px over the last 15 frames; predictions matched to
-            the others are dropped.
+        moving: score only the moving objects (:func:`torchtrack.io.moving.moving_mask`); the others are
+            don't-care (predictions matched to them are dropped, neither hits nor false positives).
         count_zero_conf: score ground-truth lines with conf 0 as objects (default: don't-care, as MOTChallenge).
         ospa: the OSPA (p = 1) and GOSPA (p = 2, alpha = 2) cut-off in px; None: not computed.
     """
@@ -89,24 +89,30 @@ def _ospa_frames(gt: MOTData, pred: MOTData, cutoff: float) -> dict[str, np.ndar
     return {key: v.numpy() for key, v in zip(OSPA_KEYS, values)}
 
 
-def evaluate(gt: MOTData, pred: MOTData, options: EvalOptions = EvalOptions()) -> Evaluation:
-    """The scores of tracker output ``pred`` against ground truth ``gt``."""
-    if options.moving:
-        gt, pred = drop_ignored(gt, pred, ~moving_mask(gt), threshold=options.threshold, iou=options.iou)
-    common = {"threshold": options.threshold, "iou": options.iou, "count_zero_conf": options.count_zero_conf}
+def evaluate(gt: MOTData, pred: MOTData, options: EvalOptions = EvalOptions(),
+             flags: str | Path | None = None) -> Evaluation:
+    """The scores of tracker output ``pred`` against ground truth ``gt``; with ``options.moving``, ``flags`` is
+    the sequence's ``velocity.txt`` (:func:`torchtrack.io.moving.flags_beside`), None for the paper's rule."""
+    common = {"threshold": options.threshold, "iou": options.iou, "count_zero_conf": options.count_zero_conf,
+              "ignore": ~moving_mask(gt, flags) if options.moving else None}
     return Evaluation(clear_mot(gt, pred, **common), hota(gt, pred, **common),
                       _ospa_frames(gt, pred, options.ospa) if options.ospa is not None else None)
 
 
 def evaluate_scores(gt: str | os.PathLike | MOTData | np.ndarray, pred: str | os.PathLike | MOTData | np.ndarray,
                     *, threshold: float = 10.0, iou: float | None = None, moving: bool = False,
-                    count_zero_conf: bool = False, ospa: float | None = None) -> dict:
+                    count_zero_conf: bool = False, ospa: float | None = None,
+                    flags: str | os.PathLike | None = None) -> dict:
     """``torchtrack.evaluate``: the scores of ``torchtrack eval --json`` (CLEAR-MOT, MT/PT/ML, FRAG, IDF1, HOTA,
     and OSPA/GOSPA with ``ospa``; ratios as fractions; ``gate`` and ``moving_only`` say how it was scored) of the
     tracks ``pred`` against ``gt``, each a MOTChallenge file's path, a :class:`MOTData` or an array of its rows.
-    Options as :class:`EvalOptions`."""
+    Options as :class:`EvalOptions`; with ``moving``, the moving objects are those of
+    :func:`torchtrack.io.moving.moving_mask` with ``flags`` (default: the ``velocity.txt`` beside ``gt`` where
+    ``gt`` is a path and its sequence has one, as in ``torchtrack eval``)."""
     options = EvalOptions(threshold, iou, moving, count_zero_conf, ospa)
-    scores = evaluate(as_mot(gt, "gt"), as_mot(pred, "pred"), options).scores()
+    if flags is None and isinstance(gt, str | os.PathLike):
+        flags = flags_beside(gt)
+    scores = evaluate(as_mot(gt, "gt"), as_mot(pred, "pred"), options, flags).scores()
     return {**scores, "gate": options.gate, "moving_only": bool(moving)}
 
 

@@ -121,7 +121,8 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
             ``tracker_name`` (default its ``name`` attribute or class name).
         config: the trackers' options (:func:`tracker_options`); default the built-in ones.
         gt: truth to score against (a path, :class:`MOTData` or rows); ``ignore (K,)`` marks its don't-care
-            lines (video pipeline); ``gt_name`` names it in errors (default: its path).
+            lines (e.g. ``~torchtrack.io.moving.moving_mask(truth)``); ``gt_name`` names it in errors (default: its
+            path).
         device: where the tracker (and the detector) run: ``cpu``, ``cuda`` or ``cuda:N``.
         threshold: the CLEAR-MOT centre distance in px (detections; frames take the pipeline config's).
         pipeline_config: the video pipeline's settings (a YAML path or preset name, or a :class:`PipelineConfig`).
@@ -147,7 +148,7 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
             det = as_mot(detections, "detections")
             base = _pipeline_config(pipeline_config) if pipeline_config is not None else None
             run_config = detection_file_config(options, threshold, base).replace(device=device)
-            report = track_detections(det, name, run_config, staging, truth, built)
+            report = track_detections(det, name, run_config, staging, truth, built, ignore)
             files = {"tracks": staging / "tracks.txt", "metrics": staging / "metrics.json"}
             tracks, given = read_mot(files["tracks"]), det
         else:

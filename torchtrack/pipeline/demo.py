@@ -11,9 +11,11 @@
    MOTA %, HOTA % and IDF1 % added, MOTP px, tracker FPS), and write ``metrics.json`` and the plots
    ``tracks_first_frame.png`` and ``scores.png``.
 
-Scoring follows the paper: the targets are the moving vehicles (``truth="moving"``: the generator's
-``moving`` flag, i.e. vehicles driving on a lane), parked vehicles are don't-care (a track on one is
-neither a hit nor a false positive; ``clear_mot(..., ignore=...)``), 10 px centre distance.
+Scoring follows the paper: the targets are the moving vehicles (``truth="moving"``,
+:func:`torchtrack.io.moving.moving_mask`: the generator's ``velocity.txt`` flag, i.e. vehicles driving on a
+lane; ``torchtrack eval --moving`` on ``sequence/gt.txt`` gives the same scores), parked vehicles are
+don't-care (a track on one is neither a hit nor a false positive; ``clear_mot(..., ignore=...)``), 10 px
+centre distance.
 """
 
 from __future__ import annotations
@@ -29,13 +31,13 @@ from torchtrack.filters.trackers.protocol import make_tracker, tracker_names
 from torchtrack.geometry import apply_homography
 from torchtrack.io.frames import FolderSource
 from torchtrack.io.mot import MOTData, read_mot
+from torchtrack.io.moving import flags_beside, moving_mask
 from torchtrack.io.outputs import write_json
 from torchtrack.metrics.table import format_table1, score
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.plots import plot_scores, plot_tracks
 from torchtrack.pipeline.replay import run_tracker
 from torchtrack.pipeline.track_video import track_video
-from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import VideoConfig, read_camera, write_sequence
 from torchtrack.threads import torch_threads
 
@@ -72,7 +74,7 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     seq = write_sequence(vcfg, torch.Generator().manual_seed(gen_seed), out / "sequence", progress=progress)
     t_generated = time.perf_counter()
     gt = read_mot(seq / "gt.txt")
-    ignore = parked_mask(gt, seq / "velocity.txt") if truth == "moving" else None
+    ignore = ~moving_mask(gt, flags_beside(seq / "gt.txt")) if truth == "moving" else None
     cfg = config or PipelineConfig()
     cfg = cfg.replace(snapshots=tuple(sorted({*cfg.snapshots, min(vcfg.frames, 20)})))
     camera = read_camera(seq / "camera.json")

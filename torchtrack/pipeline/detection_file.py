@@ -13,6 +13,8 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 
+import numpy as np
+
 from torchtrack.filters.trackers.protocol import Tracker, make_tracker
 from torchtrack.io.mot import MOTData
 from torchtrack.io.outputs import write_json
@@ -34,9 +36,10 @@ def detection_file_config(tracker_options: Mapping[str, dict] | None = None, thr
 
 
 def track_detections(det: MOTData, name: str, config: PipelineConfig, out: str | Path, gt: MOTData | None = None,
-                     tracker: Tracker | None = None) -> dict:
+                     tracker: Tracker | None = None, ignore: np.ndarray | None = None) -> dict:
     """Run tracker ``name`` (``config.options_for(name)``; or the ``tracker`` given, already built, e.g. a
     fitted one) on every frame of ``det`` and ``gt``; writes ``out/tracks.txt`` and ``out/metrics.json``.
+    ``ignore (K,)`` marks ``gt``'s don't-care lines (e.g. the vehicles that are not moving).
 
     Returns the metrics: CLEAR-MOT at ``config.threshold`` where ``gt`` is given, with ``tracker``,
     ``frames_run``, ``seconds`` and ``FPS`` (the stream alone) and, for the GM-PHD trackers, ``cap_hits``.
@@ -45,7 +48,7 @@ def track_detections(det: MOTData, name: str, config: PipelineConfig, out: str |
     if tracker is None:
         tracker = make_tracker(name, config.options_for(name))
     run = run_tracker(tracker, config, mot_frames(det, stream_frames(det, gt)), out / "tracks.txt")
-    metrics = {"tracker": name, **(score(gt, run.tracks, config.threshold) if gt is not None else {}),
+    metrics = {"tracker": name, **(score(gt, run.tracks, config.threshold, ignore) if gt is not None else {}),
                "frames_run": run.frames, "seconds": run.seconds, "FPS": run.fps}
     if hasattr(tracker, "cap_hits"):
         metrics["cap_hits"] = tracker.cap_hits
@@ -54,6 +57,7 @@ def track_detections(det: MOTData, name: str, config: PipelineConfig, out: str |
 
 
 def compare(det: MOTData, config: PipelineConfig, out: str | Path, gt: MOTData,
-            trackers: Sequence[str]) -> dict[str, dict]:
-    """Every tracker of ``trackers`` on the same detections (``out/<tracker>/``); tracker name → metrics."""
-    return {name: track_detections(det, name, config, Path(out) / name, gt) for name in trackers}
+            trackers: Sequence[str], ignore: np.ndarray | None = None) -> dict[str, dict]:
+    """Every tracker of ``trackers`` on the same detections (``out/<tracker>/``), ``gt``'s lines marked by
+    ``ignore`` don't-care; tracker name → metrics."""
+    return {name: track_detections(det, name, config, Path(out) / name, gt, ignore=ignore) for name in trackers}

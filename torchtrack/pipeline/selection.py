@@ -25,13 +25,13 @@ from tqdm import tqdm
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.mot import MOTData, read_mot
+from torchtrack.io.moving import moving_mask
 from torchtrack.metrics.table import score
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.frame_detections import FrameDetections
 from torchtrack.pipeline.replay import run_tracker
 from torchtrack.pipeline.sequences import concatenate, find_sequences
 from torchtrack.pipeline.track_video import track_video
-from torchtrack.pipeline.truth import parked_mask
 
 GRIDS: dict[str, dict[str, list]] = {
     "gmphd": {"fix_separation": [4.0, 5.0], "confirm_new": [True, False, 3], "confirm_misses": [3],
@@ -70,7 +70,7 @@ def collect(root: str | Path, out: str | Path, config: PipelineConfig, detector=
         if seq.gt is None:
             continue
         gt = read_mot(seq.gt)
-        ignore = parked_mask(gt, seq.velocity) if seq.velocity else None
+        ignore = ~moving_mask(gt, seq.velocity) if seq.velocity else None
         result = track_video(seq.source(), Path(out) / seq.name, cfg, detector=detector, gt=gt,
                              gt_path=str(seq.gt), ignore=ignore, keep_detections=True, progress=progress)
         data.append(SequenceDetections(seq.name, gt, ignore, result.detections))

@@ -8,7 +8,7 @@ A sequence is a sub-folder ``S`` of the folder given, holding its frames as
 
 and optionally its truth ``S/gt.txt`` or ``S/gt/gt.txt``, and for synthetic sequences the true camera
 motion ``S/camera.json`` (registration error is then measured) and ``S/velocity.txt`` (then only moving
-vehicles are targets, parked ones don't-care: :mod:`torchtrack.pipeline.truth`). Sub-folders holding
+vehicles are targets, parked ones don't-care: :mod:`torchtrack.io.moving`). Sub-folders holding
 none of these are skipped with a warning.
 
 Aggregation is exact: the truth and tracks of all sequences are concatenated, with frame numbers and
@@ -34,12 +34,12 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, concat_mot, read_mot
+from torchtrack.io.moving import flags_beside, moving_mask
 from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.metrics.table import score
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.replay import run_tracker
 from torchtrack.pipeline.track_video import track_video
-from torchtrack.pipeline.truth import parked_mask
 from torchtrack.sim.video import read_camera
 from torchtrack.threads import torch_threads
 
@@ -74,9 +74,9 @@ def describe_sequence(folder: Path) -> Sequence | None:
     if frames is None:
         return None
     gt = next((p for p in (folder / "gt.txt", folder / "gt" / "gt.txt") if p.is_file()), None)
-    camera, velocity = folder / "camera.json", folder / "velocity.txt"
+    camera = folder / "camera.json"
     return Sequence(folder.name, frames, gt, camera if camera.is_file() else None,
-                    velocity if velocity.is_file() and gt is not None else None)
+                    flags_beside(gt) if gt is not None else None)
 
 
 def find_sequences(root: str | Path) -> list[Sequence]:
@@ -102,7 +102,7 @@ def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, pro
     """Run the pipeline on one sequence, and the trackers ``others`` on the same detections (written to
     ``out/<sequence>/trackers/<name>.txt``); returns what rank 0 needs to aggregate them."""
     gt = read_mot(seq.gt) if seq.gt else None
-    ignore = parked_mask(gt, seq.velocity) if seq.velocity else None
+    ignore = ~moving_mask(gt, seq.velocity) if seq.velocity else None
     camera = read_camera(seq.camera) if seq.camera else None
     t0 = time.perf_counter()
     result = track_video(seq.source(), out / seq.name, config, detector=detector, gt=gt, gt_path=str(seq.gt),
