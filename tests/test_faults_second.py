@@ -120,3 +120,13 @@ def test_two_runs_on_one_output_folder_the_second_is_refused_and_a_killed_holder
         assert not (staging / "tracks.txt").exists()
         (staging / "tracks.txt").write_text("2,1,0,0,8,8,1,-1,-1,-1\n")
     assert (out / "tracks.txt").read_text().startswith("2,1") and sorted(p.name for p in tmp_path.iterdir()) == ["out"]
+
+
+def test_simulated_detections_on_timestamp_frames_use_the_frames_present(tmp_path):
+    from torchtrack.io.mot import from_points
+    from torchtrack.sim.detections import simulate_detections
+
+    truth = from_points([1, 1_700_000_000, 1_700_000_001], [1, 1, 1], [10.0, 12.0, 14.0], [10.0, 10.0, 10.0])
+    det = simulate_detections(truth, pd=1.0, sigma=0.0, clutter=3.0, image_size=(100, 100),
+                              generator=torch.Generator().manual_seed(0)).detections
+    assert set(det.frames().tolist()) == {1, 1_700_000_000, 1_700_000_001}

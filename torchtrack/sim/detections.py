@@ -73,7 +73,8 @@ def simulate_detections(
         truth: ground truth (ids >= 0).
         pd: detection probability in [0, 1].
         sigma: position noise standard deviation in px (>= 0).
-        clutter: mean number of false detections per frame (>= 0).
+        clutter: mean number of false detections per frame (>= 0), in each frame that the truth holds (the
+            frames present, so frame numbers may be anything, timestamps included).
         image_size: ``(W, H)`` in px, the clutter region.
         velocity_sigma: velocity noise in px/frame; None for detections without velocity.
         generator: torch random generator (a fresh unseeded one when None).
@@ -88,7 +89,7 @@ def simulate_detections(
     width, height = (float(v) for v in image_size)
     if not (width > 0 and height > 0):
         raise TorchtrackError(f"image_size must be positive, got {image_size}")
-    frames = np.arange(truth.frame.min(), truth.frame.max() + 1) if truth.size else np.zeros(0, np.int64)
+    frames = truth.frames()
     if clutter * frames.size > MAX_CLUTTER:
         raise TorchtrackError(f"clutter {clutter:g} per frame over {frames.size} frames is more than "
                               f"{MAX_CLUTTER:.0e} false detections in all")
