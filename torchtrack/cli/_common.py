@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 from collections.abc import Callable
 from pathlib import Path
 
@@ -18,7 +19,7 @@ def add_force_option(parser: argparse.ArgumentParser, flag: str = "--out") -> No
 
 
 def bounded(kind: type, **bounds) -> Callable[[str], int | float]:
-    """An argparse ``type``: the text as ``kind`` (int or float) within :class:`torchtrack.config.Bounds`
+    """An argparse ``type``: the text as ``kind`` (int, or a finite float) within :class:`torchtrack.config.Bounds`
     (``ge``, ``gt``, ``le``, ``lt``), otherwise a usage error (``argument --epochs: must be >= 1; got -1``)."""
     limits = Bounds(**bounds)
 
@@ -28,6 +29,8 @@ def bounded(kind: type, **bounds) -> Callable[[str], int | float]:
         except ValueError:
             raise argparse.ArgumentTypeError(f"must be {'a whole number' if kind is int else 'a number'}; "
                                              f"got {text!r}") from None
+        if kind is float and not math.isfinite(value):
+            raise argparse.ArgumentTypeError(f"must be a finite number; got {text!r}")
         found = limits.problem("", value)
         if found:
             raise argparse.ArgumentTypeError(found[1])
