@@ -130,3 +130,11 @@ def test_simulated_detections_on_timestamp_frames_use_the_frames_present(tmp_pat
     det = simulate_detections(truth, pd=1.0, sigma=0.0, clutter=3.0, image_size=(100, 100),
                               generator=torch.Generator().manual_seed(0)).detections
     assert set(det.frames().tolist()) == {1, 1_700_000_000, 1_700_000_001}
+
+
+def test_train_detector_refuses_an_out_under_a_file_before_any_work(tmp_path, monkeypatch, capsys):
+    (tmp_path / "afile").write_text("")
+    monkeypatch.chdir(tmp_path)
+    assert main(["train-detector", "--out", "afile/sub", "--epochs", "1", "--no-progress"]) == 2
+    assert "afile is a file, not a folder" in capsys.readouterr().err
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]        # no data cache built either

@@ -58,6 +58,7 @@ def run(args) -> int:
     from torchtrack.detector.config import load_config
     from torchtrack.detector.dataset import build_cache
     from torchtrack.detector.train import export_weights, train
+    from torchtrack.io.outputs import check_output_folder
     from torchtrack.threads import torch_threads
 
     check_labelled_options(args)
@@ -66,6 +67,8 @@ def run(args) -> int:
     cfg = load_config(args.config)
     changes = {"out": None if args.out is None else str(args.out), "epochs": args.epochs}
     cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, **{k: v for k, v in changes.items() if v}))
+    check_output_folder(cfg.train.out, "--out")
+    check_output_folder(cfg.data.cache, f"{args.config or 'the detector config'}: data.cache")
     with torch_threads(args.threads):
         result = train(cfg, seed=args.seed, resume=args.resume, progress=not args.no_progress, workers=args.workers)
         if int(os.environ.get("RANK", "0")) != 0:

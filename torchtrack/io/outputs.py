@@ -122,6 +122,15 @@ def _writable_folder(folder: Path, flag: str, given: Path) -> None:
         raise TorchtrackError(f"{flag} {given}: cannot be written, {probe} is not writable")
 
 
+def check_output_folder(path: str | os.PathLike, flag: str = "--out") -> None:
+    """Error naming ``flag`` unless the folder ``path`` is, or can be created as, a writable folder (no file in
+    its way): checked before a long run, not when its first file is written."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise TorchtrackError(f"{flag} {path}: is a file, not a folder")
+    _writable_folder(path, flag, path)
+
+
 def check_output_file(path: str | os.PathLike | None, flag: str = "--out") -> None:
     """Error (naming ``flag``) unless ``path`` can be written as a file: not an existing folder, in a
     folder that exists or can be created and is writable. Nothing for None."""
