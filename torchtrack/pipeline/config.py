@@ -44,6 +44,10 @@ class PipelineConfig(Checked):
     previous frame around the detection, grey levels; ``detection.motion_evidence``) is below these are
     not given to the tracker (they are still recorded in ``detections.txt`` and feed the detector's prior
     heatmap). 0 passes every detection.
+    gate_registration: the motion-evidence threshold is raised by this times the difference the
+    registration's frame-to-frame residual leaves at the detection (residual × local gradient,
+    ``detection.misregistration``): on a real camera edges of roofs and roads then stop passing for motion
+    where the registration is off by a fraction of a pixel (0: off).
     detector_weights: a weights file (``None``: the shipped weights).
     detector_tile: a frame larger than this (px, a multiple of 16) is detected in tiles of this side, each
     with 128 px of frame around it, with the whole frame's result and memory bounded by the tiles
@@ -59,6 +63,8 @@ class PipelineConfig(Checked):
     output_lag, lag_distance: a frame's tracks are written ``output_lag`` frames later, after backfilling
     new tracks, filling short gaps and trimming coasting tails with what those frames showed (0: online;
     :mod:`torchtrack.pipeline.fixed_lag`).
+    merge_distance: two tracks that stay within this many px of each other over the fixed lag's frames follow
+    one vehicle: the younger is left out (0: off; needs ``output_lag`` > 0).
     prior: where the detector's prior heatmap comes from: the previous frame's ``detections`` (the
     paper's eq. 1) or its ``tracks``.
     threshold: CLEAR-MOT centre-distance threshold in pixels (the paper's 10 px).
@@ -77,6 +83,7 @@ class PipelineConfig(Checked):
     trackers: dict = field(default_factory=lambda: copy.deepcopy(SELECTED_TRACKERS))
     min_speed: float = option(2.0, ge=0)
     min_motion: float = option(5.0, ge=0)
+    gate_registration: float = option(1.0, ge=0)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
     detector_tile: int | None = option(None, ge=0)
@@ -86,6 +93,7 @@ class PipelineConfig(Checked):
     weak_continues_pending: bool = False
     output_lag: int = option(3, ge=0)
     lag_distance: float = option(3.0, gt=0)
+    merge_distance: float = option(6.0, ge=0)
     prior: str = option("detections", one_of=("detections", "tracks"))
     threshold: float = option(10.0, gt=0)
     video: bool = True

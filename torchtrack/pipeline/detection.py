@@ -11,11 +11,14 @@ import numpy as np
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography, homography_jacobian, warp_previous
 from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy
-from torchtrack.pipeline.registration import Registration
+from torchtrack.pipeline.registration import Registration, RegistrationResult
 from torchtrack.pipeline.timer import StageTimer
 
 MOTION_WINDOW = 5
 """Side (px) of the window over which :func:`motion_evidence` averages the frame difference."""
+
+BAND_ROWS = 256
+"""Rows of the frame filtered at once by :func:`_banded` and :func:`gate_pass_fraction`."""
 
 
 def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -27,6 +30,39 @@ def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray)
                    points, MOTION_WINDOW // 2)
 
 
+def _gradient(image: np.ndarray) -> np.ndarray:
+    """Mean gradient magnitude (grey levels per px, 3×3 Sobel) over a ``MOTION_WINDOW``-px square."""
+    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3) / 8
+    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3) / 8
+    return cv2.blur(cv2.magnitude(gx, gy), (MOTION_WINDOW, MOTION_WINDOW))
+
+
+def misregistration(image: np.ndarray, residual: float, points: np.ndarray) -> np.ndarray:
+    """The frame difference a registration error of ``residual`` px leaves at each of ``points (K, 2)``:
+    ``residual · |∇I|`` (first-order Taylor expansion of ``I(x + δ) − I(x)``, ``|δ| = residual``), with
+    ``|∇I|`` averaged over the motion window. Zero where the residual is unknown (NaN). ``(K,)``."""
+    if not np.isfinite(residual) or not len(points):
+        return np.zeros(len(points))
+    return residual * _banded(_gradient, (image,), points, MOTION_WINDOW // 2 + 1)
+
+
+def gate_pass_fraction(image: np.ndarray, previous: np.ndarray, min_motion: float, margin: float,
+                       residual: float) -> float:
+    """The fraction of the frame's pixels whose motion evidence passes the moving-object gate, ``≥ min_motion
+    + margin · misregistration`` (computed on bands of rows, as :func:`_banded`)."""
+    margin = margin * residual if np.isfinite(residual) else 0.0
+    h, w = image.shape
+    halo = MOTION_WINDOW // 2 + 1
+    passed = 0
+    for y0 in range(0, h, BAND_ROWS):
+        top, bottom = max(0, y0 - halo), min(h, y0 + BAND_ROWS + halo)
+        rows = slice(y0 - top, y0 - top + min(BAND_ROWS, h - y0))
+        motion = cv2.blur(cv2.absdiff(image[top:bottom], previous[top:bottom]), (MOTION_WINDOW, MOTION_WINDOW))
+        need = min_motion + margin * _gradient(image[top:bottom]) if margin else min_motion
+        passed += int(np.count_nonzero((motion >= need)[rows]))
+    return passed / (h * w)
+
+
 TONE_WINDOW = 3
 """Side (px) of the window over which :func:`grey_level` averages the frame."""
 
@@ -36,10 +72,6 @@ def grey_level(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     tone of the vehicle detected there, the attribute the GM-PHD's ``tone_sigma`` compares between frames.
     ``(K,)``."""
     return _banded(lambda a: cv2.blur(a, (TONE_WINDOW, TONE_WINDOW)), (image,), points, TONE_WINDOW // 2)
-
-
-BAND_ROWS = 256
-"""Rows of the frame filtered at once by :func:`_banded`."""
 
 
 def _banded(op, images: tuple[np.ndarray, ...], points: np.ndarray, halo: int) -> np.ndarray:
@@ -70,11 +102,22 @@ class Detection:
     down still: the detections between the two are marked weak (``FrameDetections.strong`` false). The prior
     heatmap of the next frame takes only the detections at or above the detector's own threshold, so that
     weak peaks do not feed themselves.
+
+    Each detection's ``clutter`` is the difference the registration's residual leaves there
+    (:func:`misregistration`), which the moving-object gate adds to its threshold. With ``gate = (min_motion,
+    margin)`` the fraction of the frame's pixels that gate passes is measured too (``gate_pass``;
+    :func:`gate_pass_fraction`). A frame the registration could not register (a new segment) is treated like
+    the first: no previous frame, no prior.
     """
 
     def __init__(self, detector, registration: Registration, timer: StageTimer,
-                 threshold: float | None = None, weak_threshold: float | None = None) -> None:
+                 threshold: float | None = None, weak_threshold: float | None = None,
+                 gate: tuple[float, float] | None = None) -> None:
         self.detector = detector
+        self.gate = gate
+        self.last: RegistrationResult | None = None  # the last frame's registration
+        self.gate_pass = float("nan")                  # and the fraction of its pixels the gate passes
+        self.segment = 0
         self.registration = registration
         self.timer = timer
         if "threshold" not in inspect.signature(detector.detect).parameters:
@@ -93,7 +136,11 @@ class Detection:
 
     def __call__(self, index: int, image: np.ndarray) -> FrameDetections:
         with self.timer("registration"):
-            h = self.registration(image).homography
+            self.last = self.registration(image)
+            h = self.last.homography
+            if self.last.segment != self.segment:     # a frame no search registered: start afresh
+                self.segment, self.prev_image, self.prior_ref, self.prior_velocity = (
+                    self.last.segment, None, np.zeros((0, 2)), None)
             h_inv = np.linalg.inv(h)
             # Previous frame resampled into the current frame: x_{k-1} = H_{k-1}^{-1} H_k x_k.
             prev = image if self.prev_image is None else warp_previous(
@@ -108,16 +155,20 @@ class Detection:
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
+            clutter = misregistration(image, self.last.residual, pos)
             if self.prev_image is None:
                 vel_ref, motion = np.full_like(vel_ref, np.nan), np.full(len(pos), np.inf)
+                self.gate_pass = float("nan")
             else:
                 motion = motion_evidence(image, prev, pos)
+                if self.gate is not None:
+                    self.gate_pass = gate_pass_fraction(image, prev, *self.gate, self.last.residual)
         self.prev_image, self.prev_h = image, h
         prior = scores >= self.prior_threshold
         self.prior_ref = pos_ref[prior]
         self.prior_velocity = None if np.isnan(vel_ref).any() else vel[prior]
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion, scores >= self.strong_threshold,
-                               grey_level(image, pos))
+                               grey_level(image, pos), clutter, self.segment)
 
     def set_prior(self, points: np.ndarray) -> None:
         """Use ``points (N, 2)`` (reference coordinates, without velocities) for the next frame's prior heatmap

@@ -74,7 +74,8 @@ class RegistrationConfig(Checked):
     features: int = option(500, ge=4)
     window: int = option(11, ge=3)
     levels: int = option(3, ge=0)
-    refresh_every: int = option(1, ge=1)
+    refresh_every: int = option(15, ge=1)
+    max_residual: float = option(0.25, gt=0)
     min_inliers: int = option(40, ge=8)
     min_inlier_fraction: float = option(0.3, ge=0, le=1)
     ransac_threshold: float = option(0.7, gt=0)
@@ -225,7 +226,7 @@ class Registration:
     def _residual(self, image: np.ndarray, h: np.ndarray) -> float:
         """The frame-to-frame residual (px) of ``h`` (module docstring)."""
         prev_image, prev_h = self._prev
-        points = (self._key_features[0] if self._key_age == 1 and self.config.method == "lk"
+        points = (self._key_features[0] if self._key_age == 0 and self.config.method == "lk"
                   else self._corners(prev_image)).reshape(-1, 2)
         if len(points) == 0:
             return math.nan
@@ -239,6 +240,19 @@ class Registration:
         if not ok.any():
             return math.nan
         return float(np.median(np.hypot(*(found.reshape(-1, 2)[ok] - predicted[ok]).T)))
+
+    def _register(self, image: np.ndarray):
+        """This frame against the keyframe, without changing the state: ``(rel, h, inliers, tracked, search,
+        features, residual)``, ``rel`` None where no search registered it."""
+        rel, inliers, tracked, search, features = self._estimate(image)
+        if rel is None or inliers < min(self.config.min_inliers, 8) or (
+                search != "predicted" and inliers < self.config.min_inliers):
+            return None, None, inliers, tracked, search, features, math.nan
+        if self.config.ecc:
+            rel = self._ecc_refine(image, rel)
+        h = self._key_h @ rel
+        h = h / h[2, 2]
+        return rel, h, inliers, tracked, search, features, self._residual(image, h)
 
     def __call__(self, image: np.ndarray) -> RegistrationResult:
         """Register ``image`` (grey uint8 ``(H, W)``); returns its homography to the reference."""
@@ -255,24 +269,28 @@ class Registration:
         if image.shape != self._key_image.shape:
             raise TorchtrackError(f"frame {self.frames} is {image.shape[1]}x{image.shape[0]} px, the earlier ones "
                                   f"{self._key_image.shape[1]}x{self._key_image.shape[0]}: all frames must have one size")
-        rel, inliers, tracked, search, features = self._estimate(image)
-        if rel is None or inliers < min(cfg.min_inliers, 8) or (search != "predicted" and inliers < cfg.min_inliers):
+        rel, h, inliers, tracked, search, features, residual = self._register(image)
+        if self._key_age > 0 and not residual <= cfg.max_residual:
+            # The keyframe has grown stale (parallax, a changed view): register against the previous frame.
+            saved = (self._key_image, self._key_h, self._key_age, self._last_rel, self._key_features)
+            self._set_key(*self._prev)
+            retry = self._register(image)
+            if retry[0] is not None and not retry[-1] >= residual:
+                rel, h, inliers, tracked, search, features, residual = retry
+            else:
+                self._key_image, self._key_h, self._key_age, self._last_rel, self._key_features = saved
+        if rel is None:
             h = self._key_h @ self._last_rel @ self._step
             h = h / h[2, 2]
             self._start_segment(image, h)
             self._prev = (image, h)
             return RegistrationResult(h, inliers, True, math.nan, self.segment, "first")
-        if cfg.ecc:
-            rel = self._ecc_refine(image, rel)
-        h = self._key_h @ rel
-        h = h / h[2, 2]
         self._key_age += 1
         self._step = np.linalg.inv(self._last_rel) @ rel       # H_{k→k-1}
         self._last_rel = rel
-        residual = self._residual(image, h)
         self._prev = (image, h)
         refresh = (self._key_age >= cfg.refresh_every or inliers < cfg.min_inliers
-                   or inliers < cfg.min_inlier_fraction * tracked)
+                   or inliers < cfg.min_inlier_fraction * tracked or not residual <= cfg.max_residual)
         if refresh:
             self._set_key(image, h, features)
         return RegistrationResult(h, inliers, refresh, residual, self.segment, search)
