@@ -7,6 +7,7 @@ import inspect
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography, homography_jacobian, warp_previous
@@ -37,13 +38,46 @@ def _gradient(image: np.ndarray) -> np.ndarray:
     return cv2.blur(cv2.magnitude(gx, gy), (MOTION_WINDOW, MOTION_WINDOW))
 
 
-def misregistration(image: np.ndarray, residual: float, points: np.ndarray) -> np.ndarray:
+def _edge(image: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    """The smaller of the two frames' mean gradient magnitudes: a static edge shows in both, while where a
+    vehicle moved only the frame holding it has one (its place in the other frame is road)."""
+    return np.minimum(_gradient(image), _gradient(previous))
+
+
+LOCAL_RADIUS = 16.0
+"""Radius (px) of the neighbourhood over which :func:`local_residual` takes the corners' median error."""
+
+LOCAL_CORNERS = 3
+"""Corners a neighbourhood needs for its own residual (a vehicle holds at most one corner)."""
+
+
+def local_residual(points: np.ndarray, corners: np.ndarray | None, errors: np.ndarray | None,
+                   residual: float) -> np.ndarray:
+    """The registration's residual near each of ``points (K, 2)``: the median error of the registration's
+    ``corners (M, 2)`` within ``LOCAL_RADIUS`` px where at least ``LOCAL_CORNERS`` lie there, else the frame's
+    ``residual``. On a tall building the corners share its parallax, so its neighbourhood's residual is its
+    parallax; a vehicle's own corner is outvoted by the ground's. ``(K,)``."""
+    out = np.full(len(points), residual, np.float64)
+    if corners is None or len(corners) < LOCAL_CORNERS or not len(points):
+        return out
+    near = cKDTree(corners).query_ball_point(points, LOCAL_RADIUS)
+    for k, idx in enumerate(near):
+        if len(idx) >= LOCAL_CORNERS:
+            out[k] = np.median(errors[idx])
+    return out
+
+
+def misregistration(image: np.ndarray, previous: np.ndarray, residual: float | np.ndarray,
+                    points: np.ndarray) -> np.ndarray:
     """The frame difference a registration error of ``residual`` px leaves at each of ``points (K, 2)``:
-    ``residual · |∇I|`` (first-order Taylor expansion of ``I(x + δ) − I(x)``, ``|δ| = residual``), with
-    ``|∇I|`` averaged over the motion window. Zero where the residual is unknown (NaN). ``(K,)``."""
-    if not np.isfinite(residual) or not len(points):
+    ``residual · |∇I|``, the bound on ``|I(x + δ) − I(x)| ≈ |∇I · δ|`` (first order, ``|δ| = residual``), with
+    ``|∇I|`` averaged over the motion window and the smaller of ``image``'s and the registered ``previous``
+    frame's; ``residual`` the frame's (px) or one per point (:func:`local_residual`). Zero where it is unknown
+    (NaN). ``(K,)``."""
+    residual = np.broadcast_to(np.asarray(residual, np.float64), (len(points),))
+    if not len(points) or not np.isfinite(residual).any():
         return np.zeros(len(points))
-    return residual * _banded(_gradient, (image,), points, MOTION_WINDOW // 2 + 1)
+    return np.nan_to_num(residual) * _banded(_edge, (image, previous), points, MOTION_WINDOW // 2 + 1)
 
 
 def gate_pass_fraction(image: np.ndarray, previous: np.ndarray, min_motion: float, margin: float,
@@ -57,8 +91,9 @@ def gate_pass_fraction(image: np.ndarray, previous: np.ndarray, min_motion: floa
     for y0 in range(0, h, BAND_ROWS):
         top, bottom = max(0, y0 - halo), min(h, y0 + BAND_ROWS + halo)
         rows = slice(y0 - top, y0 - top + min(BAND_ROWS, h - y0))
-        motion = cv2.blur(cv2.absdiff(image[top:bottom], previous[top:bottom]), (MOTION_WINDOW, MOTION_WINDOW))
-        need = min_motion + margin * _gradient(image[top:bottom]) if margin else min_motion
+        a, b = image[top:bottom], previous[top:bottom]
+        motion = cv2.blur(cv2.absdiff(a, b), (MOTION_WINDOW, MOTION_WINDOW))
+        need = min_motion + margin * _edge(a, b) if margin else min_motion
         passed += int(np.count_nonzero((motion >= need)[rows]))
     return passed / (h * w)
 
@@ -103,8 +138,9 @@ class Detection:
     heatmap of the next frame takes only the detections at or above the detector's own threshold, so that
     weak peaks do not feed themselves.
 
-    Each detection's ``clutter`` is the difference the registration's residual leaves there
-    (:func:`misregistration`), which the moving-object gate adds to its threshold. With ``gate = (min_motion,
+    Each detection's ``clutter`` is the difference the registration's residual near it leaves there
+    (:func:`local_residual`, :func:`misregistration`: parallax included), which the moving-object gate adds
+    to its threshold. With ``gate = (min_motion,
     margin)`` the fraction of the frame's pixels that gate passes is measured too (``gate_pass``;
     :func:`gate_pass_fraction`). A frame the registration could not register (a new segment) is treated like
     the first: no previous frame, no prior.
@@ -155,12 +191,14 @@ class Detection:
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
-            clutter = misregistration(image, self.last.residual, pos)
             if self.prev_image is None:
                 vel_ref, motion = np.full_like(vel_ref, np.nan), np.full(len(pos), np.inf)
+                clutter = np.zeros(len(pos))
                 self.gate_pass = float("nan")
             else:
                 motion = motion_evidence(image, prev, pos)
+                residual = local_residual(pos, self.last.corners, self.last.corner_errors, self.last.residual)
+                clutter = misregistration(image, prev, residual, pos)
                 if self.gate is not None:
                     self.gate_pass = gate_pass_fraction(image, prev, *self.gate, self.last.residual)
         self.prev_image, self.prev_h = image, h

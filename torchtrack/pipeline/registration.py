@@ -88,7 +88,9 @@ class RegistrationResult(NamedTuple):
     """``homography (3, 3)`` frame → reference, ``inliers`` supporting it, ``refreshed`` keyframe, ``residual``
     the frame-to-frame residual (px; NaN on a segment's first frame), ``segment`` (0, 1, …: a frame that
     could not be registered starts the next), ``search`` the search that registered it (``predicted``,
-    ``phase``, ``orb``, ``first``: a segment's first frame)."""
+    ``phase``, ``orb``, ``first``: a segment's first frame); ``corners (M, 2)`` where the previous frame's corners
+    were found in this frame and ``corner_errors (M,)`` their distances (px) from where the homographies put
+    them: the residual's samples, large on tall structures (parallax) and on moving vehicles."""
 
     homography: np.ndarray
     inliers: int
@@ -96,6 +98,8 @@ class RegistrationResult(NamedTuple):
     residual: float = math.nan
     segment: int = 0
     search: str = "predicted"
+    corners: np.ndarray | None = None
+    corner_errors: np.ndarray | None = None
 
 
 class Registration:
@@ -223,13 +227,15 @@ class Registration:
             return init
         return w.astype(np.float64)
 
-    def _residual(self, image: np.ndarray, h: np.ndarray) -> float:
-        """The frame-to-frame residual (px) of ``h`` (module docstring)."""
+    def _residual(self, image: np.ndarray, h: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """The frame-to-frame residual (px) of ``h`` (module docstring), the corners found in ``image`` and
+        their errors."""
         prev_image, prev_h = self._prev
         points = (self._key_features[0] if self._key_age == 0 and self.config.method == "lk"
                   else self._corners(prev_image)).reshape(-1, 2)
+        none = (math.nan, np.zeros((0, 2)), np.zeros(0))
         if len(points) == 0:
-            return math.nan
+            return none
         predicted = apply_homography(points, np.linalg.inv(h) @ prev_h).astype(np.float32)
         cfg = self.config
         found, status, _ = cv2.calcOpticalFlowPyrLK(
@@ -238,8 +244,10 @@ class Registration:
             criteria=(cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01))
         ok = status.ravel().astype(bool)
         if not ok.any():
-            return math.nan
-        return float(np.median(np.hypot(*(found.reshape(-1, 2)[ok] - predicted[ok]).T)))
+            return none
+        found = found.reshape(-1, 2)[ok]
+        errors = np.hypot(*(found - predicted[ok]).T)
+        return float(np.median(errors)), found.astype(np.float64), errors.astype(np.float64)
 
     def _register(self, image: np.ndarray):
         """This frame against the keyframe, without changing the state: ``(rel, h, inliers, tracked, search,
@@ -247,7 +255,7 @@ class Registration:
         rel, inliers, tracked, search, features = self._estimate(image)
         if rel is None or inliers < min(self.config.min_inliers, 8) or (
                 search != "predicted" and inliers < self.config.min_inliers):
-            return None, None, inliers, tracked, search, features, math.nan
+            return None, None, inliers, tracked, search, features, (math.nan, None, None)
         if self.config.ecc:
             rel = self._ecc_refine(image, rel)
         h = self._key_h @ rel
@@ -269,14 +277,14 @@ class Registration:
         if image.shape != self._key_image.shape:
             raise TorchtrackError(f"frame {self.frames} is {image.shape[1]}x{image.shape[0]} px, the earlier ones "
                                   f"{self._key_image.shape[1]}x{self._key_image.shape[0]}: all frames must have one size")
-        rel, h, inliers, tracked, search, features, residual = self._register(image)
-        if self._key_age > 0 and not residual <= cfg.max_residual:
+        rel, h, inliers, tracked, search, features, measured = self._register(image)
+        if cfg.method == "lk" and self._key_age > 0 and not measured[0] <= cfg.max_residual:
             # The keyframe has grown stale (parallax, a changed view): register against the previous frame.
             saved = (self._key_image, self._key_h, self._key_age, self._last_rel, self._key_features)
             self._set_key(*self._prev)
             retry = self._register(image)
-            if retry[0] is not None and not retry[-1] >= residual:
-                rel, h, inliers, tracked, search, features, residual = retry
+            if retry[0] is not None and not retry[-1][0] >= measured[0]:
+                rel, h, inliers, tracked, search, features, measured = retry
             else:
                 self._key_image, self._key_h, self._key_age, self._last_rel, self._key_features = saved
         if rel is None:
@@ -289,8 +297,10 @@ class Registration:
         self._step = np.linalg.inv(self._last_rel) @ rel       # H_{k→k-1}
         self._last_rel = rel
         self._prev = (image, h)
+        residual = measured[0]
         refresh = (self._key_age >= cfg.refresh_every or inliers < cfg.min_inliers
-                   or inliers < cfg.min_inlier_fraction * tracked or not residual <= cfg.max_residual)
+                   or inliers < cfg.min_inlier_fraction * tracked
+                   or (cfg.method == "lk" and not residual <= cfg.max_residual))
         if refresh:
             self._set_key(image, h, features)
-        return RegistrationResult(h, inliers, refresh, residual, self.segment, search)
+        return RegistrationResult(h, inliers, refresh, residual, self.segment, search, *measured[1:])
