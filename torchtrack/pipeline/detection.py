@@ -52,12 +52,15 @@ LOCAL_CORNERS = 3
 
 
 def local_residual(points: np.ndarray, corners: np.ndarray | None, errors: np.ndarray | None,
-                   residual: float) -> np.ndarray:
+                   residual: float, moving: float) -> np.ndarray:
     """The registration's residual near each of ``points (K, 2)``: the median error of the registration's
     ``corners (M, 2)`` within ``LOCAL_RADIUS`` px where at least ``LOCAL_CORNERS`` lie there, else the frame's
-    ``residual``. On a tall building the corners share its parallax, so its neighbourhood's residual is its
-    parallax; a vehicle's own corner is outvoted by the ground's. ``(K,)``."""
+    ``residual``. Corners whose error reaches ``moving`` px (the gate's ``min_speed``) are left out: they move
+    like vehicles. On a tall building the corners share its parallax, so its neighbourhood's residual is its
+    parallax. ``(K,)``."""
     out = np.full(len(points), residual, np.float64)
+    if corners is not None and moving > 0:
+        corners, errors = corners[errors < moving], errors[errors < moving]
     if corners is None or len(corners) < LOCAL_CORNERS or not len(points):
         return out
     near = cKDTree(corners).query_ball_point(points, LOCAL_RADIUS)
@@ -141,14 +144,14 @@ class Detection:
     Each detection's ``clutter`` is the difference the registration's residual near it leaves there
     (:func:`local_residual`, :func:`misregistration`: parallax included), which the moving-object gate adds
     to its threshold. With ``gate = (min_motion,
-    margin)`` the fraction of the frame's pixels that gate passes is measured too (``gate_pass``;
+    margin, min_speed)`` the fraction of the frame's pixels that gate passes is measured too (``gate_pass``;
     :func:`gate_pass_fraction`). A frame the registration could not register (a new segment) is treated like
     the first: no previous frame, no prior.
     """
 
     def __init__(self, detector, registration: Registration, timer: StageTimer,
                  threshold: float | None = None, weak_threshold: float | None = None,
-                 gate: tuple[float, float] | None = None) -> None:
+                 gate: tuple[float, float, float] | None = None) -> None:
         self.detector = detector
         self.gate = gate
         self.last: RegistrationResult | None = None  # the last frame's registration
@@ -197,10 +200,11 @@ class Detection:
                 self.gate_pass = float("nan")
             else:
                 motion = motion_evidence(image, prev, pos)
-                residual = local_residual(pos, self.last.corners, self.last.corner_errors, self.last.residual)
+                residual = local_residual(pos, self.last.corners, self.last.corner_errors, self.last.residual,
+                                          self.gate[2] if self.gate else 0.0)
                 clutter = misregistration(image, prev, residual, pos)
                 if self.gate is not None:
-                    self.gate_pass = gate_pass_fraction(image, prev, *self.gate, self.last.residual)
+                    self.gate_pass = gate_pass_fraction(image, prev, *self.gate[:2], self.last.residual)
         self.prev_image, self.prev_h = image, h
         prior = scores >= self.prior_threshold
         self.prior_ref = pos_ref[prior]
