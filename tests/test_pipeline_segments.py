@@ -8,12 +8,12 @@ import cv2
 import numpy as np
 import torch
 
+from tests.test_registration_homography import _texture
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.detection import misregistration, motion_evidence
 from torchtrack.pipeline.fixed_lag import FixedLagTracks
 from torchtrack.pipeline.frame_detections import FrameDetections
 from torchtrack.pipeline.tracker_stream import TrackerStream
-from tests.test_registration_homography import _texture
 
 
 class CountingTracker:

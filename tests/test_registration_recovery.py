@@ -5,10 +5,10 @@ import cv2
 import numpy as np
 import pytest
 
+from tests.test_registration_homography import _texture
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import transfer_error
 from torchtrack.pipeline.registration import Registration, RegistrationConfig
-from tests.test_registration_homography import _texture
 
 SIZE = 224
 

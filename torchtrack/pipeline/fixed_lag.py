@@ -34,7 +34,6 @@ import numpy as np
 
 from torchtrack.errors import TorchtrackError
 
-
 MERGE_MOTION = 1.0
 """px/frame: two nearby tracks whose last steps differ by less than this move as one (item 4)."""
 

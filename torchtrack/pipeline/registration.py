@@ -275,8 +275,9 @@ class Registration:
             self._prev = (image, np.eye(3))
             return RegistrationResult(np.eye(3), len(self._key_features[0]), True, math.nan, self.segment, "first")
         if image.shape != self._key_image.shape:
-            raise TorchtrackError(f"frame {self.frames} is {image.shape[1]}x{image.shape[0]} px, the earlier ones "
-                                  f"{self._key_image.shape[1]}x{self._key_image.shape[0]}: all frames must have one size")
+            (h, w), (kh, kw) = image.shape, self._key_image.shape
+            raise TorchtrackError(f"frame {self.frames} is {w}x{h} px, the earlier ones {kw}x{kh}: all frames must "
+                                  "have one size")
         rel, h, inliers, tracked, search, features, measured = self._register(image)
         if cfg.method == "lk" and self._key_age > 0 and not measured[0] <= cfg.max_residual:
             # The keyframe has grown stale (parallax, a changed view): register against the previous frame.
