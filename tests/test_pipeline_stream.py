@@ -61,7 +61,8 @@ def _run(tmp_path, sequence, monkeypatch, detector, **cfg):
     monkeypatch.setattr(tv, "make_tracker", lambda name, options: tracker)
     source = ArraySource([f.image for f in sequence])
     # ArraySource converts with np.asarray (no copy for uint8 grey), so the oracle finds its frames.
-    cfg = {"min_speed": 0.0, "min_motion": 0.0, **cfg}  # stand-in detectors give no velocity: no moving gate
+    cfg = {"min_speed": 0.0, "min_motion": 0.0, "merge_distance": 0.0, **cfg}  # stand-ins: no velocity, no gate;
+    # the oracle reports every vehicle, neighbours a few px apart included: no merging either
     result = tv.track_video(source, tmp_path, PipelineConfig(**cfg), detector=detector, progress=False,
                             camera=np.stack([f.homography for f in sequence]))
     return result, tracker
