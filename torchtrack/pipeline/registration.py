@@ -141,6 +141,7 @@ class Registration:
         self._set_key(image, h)
         self._step = np.eye(3)                   # H_{k-1→k-2}, the prediction (R2)
         self._prev: tuple[np.ndarray, np.ndarray] | None = None
+        self._prev_points: np.ndarray | None = None  # where the keyframe's corners were found in the previous frame
 
     def _flow(self, key_points: np.ndarray, image: np.ndarray, rel_guess: np.ndarray, levels: int):
         """Keyframe corners followed into ``image`` from where ``rel_guess`` (frame → keyframe) puts them:
@@ -188,31 +189,32 @@ class Registration:
         (dx, dy), _ = cv2.phaseCorrelate(small[0], small[1], window)
         return np.array([[1, 0, -dx / PHASE_SCALE], [0, 1, -dy / PHASE_SCALE], [0, 0, 1]], np.float64)
 
-    def _estimate(self, image: np.ndarray) -> tuple[np.ndarray | None, int, int, str, object]:
-        """Frame → keyframe homography: ``(rel or None, inliers, correspondences, search, frame's features)``."""
+    def _estimate(self, image: np.ndarray) -> tuple[np.ndarray | None, int, np.ndarray, str, object]:
+        """Frame → keyframe homography: ``(rel or None, inliers, the correspondences' points in the frame,
+        search, frame's features)``."""
         cfg = self.config
         predicted = self._last_rel @ self._step
         if cfg.method == "orb":
             features = self._features(image)
             src, dst = self._orb_match(features, self._key_features)
             rel, inliers = self._fit(src, dst)
-            return rel, inliers, len(src), "orb", features
+            return rel, inliers, src, "orb", features
         src, dst = self._flow(self._key_features[0], image, predicted, cfg.levels)
         rel, inliers = self._fit(src, dst)
-        best = (rel, inliers, len(src), "predicted", None)
+        best = (rel, inliers, src, "predicted", None)
         if inliers >= cfg.min_inliers or not cfg.recover:
             return best
         src, dst = self._flow(self._key_features[0], image, self._phase_shift(image), cfg.levels)
         rel, inliers = self._fit(src, dst)
         if inliers > best[1]:
-            best = (rel, inliers, len(src), "phase", None)
+            best = (rel, inliers, src, "phase", None)
         if best[1] >= cfg.min_inliers:
             return best
         count = 4 * self._count(image)
         src, dst = self._orb_match(self._orb_features(image, count), self._orb_features(self._key_image, count))
         rel, inliers = self._fit(src, dst)
         if inliers > best[1]:
-            best = (rel, inliers, len(src), "orb", None)
+            best = (rel, inliers, src, "orb", None)
         return best
 
     def _ecc_refine(self, image: np.ndarray, init: np.ndarray) -> np.ndarray:
@@ -231,8 +233,13 @@ class Registration:
         """The frame-to-frame residual (px) of ``h`` (module docstring), the corners found in ``image`` and
         their errors."""
         prev_image, prev_h = self._prev
-        points = (self._key_features[0] if self._key_age == 0 and self.config.method == "lk"
-                  else self._corners(prev_image)).reshape(-1, 2)
+        lk = self.config.method == "lk"
+        if lk and self._key_age == 0:
+            points = self._key_features[0].reshape(-1, 2)       # the keyframe is the previous frame
+        elif lk and self._prev_points is not None and len(self._prev_points) >= 8:
+            points = self._prev_points.astype(np.float32)       # the keyframe's corners, followed into it
+        else:
+            points = self._corners(prev_image).reshape(-1, 2)
         none = (math.nan, np.zeros((0, 2)), np.zeros(0))
         if len(points) == 0:
             return none
@@ -295,12 +302,13 @@ class Registration:
             self._prev = (image, h)
             return RegistrationResult(h, inliers, True, math.nan, self.segment, "first")
         self._key_age += 1
+        self._prev_points = tracked.reshape(-1, 2)
         self._step = np.linalg.inv(self._last_rel) @ rel       # H_{k→k-1}
         self._last_rel = rel
         self._prev = (image, h)
         residual = measured[0]
         refresh = (self._key_age >= cfg.refresh_every or inliers < cfg.min_inliers
-                   or inliers < cfg.min_inlier_fraction * tracked
+                   or inliers < cfg.min_inlier_fraction * len(tracked)
                    or (cfg.method == "lk" and not residual <= cfg.max_residual))
         if refresh:
             self._set_key(image, h, features)
