@@ -82,6 +82,11 @@ def test_positions_reach_the_tracker_in_reference_coordinates(tmp_path, sequence
         np.testing.assert_allclose(tracks.centers()[idx], f.xy, atol=2e-3)
     m = json.loads(result.files["metrics"].read_text())
     assert m["frames"] == 5 and m["registration_error_px"]["median"] < 0.5
+    # The registration's own account: one segment, a small frame-to-frame residual, a line per frame.
+    reg = m["registration"]
+    assert reg["segments"] == 1 and reg["residual_px"]["frames"] == 4 and reg["residual_px"]["median"] < 0.3
+    lines = result.files["registration"].read_text().splitlines()
+    assert lines[0].startswith("frame,residual_px") and [int(x.split(",")[0]) for x in lines[1:]] == [1, 2, 3, 4, 5]
     assert {"registration", "detection", "tracking", "io", "render"} <= set(m["timings_s"])
     assert m["fps"]["end_to_end"] > 0
     assert (tmp_path / "frame_000001.png").exists()
