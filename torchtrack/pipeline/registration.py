@@ -10,22 +10,25 @@ inliers) from point correspondences: corners of the keyframe (Shi–Tomasi, comp
 :mod:`torchtrack.pipeline.corners`) followed into frame ``k`` by pyramidal Lucas–Kanade optical flow
 (``lk``, the default: sub-pixel and fast), or matched ORB features (``orb``). Moving objects are outliers
 to the camera's homography. Optionally the estimate is refined by ECC (``cv2.findTransformECC``). The
-keyframe is the previous frame by default (``refresh_every: 1``, registration chained frame to frame: the
-overlap is largest and parallax smallest; a longer ``refresh_every`` drifts less on flat static scenes).
+keyframe is renewed with the current frame every ``refresh_every`` frames, when fewer than ``min_inliers``
+corners (or ``min_inlier_fraction`` of those followed) agree, and when the frame-to-frame residual (below)
+exceeds ``max_residual`` (``lk`` only): then the frame is first registered again against the previous frame (chained), and
+the estimate with the smaller residual is kept. A keyframe held over several frames drifts less on a flat
+static scene; on a real camera, parallax and changes of view make it stale, and the chain takes over.
 
 A real camera moves fast and jumps. The flow starts from a constant-motion prediction
 
     H_{k→r} ≈ H_{k-1→r} · H_{k→k-1}^{pred},     H_{k→k-1}^{pred} = H_{k-1→k-2}                (R2)
 
-and when fewer than ``min_inliers`` corners (or less than ``min_inlier_fraction`` of those followed)
-agree with one homography, two wider searches follow: the translation found by phase correlation of
+and when fewer than ``min_inliers`` corners agree with one homography, two wider searches follow: the translation found by phase correlation of
 the two frames at a quarter of their size (any shift up to half the frame) as the flow's start, then
 ORB features matched over the whole frame. A frame that none of them registers starts a new
 *segment* (``RegistrationResult.segment``): it becomes the keyframe with the prediction (R2) as its map,
 and the pipeline restarts its tracks there instead of stopping.
 
-Every frame after the first of a segment gets a **frame-to-frame residual** (px): the previous frame's
-corners are followed into this frame by Lucas–Kanade flow started where the estimated homographies put
+Every frame after the first of a segment gets a **frame-to-frame residual** (px): corners of the previous
+frame (its own where it is the keyframe, else the keyframe's corners where the flow found them in it) are
+followed into this frame by Lucas–Kanade flow started where the estimated homographies put
 them, ``x̂ = H_k⁻¹ H_{k-1} x``; the residual is the median distance between where the flow finds them
 and ``x̂``. The median is over all corners, so moving vehicles (a minority) do not count, while a
 homography that is wrong for the scene does.
