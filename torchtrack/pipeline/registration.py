@@ -12,16 +12,16 @@ inliers) from point correspondences: corners of the keyframe (Shi–Tomasi, comp
 to the camera's homography. Optionally the estimate is refined by ECC (``cv2.findTransformECC``). The
 keyframe is renewed with the current frame every ``refresh_every`` frames, when fewer than ``min_inliers``
 corners (or ``min_inlier_fraction`` of those followed) agree, and when the frame-to-frame residual (below)
-exceeds ``max_residual`` (``lk`` only): then the frame is first registered again against the previous frame (chained), and
-the estimate with the smaller residual is kept. A keyframe held over several frames drifts less on a flat
+exceeds ``max_residual`` (``lk`` only): then the frame is first registered again against the previous frame
+(chained), and the estimate with the smaller residual is kept. A keyframe held over several frames drifts less on a flat
 static scene; on a real camera, parallax and changes of view make it stale, and the chain takes over.
 
 A real camera moves fast and jumps. The flow starts from a constant-motion prediction
 
     H_{k→r} ≈ H_{k-1→r} · H_{k→k-1}^{pred},     H_{k→k-1}^{pred} = H_{k-1→k-2}                (R2)
 
-and when fewer than ``min_inliers`` corners agree with one homography, two wider searches follow: the translation found by phase correlation of
-the two frames at a quarter of their size (any shift up to half the frame) as the flow's start, then
+and when fewer than ``min_inliers`` corners agree with one homography, two wider searches follow: the
+translation found by phase correlation of the two frames at a quarter of their size (any shift up to half the frame) as the flow's start, then
 ORB features matched over the whole frame. A frame that none of them registers starts a new
 *segment* (``RegistrationResult.segment``): it becomes the keyframe with the prediction (R2) as its map,
 and the pipeline restarts its tracks there instead of stopping.
