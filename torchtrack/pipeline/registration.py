@@ -21,8 +21,8 @@ A real camera moves fast and jumps. The flow starts from a constant-motion predi
     H_{k→r} ≈ H_{k-1→r} · H_{k→k-1}^{pred},     H_{k→k-1}^{pred} = H_{k-1→k-2}                (R2)
 
 and when fewer than ``min_inliers`` corners agree with one homography, two wider searches follow: the
-translation found by phase correlation of the two frames at a quarter of their size (any shift up to half the frame) as the flow's start, then
-ORB features matched over the whole frame. A frame that none of them registers starts a new
+translation found by phase correlation of the two frames at a quarter of their size (any shift up to half
+the frame) as the flow's start, then ORB features matched over the whole frame. A frame that none of them registers starts a new
 *segment* (``RegistrationResult.segment``): it becomes the keyframe with the prediction (R2) as its map,
 and the pipeline restarts its tracks there instead of stopping.
 
