@@ -22,9 +22,9 @@ A real camera moves fast and jumps. The flow starts from a constant-motion predi
 
 and when fewer than ``min_inliers`` corners agree with one homography, two wider searches follow: the
 translation found by phase correlation of the two frames at a quarter of their size (any shift up to half
-the frame) as the flow's start, then ORB features matched over the whole frame. A frame that none of them registers starts a new
-*segment* (``RegistrationResult.segment``): it becomes the keyframe with the prediction (R2) as its map,
-and the pipeline restarts its tracks there instead of stopping.
+the frame) as the flow's start, then ORB features matched over the whole frame. A frame that none of them
+registers starts a new *segment* (``RegistrationResult.segment``): it becomes the keyframe with the
+prediction (R2) as its map, and the pipeline restarts its tracks there instead of stopping.
 
 Every frame after the first of a segment gets a **frame-to-frame residual** (px): corners of the previous
 frame (its own where it is the keyframe, else the keyframe's corners where the flow found them in it) are
