@@ -13,6 +13,7 @@ from torchtrack.config import Checked, from_mapping, option, read_mapping
 from torchtrack.detector.network import MULTIPLE
 from torchtrack.filters.trackers.options import DEFAULTS, tracker_config
 from torchtrack.pipeline.registration import RegistrationConfig
+from torchtrack.sim.video_config import VideoConfig
 
 SELECTED_TRACKERS: dict = {
     "gmphd": {"fix_separation": 4.0, "confirm_new": True, "handover_distance": 10.0, "coast_threshold": 0.03,
@@ -32,6 +33,10 @@ validation-split sequences, with the fixed-lag output and weak detections of the
 The GM-PHD keeps these options on the first frame too, which has no velocities (``positions_only: {}``)."""
 
 
+TRAINED_VEHICLE_LENGTH = VideoConfig().vehicle_length_median
+"""px: the median vehicle length of the detector's training video."""
+
+
 @dataclass
 class PipelineConfig(Checked):
     """Every knob of the tracker stream and of :func:`torchtrack.pipeline.track_video.track_video`.
@@ -49,6 +54,9 @@ class PipelineConfig(Checked):
     ``detection.misregistration``): on a real camera edges of roofs and roads then stop passing for motion
     where the registration is off by a fraction of a pixel (0: off).
     detector_weights: a weights file (``None``: the shipped weights).
+    vehicle_length: the vehicles' typical length in this video (px): the detector gets the frames resampled by
+    :data:`TRAINED_VEHICLE_LENGTH` / ``vehicle_length`` (the scale it was trained at) and its detections are
+    mapped back into the frame (``None``: frames as they are).
     detector_tile: a frame larger than this (px, a multiple of 16) is detected in tiles of this side, each
     with 128 px of frame around it, with the whole frame's result and memory bounded by the tiles
     (``torchtrack.detector.inference``; ``None``: the detector's own setting, 1024; 0: whole frames).
@@ -86,6 +94,7 @@ class PipelineConfig(Checked):
     gate_registration: float = option(1.0, ge=0)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
+    vehicle_length: float | None = option(None, gt=0)
     detector_tile: int | None = option(None, ge=0)
     detection_threshold: float | None = option(None, ge=0, lt=1)
     weak_threshold: float | None = option(0.15, gt=0, lt=1)
@@ -125,6 +134,11 @@ class PipelineConfig(Checked):
             raise self.refuse("device", f"is {self.device}, but torch sees no CUDA device here")
         if not isinstance(self.trackers, dict) or not all(isinstance(v, dict) for v in self.trackers.values()):
             raise self.refuse("trackers", "must map tracker names to option mappings")
+
+    @property
+    def detector_scale(self) -> float:
+        """The factor the detector's frames are resampled by (``vehicle_length``)."""
+        return 1.0 if self.vehicle_length is None else TRAINED_VEHICLE_LENGTH / self.vehicle_length
 
     def options_for(self, name: str) -> dict | None:
         """The options tracker ``name`` runs with in the pipeline (``None``: its defaults)."""

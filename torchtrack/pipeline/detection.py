@@ -145,14 +145,16 @@ class Detection:
     (:func:`local_residual`, :func:`misregistration`: parallax included), which the moving-object gate adds
     to its threshold. With ``gate = (min_motion,
     margin, min_speed)`` the fraction of the frame's pixels that gate passes is measured too (``gate_pass``;
-    :func:`gate_pass_fraction`). A frame the registration could not register (a new segment) is treated like
-    the first: no previous frame, no prior.
+    :func:`gate_pass_fraction`). With ``scale`` the detector sees the frames resampled by that factor (its
+    training scale) and its detections are mapped back. A frame the registration could not register (a new
+    segment) is treated like the first: no previous frame, no prior.
     """
 
     def __init__(self, detector, registration: Registration, timer: StageTimer,
                  threshold: float | None = None, weak_threshold: float | None = None,
-                 gate: tuple[float, float, float] | None = None) -> None:
+                 gate: tuple[float, float, float] | None = None, scale: float = 1.0) -> None:
         self.detector = detector
+        self.scale = scale
         self.gate = gate
         self.last: RegistrationResult | None = None  # the last frame's registration
         self.gate_pass = float("nan")                  # and the fraction of its pixels the gate passes
@@ -189,8 +191,7 @@ class Detection:
             extra = {} if self.decode_threshold is None else {"threshold": self.decode_threshold}
             if self.takes_velocity and self.prior_velocity is not None:
                 extra["prev_velocity"] = self.prior_velocity
-            found = self.detector.detect(image, prev, prior, **extra)
-        pos, vel, scores = as_numpy(found.xy, (2,)), as_numpy(found.velocity, (2,)), as_numpy(found.score, ())
+            pos, vel, scores = self._detect(image, prev, prior, extra)
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
@@ -211,6 +212,23 @@ class Detection:
         self.prior_velocity = None if np.isnan(vel_ref).any() else vel[prior]
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion, scores >= self.strong_threshold,
                                grey_level(image, pos), clutter, self.segment)
+
+    def _detect(self, image: np.ndarray, prev: np.ndarray, prior: np.ndarray, extra: dict):
+        """The detector on the frames resampled by ``scale`` (pixel centres kept: ``x_s = (x + ½) s − ½``), its
+        positions and velocities mapped back: ``(positions, velocities, scores)`` in frame pixels."""
+        s = self.scale
+        if s != 1.0:
+            size = (max(1, round(image.shape[1] * s)), max(1, round(image.shape[0] * s)))
+            how = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
+            image, prev = (cv2.resize(a, size, interpolation=how) for a in (image, prev))
+            prior = (np.asarray(prior, np.float64) + 0.5) * s - 0.5
+            if "prev_velocity" in extra:
+                extra = {**extra, "prev_velocity": np.asarray(extra["prev_velocity"]) * s}
+        found = self.detector.detect(image, prev, prior, **extra)
+        pos, vel, scores = as_numpy(found.xy, (2,)), as_numpy(found.velocity, (2,)), as_numpy(found.score, ())
+        if s != 1.0:
+            pos, vel = (pos + 0.5) / s - 0.5, vel / s
+        return pos, vel, scores
 
     def set_prior(self, points: np.ndarray) -> None:
         """Use ``points (N, 2)`` (reference coordinates, without velocities) for the next frame's prior heatmap
