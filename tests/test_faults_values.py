@@ -201,7 +201,7 @@ def test_detector_video_overrides_are_checked_by_their_dotted_key(tmp_path):
     (["track", "--detections", "d", "--threshold", "-5"], "argument --threshold: must be > 0; got -5.0"),
     (["simulate-detections", "--gt", "g", "--pd", "1.5", "--out", "o"], "argument --pd: must be in [0, 1]; got 1.5"),
     (["simulate-detections", "--gt", "g", "--clutter", "nan", "--out", "o"],
-     "argument --clutter: must be >= 0; got nan"),
+     "argument --clutter: must be a finite number; got 'nan'"),
     (["simulate-video", "--frames", "0"], "argument --frames: must be >= 1; got 0"),
 ])
 def test_command_line_numbers_are_usage_errors(argv, message, tmp_path, capsys, monkeypatch):
