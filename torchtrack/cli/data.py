@@ -21,7 +21,7 @@ DESCRIPTION = f"""Get the data sets that some commands need; they are not part o
 
   clif2007  {CLIF2007.title},
          as published in github.com/{CLIF2007.repository} (AFRL public release; the repository states no
-         licence). Real wide-area video without truth, for `track --frames data/clif2007/frames`
+         licence). Real wide-area video without truth, for torchtrack track --frames data/clif2007/frames
          (docs/real-video.md).
 
 Commands look for WPAFB in ./data/{WPAFB.folder} (also in the source checkout's data/), then in
