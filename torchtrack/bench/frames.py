@@ -158,7 +158,7 @@ def measure(sizes: Sequence[int], work: Path, frames: int = FRAMES, sequences: S
 def format_row(r: FrameSizeRow) -> str:
     """One progress line."""
     return (f"{r.size}²: {r.sequences} × {r.frames} frames, {r.mpx_per_s:.2f} Mpx/s end to end "
-            f"({r.mpx_per_cpu_s:.2f} per CPU-s), MOTA {r.mota:.3f}, detection F1 {r.detection_f1:.3f}, "
+            f"({r.mpx_per_cpu_s:.2f} per CPU-s), MOTA {100 * r.mota:.1f} %, detection F1 {r.detection_f1:.3f}, "
             f"peak +{r.peak_memory_mb:.0f} MB (process {r.process_peak_mb:.0f} MB)")
 
 
@@ -167,7 +167,7 @@ def format_report(rows: Sequence[FrameSizeRow], workload_text: str) -> str:
     def num(x, fmt):
         return "—" if x is None else format(x, fmt)
     table = [[f"{r.size}²", f"{r.sequences}×{r.frames}", num(r.mpx_per_s, ".2f"), num(r.mpx_per_cpu_s, ".2f"),
-              *(num(r.stage_mpx_per_s.get(k), ".1f") for k in STAGES), num(r.mota, ".3f"),
+              *(num(r.stage_mpx_per_s.get(k), ".1f") for k in STAGES), num(r.mota, ".1%"),
               num(r.detection_f1, ".3f"), num(r.registration_error_px, ".3f"), num(r.peak_memory_mb, ".0f"),
               num(r.process_peak_mb, ".0f")] for r in rows]
     return "\n".join([f"workload: {workload_text}",

@@ -223,7 +223,7 @@ def format_row(r: ScaleRow) -> str:
     """One progress line."""
     if r.status == "skipped":
         return f"{r.tracker:>15} N={r.vehicles:<6} skipped (a smaller N went over the time limit)"
-    mota = "—" if r.mota is None else f"{r.mota:.3f}"
+    mota = "—" if r.mota is None else f"{100 * r.mota:.1f} %"
     return (f"{r.tracker:>15} N={r.vehicles:<6} {r.status}: {r.fps:8.2f} frames/s over {r.frames_run} frames, "
             f"MOTA {mota}, cap hits {r.cap_hits}, peak {r.peak_memory_mb:.0f} MB")
 
@@ -232,7 +232,7 @@ def format_report(rows: Sequence[ScaleRow], workload: str) -> str:
     """The workload line and the table of every row."""
     def num(x, fmt):
         return "—" if x is None else format(x, fmt)
-    table = [[r.tracker, r.vehicles, r.status, num(r.fps, ".2f"), num(r.cpu_fps, ".2f"), num(r.mota, ".3f"),
+    table = [[r.tracker, r.vehicles, r.status, num(r.fps, ".2f"), num(r.cpu_fps, ".2f"), num(r.mota, ".1%"),
               num(r.cost_ratio, ".2f"), num(r.cap_hits, "d"), num(r.peak_memory_mb, ".0f")] for r in rows]
     return "\n".join([f"workload: {workload}",
                       format_table(["tracker", "N", "status", "frames/s", "frames/CPU-s", "MOTA", "cost/veh-frame ×",

@@ -105,11 +105,12 @@ def run(args) -> int:
     write_yaml(args.out, config_mapping(chosen), header)
     best = {r["tracker"]: r for r in log if (r["min_speed"], r["min_motion"]) == (chosen.min_speed, chosen.min_motion)
             and r["options"] == chosen.trackers.get(r["tracker"], {})}
-    rows = [[n, *(best[n][k] for k in ("MOTA", "HOTA", "IDF1", "IDS", "FP", "FN")), json.dumps(best[n]["options"])]
-            for n in trackers if n in best]
+    rows = [[n, *(100 * best[n][k] for k in ("MOTA", "HOTA", "IDF1")), *(best[n][k] for k in ("IDS", "FP", "FN")),
+             json.dumps(best[n]["options"])] for n in trackers if n in best]
     print(f"{len(data)} sequences, {len(log)} tracker runs; min_speed {chosen.min_speed} px/frame, "
           f"min_motion {chosen.min_motion}")
-    print(format_table(["tracker", "MOTA", "HOTA", "IDF1", "IDS", "FP", "FN", "options"], rows, floatfmt=".3f"))
+    print(format_table(["tracker", "MOTA (%)", "HOTA (%)", "IDF1 (%)", "IDS", "FP", "FN", "options"], rows,
+                       floatfmt=".2f"))
     print(f"wrote {args.out} and {args.out.with_suffix('.json')}")
     write_json(args.json, {"min_speed": chosen.min_speed, "min_motion": chosen.min_motion,
                            "trackers": chosen.trackers, "runs": log})
