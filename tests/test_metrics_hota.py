@@ -73,6 +73,19 @@ def test_random_sequences_centre_similarity(seed, threshold):
     assert_same(hota(gt, pred, threshold=threshold), trackeval_reference(gt, pred, threshold=threshold))
 
 
+@pytest.mark.parametrize("block_rows", [1, 7, 40])
+@pytest.mark.parametrize("iou", [None, 0.5])
+def test_frames_in_blocks_equal_the_whole_sequence(block_rows, iou):
+    """Blocks of a frame (block_rows 1) up to several frames give TrackEval's scores, as one block does."""
+    gt, pred = random_tracks(3, noise=1.5 if iou else 3.0)
+    kw = {"iou": iou} if iou else {"threshold": 10.0}
+    whole = hota(gt, pred, block_rows=gt.size + pred.size, **kw)
+    blocks = hota(gt, pred, block_rows=block_rows, **kw)
+    assert_same(blocks, trackeval_reference(gt, pred, **kw))
+    for key in KEYS:
+        np.testing.assert_allclose(blocks["per_alpha"][key], whole["per_alpha"][key], rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("seed", range(6))
 def test_random_sequences_iou_similarity(seed):
     gt, pred = random_tracks(seed, noise=1.5)

@@ -65,3 +65,50 @@ def test_sparse_update_takes_empty_scans_and_an_empty_state():
         torch.testing.assert_close(ss.existence, sd.existence, rtol=1e-10, atol=1e-12)
         assert bool(torch.isfinite(ss.mean).all() and torch.isfinite(ss.cov).all())
     assert not bool(ss.valid.any())
+
+
+def test_all_pairs_screen_equals_the_grid(monkeypatch):
+    """Up to DENSE_PAIRS the gated pairs come from testing every pair; the grid gives the same pairs, in the
+    same order, with the same likelihoods and innovations."""
+    from torchtrack.filters.pmb import sparse as sparse_mod
+
+    g = torch.Generator().manual_seed(5)
+    f64 = {"dtype": torch.float64, "generator": g}
+    N, M = 40, 60
+    mean = torch.cat([torch.rand(N, 2, **f64) * SIDE, torch.randn(N, 2, **f64)], 1)
+    A = torch.randn(N, 4, 4, **f64)
+    cov = A @ A.transpose(-1, -2) * 4 + torch.eye(4, dtype=torch.float64)
+    valid = torch.rand(N, generator=g) < 0.8
+    z = torch.cat([mean[:30, :2] + torch.randn(30, 2, **f64), torch.rand(M - 30, 2, **f64) * SIDE])
+    zmask = torch.rand(M, generator=g) < 0.9
+    H, R = torch.eye(2, 4, dtype=torch.float64), torch.eye(2, dtype=torch.float64)
+    dense = sparse_mod.gated_pairs(mean, cov, valid, z, zmask, H, R, 9.21)
+    monkeypatch.setattr(sparse_mod, "DENSE_PAIRS", 0)
+    grid = sparse_mod.gated_pairs(mean, cov, valid, z, zmask, H, R, 9.21)
+    assert dense.row.numel() >= 30
+    assert torch.equal(dense.row, grid.row) and torch.equal(dense.col, grid.col)
+    for a, b in ((dense.log_lik, grid.log_lik), (dense.innovation, grid.innovation), (dense.gain, grid.gain)):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+
+
+def test_lbp_on_the_gated_lines_equals_the_whole_matrix():
+    """LBP on the Bernoullis and measurements with a gated pair, the rest filled in (p_i(0) = p_j(new) = 1),
+    equals LBP on the whole matrix (float64)."""
+    from torchtrack.association.lbp import lbp_marginals
+    from torchtrack.filters.pmb.filter import _lbp_on_gated_lines
+
+    g = torch.Generator().manual_seed(2)
+    n, m = 30, 40
+    gated = torch.rand(n, m, generator=g) < 0.08
+    gated[:5] = False                                            # Bernoullis and measurements without a pair
+    gated[:, :6] = False
+    log_w = torch.where(gated, torch.randn(n, m, generator=g, dtype=torch.float64), float("-inf"))
+    log_miss = torch.randn(n, generator=g, dtype=torch.float64)
+    log_new = torch.randn(m, generator=g, dtype=torch.float64)
+    with torch.no_grad():
+        whole = lbp_marginals(log_w, log_miss, log_new, iterations=40, tol=None, check=False)
+        lines = _lbp_on_gated_lines(log_w, log_miss, log_new, gated, 40, None)
+    for a, b in zip(lines[:4], whole[:4]):
+        torch.testing.assert_close(a, b, rtol=1e-12, atol=1e-12)
+    assert float(lines.miss[:5].min()) == 1.0 and float(lines.new[:6].min()) == 1.0
+    assert float(whole.assoc.sum()) > 1.0                        # pairs took part

@@ -20,8 +20,10 @@ The reported scores are the means of these over the 19 alphas. Similarities: **c
 euclidean similarity with ``zero_distance = threshold``); **IoU mode** the IoU of the boxes (TrackEval's
 ``_calculate_box_ious``, boxes of zero area overlap nothing).
 
-No frame is a dense matrix and no step loops over frames: one search finds the pairs with ``S > 0`` of all
-frames (a sweep along ``x``, or a k-d tree where points line up), step 1 is sums over them, and step 2 solves
+No frame is a dense matrix and no step loops over frames: the frames go in blocks of about ``BLOCK_ROWS`` lines
+(memory follows the block, not the sequence); in each, one search finds the pairs with ``S > 0`` of all its
+frames (a sweep along ``x``, or a k-d tree where points line up), step 1 is sums over them (a first pass over
+the blocks), and step 2 (a second pass, with the alignment of the whole sequence) solves
 each connected component of the pairs (:func:`torchtrack.association.pairs.max_total_assignment`, small ones
 all at once by enumeration): the optimum TrackEval's dense solve finds, in memory proportional to the pairs
 (ties may break differently). :func:`combine` scores several sequences together as TrackEval does.
@@ -108,8 +110,27 @@ def _pairs(gt: MOTData, pred: MOTData, threshold: float, iou: bool) -> tuple[np.
     return i[keep], j[keep], sim[keep]
 
 
+BLOCK_ROWS = 1 << 17
+"""Ground-truth plus predicted lines per block of whole frames that :func:`hota` holds pairs for at once."""
+
+
+def _blocks(gt: MOTData, pred: MOTData, block_rows: int) -> list[tuple[slice, slice]]:
+    """Slices of ``gt`` and ``pred`` (both sorted by frame) over consecutive whole frames, each block about
+    ``block_rows`` lines of both together (one frame at least)."""
+    frames = np.union1d(np.unique(gt.frame), np.unique(pred.frame))
+    g_end = np.searchsorted(gt.frame, frames, "right")
+    p_end = np.searchsorted(pred.frame, frames, "right")
+    ends = np.searchsorted(g_end + p_end, np.arange(block_rows, gt.size + pred.size, block_rows), "left")
+    cuts = np.unique(np.concatenate([ends, [frames.size - 1]])) if frames.size else np.zeros(0, np.int64)
+    out, g0, p0 = [], 0, 0
+    for c in cuts:
+        out.append((slice(g0, int(g_end[c])), slice(p0, int(p_end[c]))))
+        g0, p0 = int(g_end[c]), int(p_end[c])
+    return out
+
+
 def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None = None,
-         ignore: np.ndarray | None = None, count_zero_conf: bool = False) -> dict:
+         ignore: np.ndarray | None = None, count_zero_conf: bool = False, block_rows: int = BLOCK_ROWS) -> dict:
     """HOTA and its parts of tracker output ``pred`` against ground truth ``gt``.
 
     Args:
@@ -123,6 +144,8 @@ def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None 
             same gate as :func:`~torchtrack.metrics.clear_mot.clear_mot`: ``d <= threshold`` or ``IoU >= iou``).
         count_zero_conf: score ground-truth lines whose ``conf`` is 0 as objects (by default they are
             don't-care objects, handled like ``ignore``, as ``clear_mot`` does).
+        block_rows: lines of both inputs per block of whole frames: steps 1 and 2 run block by block (two
+            passes, step 2 with the alignment of all frames), so memory follows the block, not the sequence.
 
     Returns:
         dict with :data:`KEYS` (fractions, means over :data:`ALPHAS`), ``alpha`` (19,) and ``per_alpha``:
@@ -132,33 +155,46 @@ def hota(gt: MOTData, pred: MOTData, threshold: float = 10.0, iou: float | None 
     _, g = np.unique(gt.id, return_inverse=True)
     hyp_ids, h = np.unique(pred.id, return_inverse=True)
     n_hyp = max(hyp_ids.size, 1)
-    i, j, sim = _pairs(gt, pred, threshold, iou is not None)
-
-    # step 1: similarity-weighted co-occurrence of id pairs, from the frames' row and column sums of S
-    row_sum = np.bincount(i, weights=sim, minlength=gt.size)
-    col_sum = np.bincount(j, weights=sim, minlength=pred.size)
-    denom = row_sum[i] + col_sum[j] - sim
-    soft = sim / np.where(denom > _EPS, denom, np.inf)
     gt_count = np.bincount(g).astype(np.float64)
     hyp_count = np.bincount(h).astype(np.float64)
-    pair_keys, pair_of = np.unique(g[i] * n_hyp + h[j], return_inverse=True)
-    co = np.bincount(pair_of, weights=soft, minlength=pair_keys.size)
+    blocks = _blocks(gt, pred, max(1, block_rows))
+
+    def block_pairs(sg: slice, sp: slice) -> tuple[np.ndarray, ...]:
+        i, j, sim = _pairs(gt.select(sg), pred.select(sp), threshold, iou is not None)
+        return i, j, sim, g[sg][i] * n_hyp + h[sp][j]
+
+    # step 1: similarity-weighted co-occurrence of id pairs, from the frames' row and column sums of S
+    keys, sums = [np.zeros(0, np.int64)], [np.zeros(0)]
+    for sg, sp in blocks:
+        i, j, sim, key = block_pairs(sg, sp)
+        row_sum = np.bincount(i, weights=sim, minlength=sg.stop - sg.start)
+        col_sum = np.bincount(j, weights=sim, minlength=sp.stop - sp.start)
+        denom = row_sum[i] + col_sum[j] - sim
+        block_keys, of = np.unique(key, return_inverse=True)
+        keys.append(block_keys)
+        sums.append(np.bincount(of, weights=sim / np.where(denom > _EPS, denom, np.inf), minlength=block_keys.size))
+    pair_keys, of = np.unique(np.concatenate(keys), return_inverse=True)
+    co = np.bincount(of, weights=np.concatenate(sums), minlength=pair_keys.size)
     alignment = co / (gt_count[pair_keys // n_hyp] + hyp_count[pair_keys % n_hyp] - co)
 
     # step 2: the assignment maximising A * S in every frame (one per connected component of the pairs,
-    # which never spans two frames); the TPs of every alpha at once
-    won = max_total_assignment(gt.size, pred.size, i, j, alignment[pair_of] * sim)
-    m_sims, m_keys = sim[won], pair_keys[pair_of[won]]
-    hit = m_sims[:, None] >= ALPHAS[None, :] - _EPS  # (matches, 19)
-    tp = hit.sum(0).astype(np.float64)
+    # which never spans two frames); the TPs of every alpha at once, and the TP count c of each id pair
+    tp, loc = np.zeros(ALPHAS.size), np.zeros(ALPHAS.size)
+    c = np.zeros(pair_keys.size * ALPHAS.size)
+    for sg, sp in blocks:
+        i, j, sim, key = block_pairs(sg, sp)
+        pair_of = np.searchsorted(pair_keys, key)
+        won = max_total_assignment(sg.stop - sg.start, sp.stop - sp.start, i, j, alignment[pair_of] * sim)
+        m_sims = sim[won]
+        hit = m_sims[:, None] >= ALPHAS[None, :] - _EPS  # (matches, 19)
+        tp += hit.sum(0)
+        loc += (m_sims[:, None] * hit).sum(0)
+        c += np.bincount((pair_of[won][:, None] * ALPHAS.size + np.arange(ALPHAS.size))[hit], minlength=c.size)
     fn, fp = gt.size - tp, pred.size - tp
-    loc = (m_sims[:, None] * hit).sum(0)
 
     # step 3: association per alpha from the TP count c of each id pair
-    uniq, pair = np.unique(m_keys, return_inverse=True)
-    cell = (pair[:, None] * ALPHAS.size + np.arange(ALPHAS.size))[hit]
-    c = np.bincount(cell, minlength=uniq.size * ALPHAS.size).reshape(uniq.size, ALPHAS.size).astype(np.float64)
-    n_o, n_h = gt_count[uniq // n_hyp][:, None], hyp_count[uniq % n_hyp][:, None]
+    c = c.reshape(pair_keys.size, ALPHAS.size)
+    n_o, n_h = gt_count[pair_keys // n_hyp][:, None], hyp_count[pair_keys % n_hyp][:, None]
     per_tp = np.maximum(1.0, tp)
     ass_a = (c * c / np.maximum(1.0, n_o + n_h - c)).sum(0) / per_tp
     ass_re = (c * c / np.maximum(1.0, n_o)).sum(0) / per_tp

@@ -164,6 +164,24 @@ def _kalman_all_pairs(mean: Tensor, cov: Tensor, z: Tensor, H: Tensor, R: Tensor
     return _Hypotheses(log_lik, d2, nu, gain.gain, posterior_cov(cov, gain))
 
 
+def _lbp_on_gated_lines(log_w: Tensor, log_miss: Tensor, log_new: Tensor, gated: Tensor, iterations: int,
+                        tol: float | None) -> LBPResult:
+    """:func:`lbp_marginals` of an unbatched problem on the Bernoullis and measurements with a gated pair only:
+    the others take no part in any message (their weights ``a_ij`` are 0), so their marginals are ``p_i(0) = 1``
+    and ``p_j(new) = 1`` and the rest is the same; the iteration runs on the smaller matrix."""
+    if log_w.dim() != 2 or torch.is_grad_enabled():
+        return lbp_marginals(log_w, log_miss, log_new, iterations=iterations, tol=tol, check=False)
+    rows, cols = gated.any(1).nonzero().squeeze(1), gated.any(0).nonzero().squeeze(1)
+    sub = lbp_marginals(log_w[rows][:, cols], log_miss[rows], log_new[cols], iterations=iterations, tol=tol,
+                        check=False)
+    assoc, meas_assoc = log_w.new_zeros(log_w.shape), log_w.new_zeros(log_w.shape)
+    assoc[rows.unsqueeze(1), cols] = sub.assoc
+    meas_assoc[rows.unsqueeze(1), cols] = sub.meas_assoc
+    miss = log_miss.new_ones(log_miss.shape).index_put_((rows,), sub.miss)
+    new = log_new.new_ones(log_new.shape).index_put_((cols,), sub.new)
+    return LBPResult(assoc, miss, new, meas_assoc, sub.iterations, sub.converged)
+
+
 class PMBFilter(nn.Module):
     """The TOMB/P filter (module docstring) for a linear motion and a linear measurement model.
 
@@ -396,8 +414,7 @@ class PMBFilter(nn.Module):
             gated = (trk.d2 < self.gate_d2) & valid.unsqueeze(-1) & zmask.unsqueeze(-2)
             log_w = torch.where(gated, log_r.unsqueeze(-1) + log_pd + trk.log_lik,
                                 torch.full_like(trk.log_lik, NEG_INF))
-            marg = lbp_marginals(log_w, log_miss, log_new, iterations=self.lbp_iterations, tol=self.lbp_tol,
-                                 check=False)
+            marg = _lbp_on_gated_lines(log_w, log_miss, log_new, gated, self.lbp_iterations, self.lbp_tol)
             aj = marg.assoc                                                      # (*, N, M)
             moments = PairMoments(aj.sum(-1), (aj.unsqueeze(-2) @ trk.innovation).squeeze(-2),
                                   (aj.unsqueeze(-1) * trk.innovation).transpose(-1, -2) @ trk.innovation)
