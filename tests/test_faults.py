@@ -149,7 +149,7 @@ def test_scenario_configs_refuse_wrong_types_and_unknown_keys_naming_the_key(sce
     bad.write_text(yaml.safe_dump(doc))
     assert main(["scenario", scenario, "--config", str(bad), "--runs", "1"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == [f"torchtrack scenario: error: {bad}: {section}.{key} must be a number; got 'abc'"]
+    assert err == [f"torchtrack scenario: error: {bad}: {section}.{key} must be a finite number; got 'abc'"]
     doc[section][key] = "1e-1"                  # PyYAML reads this as a string: taken as the number
     doc[section]["typo"] = 1
     bad.write_text(yaml.safe_dump(doc))

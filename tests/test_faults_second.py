@@ -138,3 +138,12 @@ def test_train_detector_refuses_an_out_under_a_file_before_any_work(tmp_path, mo
     assert main(["train-detector", "--out", "afile/sub", "--epochs", "1", "--no-progress"]) == 2
     assert "afile is a file, not a folder" in capsys.readouterr().err
     assert sorted(p.name for p in tmp_path.iterdir()) == ["afile"]        # no data cache built either
+
+
+@pytest.mark.parametrize("text", [".inf", "-.inf", ".nan", "1e999"])
+def test_an_infinite_config_value_is_refused_where_it_is_read(tmp_path, text, capsys):
+    config = tmp_path / "video.yaml"
+    config.write_text(f"frames: 3\nheight: 128\nwidth: 128\nnoise_std: {text}\n")
+    assert main(["simulate-video", "--config", str(config), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
+    assert "noise_std must be a finite number" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()

@@ -20,6 +20,7 @@ Python, and :func:`from_mapping` names the file and the dotted key of a value ou
 from __future__ import annotations
 
 import dataclasses
+import math
 import types
 import typing
 from collections.abc import Mapping, Sequence
@@ -215,11 +216,12 @@ def convert(value: Any, hint: Any, source: str, key: str) -> Any:
         return value
     if hint is float:
         try:
-            if not isinstance(value, bool):
-                return float(value)
-        except (TypeError, ValueError):
-            pass
-        raise _bad(source, key, value, "a number")
+            number = None if isinstance(value, bool) else float(value)
+        except (TypeError, ValueError, OverflowError):
+            number = None
+        if number is None or not math.isfinite(number):     # .inf / .nan in YAML: refused where read
+            raise _bad(source, key, value, "a finite number")
+        return number
     if hint in _TAKEN_AS_IS:        # never converted (a bool is not a whole number here)
         if isinstance(value, hint) and not (hint is int and isinstance(value, bool)):
             return value
