@@ -108,7 +108,7 @@ def test_python_construction_is_checked_too():
         SORTConfig(max_age=-1)
     with pytest.raises(TorchtrackError, match=r"^VideoConfig\.dropout_rate must be in \[0, 1\]; got 1\.5$"):
         dataclasses.replace(VideoConfig(), dropout_rate=1.5)
-    with pytest.raises(TorchtrackError, match=r"p_detection must be in \(0, 1\); got nan"):
+    with pytest.raises(TorchtrackError, match=r"p_detection must be a finite number; got nan"):
         from_mapping(GMPHDConfig, {"filter": {"p_detection": math.nan}})
     with pytest.raises(TorchtrackError, match=r"^VideoConfig\.park_gap must be a range \[low, high\] with low <= "
                                               r"high; got \[5\.0, 2\.0\]$"):
