@@ -147,3 +147,12 @@ def test_an_infinite_config_value_is_refused_where_it_is_read(tmp_path, text, ca
     assert main(["simulate-video", "--config", str(config), "--out", str(tmp_path / "out"), "--no-progress"]) == 2
     assert "noise_std must be a finite number" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+def test_an_output_folder_whose_parents_do_not_exist_yet(tmp_path):
+    from torchtrack.io.outputs import OutputFolder
+
+    with OutputFolder(tmp_path / "a" / "b" / "out", "torchtrack track") as staging:
+        (staging / "x.txt").write_text("x")
+    assert (tmp_path / "a" / "b" / "out" / "x.txt").is_file()
+    assert sorted(p.name for p in (tmp_path / "a" / "b").iterdir()) == ["out"]

@@ -210,6 +210,7 @@ class OutputFolder:
     def __enter__(self) -> Path:
         if self.commit:
             self._check()
+            self._real.parent.mkdir(parents=True, exist_ok=True)   # the lock lives beside the folder
             self._lock = OutputLock(self._real.with_name(f".{self._real.name}.lock"), self.flag, self.target)
             self._lock.acquire()
             try:
