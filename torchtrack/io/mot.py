@@ -169,10 +169,7 @@ def from_rows(rows, name: str = "rows") -> MOTData:
     frame, ident = _as_int_array(full[:, 0], f"{name} frame"), _as_int_array(full[:, 1], f"{name} id")
     if np.any(frame < 0) or np.any(ident < -1):
         raise TorchtrackError(f"{name}: frames must be >= 0 and ids >= 0 (or -1 for a detection)")
-    c8, c9 = full[:, 7], full[:, 8]
-    velocity = bool(np.any(c8 != -1.0) or np.any(c9 != -1.0))
-    return MOTData(frame, ident, *full[:, 2:7].T.copy(), c8.copy() if velocity else None,
-                   c9.copy() if velocity else None)
+    return _with_velocity(frame, ident, *full[:, 2:9].T.copy())
 
 
 def as_mot(value: str | os.PathLike | MOTData | np.ndarray, name: str) -> MOTData:
@@ -326,6 +323,11 @@ def read_mot(path: str | os.PathLike) -> MOTData:
             first, second = sorted((order[dup[0]], order[dup[0] + 1]))
             at = (first + 1, second + 1) if linenos is None else (linenos[first], linenos[second])
             raise _bad(path, at[1], f"frame {frame[second]} id {ident[second]} already given on line {at[0]}")
+    return _with_velocity(frame, ident, x, y, w, h, conf, c8, c9)
+
+
+def _with_velocity(frame, ident, x, y, w, h, conf, c8: np.ndarray, c9: np.ndarray) -> MOTData:
+    """The objects with ``c8, c9`` as their velocity, or none where every line holds ``-1, -1`` (module docstring)."""
     has_velocity = bool(np.any(c8 != -1.0) or np.any(c9 != -1.0))
     return MOTData(frame, ident, x, y, w, h, conf, c8 if has_velocity else None, c9 if has_velocity else None)
 
