@@ -7,6 +7,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import http.server
+import re
 import shutil
 import threading
 from pathlib import Path
@@ -79,7 +80,8 @@ def test_fetch_downloads_verifies_and_records_the_source(server, tmp_path):
     sums = dict(line.split("  ")[::-1] for line in (out / "SHA256SUMS").read_text().splitlines())
     assert sums == {"truth.csv": hashlib.sha256(TRUTH).hexdigest(), "frames/f1.png": hashlib.sha256(FRAME).hexdigest()}
     note = (out / "SOURCE.md").read_text()
-    assert "https://github.com/example/toy" in note and "CC0-1.0" in note and url in note and "UTC" in note
+    assert "https://github.com/example/toy" in note and "CC0-1.0" in note and url in note
+    assert re.search(r"Fetched \d{4}-\d\d-\d\dT\d\d:\d\dZ by", note)           # the fetch time, in UTC
 
 
 def test_a_second_fetch_does_nothing(server, tmp_path, capsys):

@@ -156,3 +156,11 @@ def test_an_output_folder_whose_parents_do_not_exist_yet(tmp_path):
         (staging / "x.txt").write_text("x")
     assert (tmp_path / "a" / "b" / "out" / "x.txt").is_file()
     assert sorted(p.name for p in (tmp_path / "a" / "b").iterdir()) == ["out"]
+
+
+def test_a_64_bit_seed_is_a_usage_error(capsys):
+    with pytest.raises(SystemExit) as caught:
+        main(["simulate-video", "--out", "o", "--seed", str(2**64 + 1)])
+    assert caught.value.code == 2
+    err = capsys.readouterr().err
+    assert "argument --seed: must be in [0," in err and "Traceback" not in err

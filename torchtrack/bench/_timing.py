@@ -38,7 +38,8 @@ def cpu_time(fn: Callable[[], object]) -> tuple[object, float]:
 
 
 def load_average() -> float | None:
-    """The 1-minute load average (None where the system has none)."""
+    """The system's 1-minute load (``os.getloadavg``), kept in a bench's JSON as the context of its timing; None
+    where the system has none."""
     try:
         return os.getloadavg()[0]
     except (OSError, AttributeError):

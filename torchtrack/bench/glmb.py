@@ -112,5 +112,5 @@ def format_report(r: BenchResult) -> str:
         f"hypotheses, {e['reference_table_rows_per_frame']:.0f} table rows, "
         f"{e['reference_estimated_tracks_per_frame']:.0f} estimated tracks, "
         f"{e['reference_gibbs_draws_per_frame']:,.0f} Gibbs draws per frame",
-        f"CPU-time ratio {e['cpu_ratio']:.1f}x; load average {e['load_average']}",
+        f"CPU-time ratio {e['cpu_ratio']:.1f}x",
         format_result(r)])

@@ -186,5 +186,5 @@ def format_report(r: BenchResult, scans: int) -> str:
         f"{e['confirmed_tracks']} confirmed tracks at the start of the timed scans; expected-count difference "
         f"torchtrack vs numpy after {scans} scans: {e['expected_count_difference']:.2e}",
         f"CPU time per scan: torchtrack {e['cpu_ms_per_scan']:.2f} ms, numpy {e['numpy_cpu_ms_per_scan']:.2f} ms "
-        f"({e['threads']} threads, load average {e['load_average']})",
+        f"({e['threads']} threads)",
         format_result(r)])

@@ -125,7 +125,7 @@ def source_note(dataset: Dataset, origin: str, when: datetime) -> str:
     repo = f"https://github.com/{dataset.repository}"
     files = "\n".join(f"- `{f.path}` ← `{f.source}` ({f.size} bytes)" for f in dataset.files)
     return (f"# {dataset.title}\n\n"
-            f"Fetched {when:%Y-%m-%d %H:%M} UTC by `torchtrack data fetch {dataset.name}` from {origin}.\n\n"
+            f"Fetched {when:%Y-%m-%dT%H:%MZ} by `torchtrack data fetch {dataset.name}` from {origin}.\n\n"
             f"- Published in: {repo} (commit {dataset.commit})\n"
             f"- Licence: {dataset.licence}"
             f"{f' ({repo}/blob/{dataset.commit}/{dataset.licence_file})' if dataset.licence_file else ''}. "

@@ -171,7 +171,7 @@ def format_report(r: JTCReport) -> str:
         f"{len(r.per_update_ms_each_pass)} passes): {r.per_update_ms:.3f} ms wall, {r.per_update_cpu_ms:.3f} ms CPU"
         f"  [all passes: {', '.join(f'{t:.2f}' for t in r.per_update_ms_each_pass)} ms]",
         f"time per scan, all {r.runs} runs at once (median): {r.per_scan_ms:.1f} ms wall, {r.per_scan_cpu_ms:.1f} ms "
-        f"CPU   [threads: {r.threads}; load average {r.load_average:.1f}; CPU time excludes waiting for a core]"])
+        f"CPU   [threads: {r.threads}; CPU time excludes waiting for a core]"])
 
 
 def report_json(r: JTCReport) -> dict:
