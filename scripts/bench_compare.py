@@ -78,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--threads", type=int, default=1, help="OMP_NUM_THREADS of every run (default 1)")
     parser.add_argument("--out", type=Path, default=ROOT / "out" / "bench" / "compare")
     args = parser.parse_args(argv)
+    if os.sep in args.python:       # a path (the default .venv/bin/python) must work from the other side's tree too
+        args.python = os.path.abspath(args.python)
     benches = [b for b in args.benches.split(",") if b]
     rev = subprocess.run(["git", "rev-parse", "--short", args.rev], cwd=ROOT, capture_output=True, text=True)
     if rev.returncode != 0:
