@@ -526,23 +526,18 @@ def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, 
 
     Pairs are first screened on the position block (the first ``min(n, 2)`` coordinates): the full
     Mahalanobis distance is at least ``‖Δp‖² / λ_max(P_i,pos) ≥ ‖Δp‖² / tr(P_i,pos)``, so only pairs
-    passing that bound are solved exactly (through Cholesky factors), keeping the exact test sparse. Up to
-    ``DENSE_PAIRS`` pairs the screen tests every pair at once; beyond, it looks only at the grid cells near each
-    component (:func:`~torchtrack.association.grid.disc_candidates`),
+    passing that bound are solved exactly (through Cholesky factors), keeping the exact test sparse. The screen
+    looks only at the grid cells near each component (:func:`~torchtrack.association.grid.disc_candidates`),
     so its memory follows the pairs that are near, not ``J²``.
     """
     k = min(mean.shape[1], 2)
     lam = torch.diagonal(cov[:, :k, :k], dim1=-2, dim2=-1).sum(-1)
     pos = _plane(mean[:, :k])
     bound = lam * scalar(threshold, lam) * scalar(1 + 1e-4, lam)              # squared screening radius of i
-    if pos.shape[0] ** 2 <= DENSE_PAIRS:                    # every pair at once: fewer operations than the grid's
-        d2 = (pos.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)             # [i, j]
-        ii, jj = torch.tril(d2 <= bound.unsqueeze(1), diagonal=-1).nonzero().unbind(1)
-    else:
-        ii, jj = disc_candidates(pos, bound.sqrt(), pos)
-        d2 = (pos[ii] - pos[jj]).pow(2).sum(-1)
-        near = ((jj < ii) & (d2 <= bound[ii])).nonzero().squeeze(1)
-        ii, jj = ii[near], jj[near]
+    ii, jj = disc_candidates(pos, bound.sqrt(), pos)
+    d2 = (pos[ii] - pos[jj]).pow(2).sum(-1)
+    near = ((jj < ii) & (d2 <= bound[ii])).nonzero().squeeze(1)
+    ii, jj = ii[near], jj[near]
     if ii.numel():
         L, _ = torch.linalg.cholesky_ex(cov[ii])
         y = torch.linalg.solve_triangular(L, (mean[jj] - mean[ii]).unsqueeze(-1), upper=False)
