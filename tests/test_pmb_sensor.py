@@ -41,7 +41,7 @@ def test_joint_update_with_a_certain_association_is_the_exact_joint_kalman_updat
     state = one_track_state(filt, mf, Pf)
     z = torch.tensor([[19.1, 5.9]], dtype=F64)                   # feature minus sensor
     sensor, new_state, info = joint.v2f_update(SensorState(xs, Ps), state, z)
-    assert float(info.marginals.assoc[0, 0]) == pytest.approx(1.0, abs=1e-9)
+    assert float(info.marginals.assoc_matrix()[0, 0]) == pytest.approx(1.0, abs=1e-9)
     # the exact update of the joint Gaussian [x; f] with z = H f - H x + q
     H = torch.zeros(2, 8, dtype=F64)
     H[:, :2] = -torch.eye(2, dtype=F64)
@@ -65,7 +65,7 @@ def test_uncertain_association_moves_the_vehicle_less_and_misses_leave_it_alone(
     z = torch.tensor([[9.0, 0.0]], dtype=F64)                    # says the vehicle is at +1 in x
     sure, _, _ = make(p_detection=1.0, clutter=0.0)[1].v2f_update(SensorState(xs, Ps), state, z)
     soft, _, info = joint.v2f_update(SensorState(xs, Ps), state, z)
-    p = float(info.marginals.assoc[0, 0])
+    p = float(info.marginals.assoc_matrix()[0, 0])
     assert 0.1 < p < 1.0
     assert 0.0 < float(soft.mean[0]) < float(sure.mean[0])
     empty, _, _ = joint.v2f_update(SensorState(xs, Ps), state, torch.zeros(0, 2, dtype=F64))

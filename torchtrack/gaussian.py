@@ -298,13 +298,70 @@ def innovation_likelihood(L: Tensor, nu: Tensor) -> tuple[Tensor, Tensor]:
     return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(L), nu.shape[-1])
 
 
-def innovations_likelihood(gain: KalmanGain, nu: Tensor) -> tuple[Tensor, Tensor]:
-    """:func:`innovation_likelihood` for many innovations per factor: ``ν (*, k, m)`` against the
-    factors of ``gain`` ``(*, m, m)`` → NIS and log ℓ ``(*, k)``; the whitening ``L⁻¹`` is applied to
-    all ``k`` innovations by one batched GEMM."""
-    white = batched_matmul(nu, gain.chol_inv.transpose(-1, -2))
-    nis = (white * white).sum(-1)
-    return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol).unsqueeze(-1), nu.shape[-1])
+def _planes_pay_off(pairs: int, m: int) -> bool:
+    """Whether ``pairs`` innovations of size ``m`` are whitened faster entry by entry (:func:`whitened_sq_norms`)
+    than by one batched product: from about ``128 m³`` pairs on the CPU (one thread: 1,000 pairs of size 2,
+    8,000 of size 4); below that the entry-wise version's ``m(m+1)/2`` operations cost more than they save."""
+    return pairs >= 128 * m**3
+
+
+def innovation_pairs(z: Tensor, z_hat: Tensor) -> Tensor | list[Tensor]:
+    """The innovations ``ν_ij = z_j − ẑ_i`` of every pair of ``ẑ (N, m)`` and ``z (M, m)``: an ``(N, M, m)`` tensor,
+    or for many pairs (:func:`_planes_pay_off`) ``m`` planes ``(N, M)``, entry ``k`` of every innovation in plane
+    ``k`` (contiguous: elementwise work on them is several times faster than on an ``(N, M, m)`` tensor, whose
+    short last dimension broadcasts and reduces slowly). Either form goes to :func:`innovations_likelihood`."""
+    m = z.shape[-1]
+    if _planes_pay_off(z.shape[0] * z_hat.shape[0], m):
+        return [z[:, k] - z_hat[:, k:k + 1] for k in range(m)]
+    return z.unsqueeze(0) - z_hat.unsqueeze(1)
+
+
+def squared_norm(x: Tensor) -> Tensor:
+    """``Σ_k x_k²`` over the last dimension of ``x (*, m)`` → ``(*,)``, entry by entry (a reduction over a
+    short last dimension is several times slower on the CPU)."""
+    total = x[..., 0] * x[..., 0]
+    for k in range(1, x.shape[-1]):
+        total = torch.addcmul(total, x[..., k], x[..., k])
+    return total
+
+
+def whitened_sq_norms(chol_inv: Tensor, nu: list[Tensor]) -> list[Tensor]:
+    """The running sums ``Σ_{i≤k} (L⁻¹ ν)_i²``, ``k = 0 … m−1``, for a lower-triangular ``L⁻¹`` (``chol_inv
+    (*, m, m)``) and the innovations' entries ``nu[k] (*, K)`` (planes, :func:`innovation_planes`).
+
+    The last is the NIS ``νᵀ S⁻¹ ν``; the ``p``-th is that of the first ``p`` entries against the leading
+    ``p × p`` block of ``S`` (its factor is ``L``'s leading block, and ``L⁻¹``'s leading block is its inverse).
+    Entry by entry (``m(m+1)/2`` products): a batched product with ``m`` columns followed by a reduction over a
+    last dimension of ``m`` is several times slower on the CPU."""
+    sums, total = [], None
+    for i in range(len(nu)):
+        white = chol_inv[..., i, 0].unsqueeze(-1) * nu[0]
+        for k in range(1, i + 1):
+            white = torch.addcmul(white, chol_inv[..., i, k].unsqueeze(-1), nu[k])
+        total = white * white if total is None else torch.addcmul(total, white, white)
+        sums.append(total)
+    return sums
+
+
+def innovations_nis(chol_inv: Tensor, nu: Tensor | list[Tensor]) -> Tensor:
+    """NIS ``νᵀ S⁻¹ ν`` ``(*, k)`` of many innovations per factor: ``ν (*, k, m)`` or its ``m`` planes ``(*, k)``
+    (:func:`innovation_pairs`) against the lower-triangular ``L⁻¹`` ``(*, m, m)``: entry by entry
+    (:func:`whitened_sq_norms`) for planes and for many pairs, else by one batched product."""
+    if isinstance(nu, Tensor):
+        m = nu.shape[-1]
+        if not _planes_pay_off(nu.numel() // max(m, 1), m):
+            white = batched_matmul(nu, chol_inv.transpose(-1, -2))
+            return (white * white).sum(-1)
+        nu = [nu[..., k] for k in range(m)]
+    return whitened_sq_norms(chol_inv, nu)[-1]
+
+
+def innovations_likelihood(gain: KalmanGain, nu: Tensor | list[Tensor]) -> tuple[Tensor, Tensor]:
+    """:func:`innovation_likelihood` for many innovations per factor (:func:`innovations_nis`) → NIS and log ℓ
+    ``(*, k)``."""
+    nis = innovations_nis(gain.chol_inv, nu)
+    m = nu.shape[-1] if isinstance(nu, Tensor) else len(nu)
+    return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol).unsqueeze(-1), m)
 
 
 def joseph_cov(P: Tensor, K: Tensor, H: Tensor, R: Tensor) -> Tensor:

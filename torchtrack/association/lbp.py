@@ -72,6 +72,11 @@ class LBPResult(NamedTuple):
     iterations: int    # iterations run
     converged: bool    # max message change fell below ``tol`` (always False when ``tol`` is None)
 
+    def assoc_matrix(self) -> Tensor:
+        """``p_i(j)`` ``(*, n, m)`` (as :meth:`SparseLBPResult.assoc_matrix
+        <torchtrack.association.lbp_sparse.SparseLBPResult.assoc_matrix>` gives the sparse result's)."""
+        return self.assoc
+
 
 def _check(log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> None:
     if log_w.dim() < 2:

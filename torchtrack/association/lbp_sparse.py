@@ -39,6 +39,12 @@ class SparseLBPResult(NamedTuple):
     iterations: int     # iterations run
     converged: bool     # max message change fell below ``tol`` (always False when ``tol`` is None)
 
+    def assoc_matrix(self) -> Tensor:
+        """``p_i(j)`` as the dense ``(n, m)`` matrix (0 off the listed pairs), as
+        :class:`~torchtrack.association.lbp.LBPResult` holds it."""
+        out = self.assoc.new_zeros(self.miss.shape[0], self.new.shape[0])
+        return out.index_put((self.row, self.col), self.assoc)
+
 
 def _check(row: Tensor, col: Tensor, log_w: Tensor, log_miss: Tensor, log_new: Tensor) -> None:
     E = log_w.shape[0]
@@ -64,12 +70,12 @@ def _sum_of_others(v: Tensor, line: Tensor, floor: Tensor) -> tuple[Tensor, Tens
     lines' full sums ``floor + Σ v``. The term above half its line's sum (at most one per line) takes its
     remainder from a second sum without it, floored at the smallest normal number; every other term's is
     ``total − v_e`` with ``v_e`` at most half the total (relative error at most ``2 ε``)."""
-    total = _line_sum(v, line, floor.shape[0]) + floor
+    total = torch.index_add(floor, 0, line, v)
+    total_e = total.index_select(0, line)
     with torch.no_grad():
-        top = v > 0.5 * total[line]
-    rest = (_line_sum(torch.where(top, torch.zeros_like(v), v), line, floor.shape[0]) + floor
-            ).clamp_min(torch.finfo(v.dtype).tiny)
-    return torch.where(top, rest[line], total[line] - v), total
+        top = v > 0.5 * total_e
+    rest = torch.index_add(floor, 0, line, v.masked_fill(top, 0.0)).clamp_min(torch.finfo(v.dtype).tiny)
+    return torch.where(top, rest.index_select(0, line), total_e - v), total
 
 
 def sparse_lbp_marginals(row: Tensor, col: Tensor, log_w: Tensor, log_miss: Tensor, log_new: Tensor,
@@ -98,7 +104,7 @@ def sparse_lbp_marginals(row: Tensor, col: Tensor, log_w: Tensor, log_miss: Tens
         log_c = log_miss.detach().clone().scatter_reduce(0, row, log_ratio.detach(), "amax")
         finite = torch.isfinite(log_c)
         log_c = torch.where(finite, log_c, torch.zeros_like(log_c))
-    a = torch.exp(log_ratio - log_c[row])                                      # (E,)
+    a = torch.exp(log_ratio - log_c.index_select(0, row))                      # (E,)
     a0 = torch.exp(torch.where(finite, log_miss - log_c, torch.zeros_like(log_c)))   # (n,); 1 without any weight
     one = torch.ones(m, dtype=a.dtype, device=a.device)
     tiny = torch.finfo(a.dtype).tiny

@@ -20,7 +20,10 @@ from torchtrack.filters.gmphd.filter import gated_pairs
 from torchtrack.gaussian import (
     KalmanGain,
     gaussian_log_likelihood,
+    innovation_pairs,
+    innovations_likelihood,
     log_det_from_cholesky,
+    whitened_sq_norms,
 )
 
 
@@ -36,16 +39,16 @@ def gated_candidates(z_hat: Tensor, S: Tensor, gain: KalmanGain, meas: Tensor, g
     if dense is None:
         dense = N * M <= DENSE_PAIRS
     if dense:
-        nis, loglik = _all_pairs_likelihood(z_hat, gain, meas)
+        nis, loglik = innovations_likelihood(gain, innovation_pairs(meas, z_hat))
         gated = nis.detach() <= gate
         K = int(gated.sum(1).max()) if N and M else 0
         vals, cand = torch.where(gated, loglik, torch.full_like(loglik, -math.inf)).topk(K, dim=1)
         return torch.where(torch.isfinite(vals.detach()), cand, torch.full_like(cand, -1)), vals
     ii, jj = gated_pairs(z_hat.detach(), S.detach(), gain.chol_inv.detach(), meas.detach(), gate,
                          torch.ones(N, dtype=torch.bool, device=meas.device), meas.shape[1])
-    white = (gain.chol_inv.index_select(0, ii) * (meas.index_select(0, jj) - z_hat.index_select(0, ii))
-             .unsqueeze(-2)).sum(-1)
-    loglik = gaussian_log_likelihood(white.pow(2).sum(-1), log_det_from_cholesky(gain.chol).index_select(0, ii),
+    nu = meas.index_select(0, jj) - z_hat.index_select(0, ii)
+    nis = whitened_sq_norms(gain.chol_inv.index_select(0, ii), [nu[:, k:k + 1] for k in range(nu.shape[1])])
+    loglik = gaussian_log_likelihood(nis[-1].squeeze(-1), log_det_from_cholesky(gain.chol).index_select(0, ii),
                                      meas.shape[1])
     # each row's pairs by decreasing likelihood (pairs come ordered by row), then their column in the table
     order = torch.argsort(loglik.detach(), descending=True, stable=True)
@@ -58,19 +61,3 @@ def gated_candidates(z_hat: Tensor, S: Tensor, gain: KalmanGain, meas: Tensor, g
     cand[ii, col] = jj
     vals = torch.full((N, K), -math.inf, dtype=loglik.dtype, device=meas.device).index_put((ii, col), loglik)
     return cand, vals
-
-
-def _all_pairs_likelihood(z_hat: Tensor, gain: KalmanGain, meas: Tensor) -> tuple[Tensor, Tensor]:
-    """NIS and ``log N(z_j; ẑ_i, S_i)`` of every pair ``(N, M)``: the whitening ``L⁻¹ ν`` (lower triangular)
-    written out coordinate by coordinate over ``(N, M)`` planes — a batched GEMM of ``N`` tiny ``(M, m) × (m, m)``
-    products costs several times more."""
-    m = meas.shape[1]
-    nu = [meas[:, k].unsqueeze(0) - z_hat[:, k].unsqueeze(1) for k in range(m)]          # m × (N, M)
-    L_inv = gain.chol_inv.unsqueeze(1)                                                   # (N, 1, m, m)
-    nis = None
-    for k in range(m):
-        white = L_inv[..., k, 0] * nu[0]
-        for j in range(1, k + 1):
-            white = white + L_inv[..., k, j] * nu[j]
-        nis = white * white if nis is None else nis + white * white
-    return nis, gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol).unsqueeze(-1), m)

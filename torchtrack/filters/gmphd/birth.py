@@ -33,7 +33,7 @@ from torch import Tensor, nn
 from torchtrack.association.grid import DENSE_PAIRS, disc_candidates
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.options import GMPHDBirthOptions, VelocityMapOptions
-from torchtrack.gaussian import scalar
+from torchtrack.gaussian import innovation_pairs, scalar, squared_norm
 from torchtrack.params import Positive
 
 
@@ -138,11 +138,12 @@ class AdaptiveBirth(nn.Module):
         heavy = pred_log_w.detach() > scalar(math.log(self.options.suppress_weight), pred_log_w)
         pos, z = pred_pos.detach(), z.detach()
         if pos.shape[0] * z.shape[0] <= DENSE_PAIRS:
-            d2 = (z.unsqueeze(1) - pos.unsqueeze(0)).pow(2).sum(-1)                  # (M, J)
+            d = innovation_pairs(pos, z)                                   # (M, J, 2) or two planes (M, J)
+            d2 = squared_norm(d) if isinstance(d, torch.Tensor) else torch.addcmul(d[0] * d[0], d[1], d[1])
             return torch.where(heavy, d2, scalar(math.inf, d2)).amin(1) > scalar(reach**2, d2)
         radius = torch.where(heavy, scalar(reach, pos), scalar(-1.0, pos))
         jj, kk = disc_candidates(pos, radius, z, cell=reach)
-        near = (z.index_select(0, kk) - pos.index_select(0, jj)).pow(2).sum(-1) <= scalar(reach**2, z)
+        near = squared_norm(z.index_select(0, kk) - pos.index_select(0, jj)) <= scalar(reach**2, z)
         explained = torch.zeros(z.shape[0], dtype=torch.bool, device=z.device).index_fill_(0, kk[near], True)
         return ~explained
 

@@ -71,11 +71,14 @@ from torchtrack.gaussian import (
     chi2_quantile,
     gain_from_cholesky,
     gaussian_log_likelihood,
+    innovation_pairs,
     innovations_likelihood,
     kalman_gain,
     log_det_from_cholesky,
     posterior_cov,
     scalar,
+    squared_norm,
+    whitened_sq_norms,
 )
 from torchtrack.models import ConstantVelocity, LinearPosition, MeasurementModel, MotionModel
 from torchtrack.params import Positive, Probability
@@ -417,12 +420,12 @@ def _dense_pairs(c: _Components, z: Tensor, log_kappa: Tensor, pair_loglik: Pair
     J, M = c.z_hat.shape[0], z.shape[0]
     neg_inf = scalar(NEG_INF, c.base)
     gate = scalar(c.gate, c.base)
-    nu = z.unsqueeze(0) - c.z_hat.unsqueeze(1)                                 # (J, M, m)
+    nu = innovation_pairs(z, c.z_hat)                                         # (J, M, m) or m × (J, M)
     nis, loglik = innovations_likelihood(c.gain, nu)          # (J, M)  νᵀ S⁻¹ ν, log N(ν; 0, S)
     use_pos = None
     if c.gain_pos is not None:
         p = c.gain_pos.chol.shape[-1]
-        nis_p, loglik_p = innovations_likelihood(c.gain_pos, nu[..., :p])
+        nis_p, loglik_p = innovations_likelihood(c.gain_pos, nu[..., :p] if isinstance(nu, Tensor) else nu[:p])
         gated = (nis_p <= gate) & c.mask.unsqueeze(1)
         with_v, without_v = c.base.unsqueeze(1) + loglik, c.base_pos.unsqueeze(1) + loglik_p
         log_num = torch.where(gated, torch.logaddexp(with_v, without_v), neg_inf)
@@ -453,13 +456,13 @@ def _sparse_pairs(c: _Components, z: Tensor, log_kappa: Tensor, pair_loglik: Pai
     p = c.gain_pos.chol.shape[-1] if robust else m
     jj, kk = gated_pairs(c.z_hat, c.S, c.gain.chol_inv, z, c.gate, c.mask, p)
     nu = z.index_select(0, kk) - c.z_hat.index_select(0, jj)             # (G, m)
-    white = (c.gain.chol_inv.index_select(0, jj) * nu.unsqueeze(-2)).sum(-1)      # L⁻¹ ν
+    nis = whitened_sq_norms(c.gain.chol_inv.index_select(0, jj), [nu[:, k:k + 1] for k in range(m)])
     log_num = c.base.index_select(0, jj) + gaussian_log_likelihood(
-        white.pow(2).sum(-1), log_det_from_cholesky(c.gain.chol).index_select(0, jj), m)
+        nis[-1].squeeze(-1), log_det_from_cholesky(c.gain.chol).index_select(0, jj), m)
     use_pos = None
-    if robust:                        # (L⁻¹ ν)_pos = L_pos⁻¹ ν_pos: L⁻¹ is lower triangular
+    if robust:                        # the first p entries' NIS against S's leading block (whitened_sq_norms)
         without_v = c.base_pos.index_select(0, jj) + gaussian_log_likelihood(
-            white[:, :p].pow(2).sum(-1), log_det_from_cholesky(c.gain_pos.chol).index_select(0, jj), p)
+            nis[p - 1].squeeze(-1), log_det_from_cholesky(c.gain_pos.chol).index_select(0, jj), p)
         use_pos = without_v > log_num
         log_num = torch.logaddexp(log_num, without_v)
     if pair_loglik is not None:
@@ -496,12 +499,13 @@ def gated_pairs(z_hat: Tensor, S: Tensor, chol_inv: Tensor, z: Tensor, gate: flo
         radius = torch.where(mask, torch.sqrt(lam * gate) * (1 + 1e-6), torch.full_like(lam, -1.0))
         pos_hat, pos = _plane(z_hat[:, :p]), _plane(z[:, :p])
         jj, kk = disc_candidates(pos_hat, radius, pos)
-        near = ((pos.index_select(0, kk) - pos_hat.index_select(0, jj)).pow(2).sum(-1)
+        near = (squared_norm(pos.index_select(0, kk) - pos_hat.index_select(0, jj))
                 <= radius.index_select(0, jj).pow(2)).nonzero().squeeze(1)
         jj, kk = jj.index_select(0, near), kk.index_select(0, near)
         nu = z[kk, :gate_dim] - z_hat[jj, :gate_dim]
-        white = (chol_inv[:, :gate_dim, :gate_dim].index_select(0, jj) * nu.unsqueeze(-2)).sum(-1)
-        inside = (white.pow(2).sum(-1) <= gate).nonzero().squeeze(1)
+        nis = whitened_sq_norms(chol_inv[:, :gate_dim, :gate_dim].index_select(0, jj),
+                                [nu[:, k:k + 1] for k in range(gate_dim)])[-1].squeeze(-1)
+        inside = (nis <= gate).nonzero().squeeze(1)
         jj, kk = jj.index_select(0, inside), kk.index_select(0, inside)
         order = torch.argsort(jj * z.shape[0] + kk)
         return jj.index_select(0, order), kk.index_select(0, order)
@@ -535,7 +539,7 @@ def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, 
     pos = _plane(mean[:, :k])
     bound = lam * scalar(threshold, lam) * scalar(1 + 1e-4, lam)              # squared screening radius of i
     ii, jj = disc_candidates(pos, bound.sqrt(), pos)
-    d2 = (pos[ii] - pos[jj]).pow(2).sum(-1)
+    d2 = squared_norm(pos[ii] - pos[jj])
     near = ((jj < ii) & (d2 <= bound[ii])).nonzero().squeeze(1)
     ii, jj = ii[near], jj[near]
     if ii.numel():

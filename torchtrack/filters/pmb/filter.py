@@ -97,7 +97,9 @@ class PMBUpdateInfo(NamedTuple):
     """What an update reveals besides the new state."""
 
     marginals: LBPResult | SparseLBPResult   # association marginals of the existing tracks (*, N, M) and new
-    #                                          targets (*, M); with ``sparse``: per gated pair (E,) and (M,)
+    #                                          targets (*, M); on the sparse path (an unbatched update with
+    #                                          2-D measurements, by default): per gated pair (E,) and (M,);
+    #                                          ``marginals.assoc_matrix()`` is (*, N, M) on either path
 
 
 class Estimates(NamedTuple):
@@ -204,7 +206,9 @@ class PMBFilter(nn.Module):
         estimate_threshold: a track is reported when ``r`` exceeds it.
         sparse: the track part of the update on the gated (Bernoulli, measurement) pairs only
             (:mod:`torchtrack.filters.pmb.sparse`; unbatched states, 2-D measurements); the same result as
-            the dense ``N × M`` path up to rounding.
+            the dense ``N × M`` path up to rounding. None (default): wherever it applies (an unbatched update
+            with 2-D measurements), where it is as fast as the dense path on small scenes and faster from about
+            a hundred tracks on (``torchtrack bench pmb``).
     """
 
     def __init__(self, motion: MotionModel, measurement: MeasurementModel, p_survival: float = 0.99,
@@ -213,7 +217,7 @@ class PMBFilter(nn.Module):
                  poisson_capacity: int = 8, gate: float = 0.9999, lbp_iterations: int = 50,
                  lbp_tol: float | None = 1e-7, prune_existence: float = 1e-4, prune_poisson: float = 1e-6,
                  estimate_threshold: float = 0.5, learnable: bool = True, capacity_limit: int | None = None,
-                 sparse: bool = False):
+                 sparse: bool | None = None):
         super().__init__()
         if not motion.is_linear:
             raise TorchtrackError("PMBFilter needs a linear motion model")
@@ -358,7 +362,8 @@ class PMBFilter(nn.Module):
         if z.shape[-1] != d or z.shape[:-2] != state.existence.shape[:-1]:
             raise TorchtrackError(f"PMB update: z must be (*, M, {d}) with batch {tuple(state.existence.shape[:-1])}; "
                                   f"got {tuple(z.shape)}")
-        if self.sparse and z.dim() != 2:
+        sparse = self.sparse if self.sparse is not None else (z.dim() == 2 and d == 2)
+        if sparse and z.dim() != 2:
             raise TorchtrackError(f"PMB update: sparse association needs an unbatched state; got batch "
                                   f"{tuple(z.shape[:-2])}")
         z = z.to(ref)
@@ -377,7 +382,7 @@ class PMBFilter(nn.Module):
         valid = state.valid
         r = state.existence
         N = r.shape[-1]
-        if self.sparse:
+        if sparse:
             poi = _kalman_all_pairs(state.poisson_mean, state.poisson_cov, z, H, R,
                                     "PMB: innovation covariance (Poisson component)")
         else:   # tracks and Poisson components in one batch of Kalman hypotheses
@@ -404,7 +409,7 @@ class PMBFilter(nn.Module):
                                          poi.cov.unsqueeze(-4).expand(*batch, M, K_, n, n))
 
         # marginal association probabilities (Williams & Lau 2014) and the innovation moments of the merge
-        if self.sparse:
+        if sparse:
             pairs = gated_pairs(state.mean, state.cov, valid, z, zmask, H, R, self.gate_d2)
             marg = sparse_lbp_marginals(pairs.row, pairs.col, log_r[pairs.row] + log_pd + pairs.log_lik, log_miss,
                                         log_new, iterations=self.lbp_iterations, tol=self.lbp_tol, check=False)

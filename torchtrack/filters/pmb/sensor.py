@@ -124,7 +124,7 @@ class JointSensorPMB(nn.Module):
         U = symmetrize(H2 @ state.cov @ H2.transpose(-1, -2) + Q)                # (*, N, d, d)
         LU = cholesky(U, "joint PMB: vehicle pseudo-measurement covariance")
         eye = torch.eye(d, dtype=ref.dtype, device=ref.device)
-        beta = info.marginals.assoc                                              # (*, N, M)
+        beta = info.marginals.assoc_matrix()                                     # (*, N, M)
         y = (state.mean @ H2.transpose(-1, -2)).unsqueeze(-2) - z_rel.to(ref).unsqueeze(-3)  # (*, N, M, d)
         ybar = (beta.unsqueeze(-1) * y).sum(-2)                                  # Σ_j β_ij y_ij
         Uinv = chol_solve(LU, eye.expand_as(LU))

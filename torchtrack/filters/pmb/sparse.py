@@ -13,7 +13,6 @@ from __future__ import annotations
 
 from typing import NamedTuple
 
-import torch
 from torch import Tensor
 
 from torchtrack.association.grid import DENSE_PAIRS
@@ -21,9 +20,12 @@ from torchtrack.filters.gmphd.filter import gated_pairs as gmphd_gated_pairs
 from torchtrack.gaussian import (
     gaussian_log_likelihood,
     innovation_cov,
+    innovation_pairs,
+    innovations_nis,
     kalman_gain,
     log_det_from_cholesky,
     posterior_cov,
+    whitened_sq_norms,
 )
 
 
@@ -47,26 +49,18 @@ def gated_pairs(mean: Tensor, cov: Tensor, valid: Tensor, z: Tensor, zmask: Tens
     gain = kalman_gain(S, PHt, "PMB: innovation covariance (track)")
     z_hat = mean @ H.transpose(-1, -2)                                    # (N, d)
     if mean.shape[0] * z.shape[0] <= DENSE_PAIRS:      # every pair at once: fewer operations than the grid's
-        nu_all = z.unsqueeze(0) - z_hat.unsqueeze(1)                      # (N, M, d)
-        white_all = _whiten(gain.chol_inv, nu_all)
-        nis_all = (white_all * white_all).sum(-1)
+        nis_all = innovations_nis(gain.chol_inv, innovation_pairs(z, z_hat))           # (N, M)
         ii, jj = ((nis_all <= gate_d2) & valid.unsqueeze(1) & zmask.unsqueeze(0)).nonzero().unbind(1)
-        nu, nis = nu_all[ii, jj], nis_all[ii, jj]
+        nis = nis_all[ii, jj]
+        nu = z.index_select(0, jj) - z_hat.index_select(0, ii)            # (E, d)
     else:
         meas = zmask.nonzero().squeeze(1)
         ii, jj = gmphd_gated_pairs(z_hat, S, gain.chol_inv, z[meas], gate_d2, valid, z.shape[-1])
         jj = meas[jj]
         nu = z[jj] - z_hat[ii]                                             # (E, d)
-        white = _whiten(gain.chol_inv[ii], nu.unsqueeze(-2)).squeeze(-2)
-        nis = (white * white).sum(-1)
+        nis = whitened_sq_norms(gain.chol_inv[ii], [nu[:, k:k + 1] for k in range(nu.shape[1])])[-1].squeeze(-1)
     log_lik = gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol)[ii], z.shape[-1])
     return GatedPairs(ii, jj, log_lik, nu, gain.gain, posterior_cov(cov, gain))
-
-
-def _whiten(chol_inv: Tensor, nu: Tensor) -> Tensor:
-    """``L⁻¹ ν`` for ``chol_inv (K, 2, 2)`` (lower triangular) and ``nu (K, P, 2)``, on the entries."""
-    return torch.stack([chol_inv[:, None, 0, 0] * nu[..., 0],
-                        chol_inv[:, None, 1, 0] * nu[..., 0] + chol_inv[:, None, 1, 1] * nu[..., 1]], -1)
 
 
 class PairMoments(NamedTuple):
