@@ -1,6 +1,7 @@
 """Int8 inference of the detector's network (torchtrack.detector.quantized): its float pieces against the
 network's own, the int8 maps and detections against the float network's, and which checkpoints run in int8."""
 
+import dataclasses
 import json
 
 import pytest
@@ -8,9 +9,10 @@ import torch
 from torch.nn import functional as F
 
 from torchtrack.cli import main
-from torchtrack.detector.checkpoint import load_checkpoint
+from torchtrack.detector.checkpoint import load_checkpoint, save_checkpoint
+from torchtrack.detector.config import DetectorConfig, ModelConfig
 from torchtrack.detector.evaluate import match
-from torchtrack.detector.inference import DEFAULT_WEIGHTS, detector_from_checkpoint, load_detector
+from torchtrack.detector.inference import DEFAULT_WEIGHTS, Detector, detector_from_checkpoint, load_detector
 from torchtrack.detector.network import correlation, correlation_last
 from torchtrack.detector.quantized import _coarse_fine, _shuffle, high_pass, quantize, weights_digest
 from torchtrack.errors import TorchtrackError
@@ -151,6 +153,22 @@ def test_bench_detector_reports_both_networks(tmp_path):
     out = tmp_path / "bench.json"
     assert main(["bench", "detector", "--sizes", "128", "--repeats", "1", "--json", str(out)]) == 0
     r = json.loads(out.read_text())
-    assert r["reference"] == "float network" and r["unit"] == "frames" and r["tiles"] == [[128, 128]]
-    assert r["ours_per_s"] > 0 and r["reference_per_s"] > 0 and r["ratio"] == r["ours_per_s"] / r["reference_per_s"]
-    assert 0 < r["max_abs_diff"]["heatmap_score"] < 0.5
+    assert r["reference"] == "reference float" and r["unit"] == "frames" and r["tiles"] == [[128, 128]]
+    assert r["networks"] == ["reference float", "reference int8"] and r["fastest"] == "reference int8"
+    assert r["ours_per_s"] == r["frames_per_s"]["reference int8"]
+    assert r["ratio"] == r["ours_per_s"] / r["reference_per_s"]
+    assert 0 < r["max_abs_diff"]["reference int8"]["heatmap_score"] < 0.5
+
+
+def test_bench_detector_times_other_weights_against_the_reference(tmp_path):
+    """Other weights (here a smaller network without a calibration) are timed in float beside the reference's."""
+    cfg = DetectorConfig(model=ModelConfig(widths=(8, 16, 16), head=8, motion=4, fine=4))
+    small = tmp_path / "small.pt"
+    save_checkpoint(small, {"config": dataclasses.asdict(cfg), "model": Detector(cfg).net.state_dict()})
+    out = tmp_path / "bench.json"
+    assert main(["bench", "detector", "--sizes", "128", "--repeats", "1", "--weights", str(small),
+                 "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["networks"] == ["reference float", "reference int8", "new float"]
+    assert set(r["max_abs_diff"]) == {"reference int8"} and r["weights"] == str(small)
+    assert r["ours_per_s"] == max(r["frames_per_s"][k] for k in ("reference int8", "new float"))
