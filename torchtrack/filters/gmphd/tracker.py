@@ -34,7 +34,16 @@ from torch import Tensor, nn
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.gmphd.birth import AdaptiveBirth, BirthConstants, VelocityMap
 from torchtrack.filters.gmphd.existence import LabelExistence, bernoulli_log_likelihood, label_groups, no_existence
-from torchtrack.filters.gmphd.filter import GMPHD, Matrices, MixtureState, as_rows, concat, empty_mixture, labels_in
+from torchtrack.filters.gmphd.filter import (
+    GMPHD,
+    SCENE_COMPONENTS,
+    Matrices,
+    MixtureState,
+    as_rows,
+    concat,
+    empty_mixture,
+    labels_in,
+)
 from torchtrack.filters.gmphd.labels import (
     LostLabels,
     TentativeLabels,
@@ -173,7 +182,10 @@ class GMPHDTracker(nn.Module):
             with_velocity = velocity is not None and mats.R_velocity is not None
             log_lik, existence = bernoulli_log_likelihood(existence, groups, info.label_support, mats, z.shape[0],
                                                           with_velocity, phd.area)
-        capacity = phd.capacity_for(z.shape[0], int(torch.unique(pred.label).numel()))
+        labels = pred.size     # live labels at most; counted (a unique) only where the cap could leave its floor
+        if SCENE_COMPONENTS * (z.shape[0] + labels) > phd.options.capacity:
+            labels = int(torch.unique(pred.label).numel())
+        capacity = phd.capacity_for(z.shape[0], labels)
         post = phd.reduce(post, memory.prev_label if o.label_fix and o.merge_priority else None, capacity)
         est = phd.extract(post)
         next_label = memory.next_label
