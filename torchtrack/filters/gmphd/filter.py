@@ -123,8 +123,10 @@ def as_rows(index: Tensor) -> Tensor:
 
 
 def labels_in(query: Tensor, keys: Tensor) -> Tensor:
-    """``torch.isin(query, keys)`` for integer labels by a sorted search: the same mask ``(Q,)``, without the
-    ``unique`` (a host sync) that ``isin`` runs on a GPU."""
+    """``torch.isin(query, keys)`` for integer labels: on the CPU ``isin`` itself (one operation), elsewhere a
+    sorted search, the same mask ``(Q,)`` without the ``unique`` (a host sync) that ``isin`` runs on a GPU."""
+    if query.device.type == "cpu":
+        return torch.isin(query, keys)
     if keys.numel() == 0:
         return torch.zeros_like(query, dtype=torch.bool)
     ordered = torch.sort(keys).values
