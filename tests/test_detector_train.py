@@ -11,7 +11,6 @@ from torchtrack.detector.config import DetectorConfig, config_from_dict, load_co
 from torchtrack.detector.dataset import PairDataset, build_cache, collate
 from torchtrack.detector.inference import Detector, detector_from_checkpoint
 from torchtrack.detector.losses import detection_loss
-from torchtrack.detector.network import CenterTrackNet
 from torchtrack.errors import TorchtrackError
 
 TINY_VIDEO = {"height": 96, "width": 96, "margin": 16, "trees": 20, "speckles": 10, "buildings": 2,
@@ -149,19 +148,3 @@ def test_data_loading_workers_do_not_change_the_result(tmp_path):
     for k in params[0]:
         assert torch.equal(params[0][k], params[1][k]), k
 
-
-def test_warm_start_copies_the_layers_whose_shapes_agree(tmp_path):
-    """train.init: a slimmer network takes the tensors of the same name and shape, the others keep their own."""
-    from torchtrack.detector.train import warm_start
-
-    wide, slim = CenterTrackNet(widths=(32, 48, 64), head=32), CenterTrackNet(widths=(16, 48, 64), head=16)
-    path = tmp_path / "wide.pt"
-    save_checkpoint(path, {"config": {}, "model": wide.state_dict()})
-    before = {k: v.clone() for k, v in slim.state_dict().items()}
-    copied, total = warm_start(slim, path)
-    after, source = slim.state_dict(), wide.state_dict()
-    same = [k for k in after if k in source and source[k].shape == after[k].shape]
-    assert copied == len(same) > 0 and total == len(after)
-    assert all(torch.equal(after[k], source[k]) for k in same)
-    assert all(torch.equal(after[k], before[k]) for k in after if k not in same)
-    assert "down4.0.0.weight" in same and "stem.0.weight" not in same

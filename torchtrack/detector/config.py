@@ -51,8 +51,6 @@ class TrainConfig(Checked):
     match_weight: float = option(0.5, ge=0)         # cross-entropy of the matching logits on the true displacement
     out: str = "out/detector-train"
     val_frames: int = option(12, ge=2)              # frames of each validation sequence scored per epoch
-    init: str = ""                                  # weights whose tensors of the same name and shape start the
-    #                                                 training ("shipped": the shipped weights; "": none)
 
 
 @dataclass(frozen=True)

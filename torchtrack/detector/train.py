@@ -29,7 +29,7 @@ from torchtrack.detector.checkpoint import load_checkpoint, save_checkpoint
 from torchtrack.detector.config import DetectorConfig
 from torchtrack.detector.dataset import PairDataset, build_cache, collate
 from torchtrack.detector.evaluate import evaluate_cache
-from torchtrack.detector.inference import DEFAULT_WEIGHTS, Detector, detector_from_checkpoint
+from torchtrack.detector.inference import Detector, detector_from_checkpoint
 from torchtrack.detector.losses import detection_loss
 from torchtrack.detector.targets import Targets
 from torchtrack.errors import TorchtrackError
@@ -77,10 +77,6 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
         torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
         torch.use_deterministic_algorithms(True, warn_only=True)
     det = Detector(cfg)
-    if t.init and not resume:
-        matched, total = warm_start(det.net, DEFAULT_WEIGHTS if t.init == "shipped" else Path(t.init))
-        if rank == 0:
-            log(f"train.init: {matched} of {total} tensors from {t.init}")
     model = det.net.to(device)
     net = DistributedDataParallel(model) if world > 1 else model
     if t.optimizer == "sgd":
@@ -159,16 +155,6 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
                 save_checkpoint(out / "best.pt", payload)
         _barrier(world)
     return {"history": history, "best": str(out / "best.pt"), "last": str(out / "last.pt")}
-
-
-def warm_start(net: torch.nn.Module, path: Path) -> tuple[int, int]:
-    """Copy into ``net`` the tensors of the checkpoint at ``path`` whose names and shapes match its own (a network
-    of other widths shares the layers whose widths agree); returns (copied, all of ``net``'s)."""
-    own = net.state_dict()
-    source = load_checkpoint(path)["model"]
-    matched = {k: v for k, v in source.items() if k in own and own[k].shape == v.shape}
-    net.load_state_dict(matched, strict=False)
-    return len(matched), len(own)
 
 
 THRESHOLDS = (0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55)
