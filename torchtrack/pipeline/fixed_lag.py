@@ -13,7 +13,12 @@ frame ``k`` lets the pipeline correct three systematic losses with what the next
 3. **trimming** — a position with no detection within ``distance`` px (the tracker coasting) is kept only
    if the same identity has a detection within the next ``L`` frames: the coasting tail of a track whose
    vehicle has gone is dropped, coasting through a short miss is kept (positions of the last ``L``
-   frames of the stream, whose future is unknown, are kept).
+   frames of the stream, whose future is unknown, are kept);
+4. **merging duplicates** (``merge_distance`` > 0) — two identities reported within ``merge_distance`` px
+   of each other at frame ``k`` follow one object (two detections on one vehicle) when they stay that close
+   at every one of the next ``L`` frames where both are reported (or are not reported together again), or
+   when their steps into frame ``k`` differ by less than ``MERGE_MOTION``: the younger identity (reported
+   first later) is left out of frame ``k``. Vehicles that pass each other move differently and part.
 
 Everything is in the tracker's (reference) coordinates. Memory is bounded: ``L`` frames of tracks and
 detections plus the identities seen in the last ``L + 1`` frames and the set of identities ever reported.
@@ -28,6 +33,9 @@ from typing import NamedTuple
 import numpy as np
 
 from torchtrack.errors import TorchtrackError
+
+MERGE_MOTION = 1.0
+"""px/frame: two nearby tracks whose last steps differ by less than this move as one (item 4)."""
 
 
 class LaggedFrame(NamedTuple):
@@ -74,6 +82,9 @@ class FixedLagTracks:
 
     lag: int = 3
     distance: float = 3.0
+    merge_distance: float = 0.0
+    _first: dict = field(default_factory=dict, init=False)     # id -> the frame it was first reported
+    _previous_final: dict = field(default_factory=dict, init=False)  # id -> position in the last final frame
     _pending: deque = field(default_factory=deque, init=False)
     _last: dict = field(default_factory=dict, init=False)      # id -> (frame, position) of its last report
     _known: set = field(default_factory=set, init=False)       # every identity reported so far
@@ -101,6 +112,7 @@ class FixedLagTracks:
             elif ident not in self._known and supported:
                 self._backfill(ident, detections[q], velocities[q], index)
             frame.add(ident, pos, supported)
+            self._first.setdefault(ident, index)
             self._last[ident] = (index, pos)
             self._known.add(ident)
         self._pending.append(frame)
@@ -139,4 +151,27 @@ class FixedLagTracks:
         later = {i for f in self._pending for i, s in zip(f.ids, f.supported) if s}
         keep = np.array([not trim or s or i in later for i, s in zip(frame.ids, frame.supported)], bool)
         positions = np.array(frame.positions, np.float64).reshape(-1, 2)
-        return LaggedFrame(frame.index, np.array(frame.ids, np.int64)[keep], positions[keep])
+        ids = np.array(frame.ids, np.int64)
+        if self.merge_distance > 0:
+            keep &= ~self._younger_duplicates(ids, positions, keep)
+            self._previous_final = dict(zip(ids.tolist(), positions))
+        return LaggedFrame(frame.index, ids[keep], positions[keep])
+
+    def _younger_duplicates(self, ids: np.ndarray, positions: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        """``(N,)`` whether each position is the younger of a duplicate pair (item 4 of the module docstring)."""
+        out = np.zeros(len(ids), bool)
+        cand = np.flatnonzero(keep)
+        if len(cand) < 2:
+            return out
+        d = np.hypot(*(positions[cand, None] - positions[None, cand]).transpose(2, 0, 1))
+        later = [dict(zip(f.ids, f.positions)) for f in self._pending]
+        for a, b in zip(*np.nonzero(np.triu(d < self.merge_distance, 1))):
+            i, j = cand[a], cand[b]
+            both = [f for f in later if ids[i] in f and ids[j] in f]
+            together = all(np.hypot(*(f[ids[i]] - f[ids[j]])) < self.merge_distance for f in both)
+            before = self._previous_final
+            same_motion = ids[i] in before and ids[j] in before and float(np.hypot(
+                *(positions[i] - before[ids[i]] - positions[j] + before[ids[j]]))) < MERGE_MOTION
+            if together or same_motion:
+                out[j if (self._first[ids[j]], ids[j]) > (self._first[ids[i]], ids[i]) else i] = True
+        return out
