@@ -1,8 +1,9 @@
-"""A real camera in the pipeline: tracks restart at a new registration segment, duplicate tracks on one
-vehicle are merged, and the moving-object gate allows for the registration's residual."""
+"""A real camera in the pipeline: tracks restart at a new registration segment, new tracks beside older ones
+are left out on cluttered video, and the moving-object gate allows for the registration's residual."""
 
 import subprocess
 import sys
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -10,9 +11,11 @@ import torch
 
 from tests.test_registration_homography import _texture
 from torchtrack.pipeline.config import PipelineConfig
-from torchtrack.pipeline.detection import misregistration, motion_evidence
+from torchtrack.pipeline.detection import Detection, misregistration, motion_evidence
 from torchtrack.pipeline.fixed_lag import FixedLagTracks
 from torchtrack.pipeline.frame_detections import FrameDetections
+from torchtrack.pipeline.registration import Registration, RegistrationConfig
+from torchtrack.pipeline.timer import StageTimer
 from torchtrack.pipeline.tracker_stream import TrackerStream
 
 
@@ -49,36 +52,38 @@ def test_a_new_segment_restarts_the_tracks_with_new_identities():
     assert before == {1, 2} and len(after) == 2 and min(after) > max(before)  # identities never reused
 
 
-def _merge_run(tracks, lag=3, merge=6.0):
-    """``tracks``: {id: [(frame, x, y)]}, each position also a detection; returns {frame: set(ids)}."""
-    out = FixedLagTracks(lag=lag, distance=3.0, merge_distance=merge)
+def _merge_run(tracks, lag=3, merge=6.0, cluttered=(1,), age=10):
+    """``tracks``: {id: [(frame, x, y)]}, each position also a detection; the gate raised on the frames
+    ``cluttered``; returns {frame: set(ids)}."""
+    out = FixedLagTracks(lag=lag, distance=3.0, merge_distance=merge, merge_age=age)
     frames = sorted({f for pts in tracks.values() for f, _, _ in pts})
     got = []
     for k in frames:
         here = [(i, (x, y)) for i, pts in tracks.items() for f, x, y in pts if f == k]
         ids = np.array([i for i, _ in here])
         pos = np.array([p for _, p in here], float).reshape(-1, 2)
-        got += out.push(k, ids, pos, pos, np.zeros_like(pos))
+        got += out.push(k, ids, pos, pos, np.zeros_like(pos), k in cluttered)
     got += out.finish()
     return {f.index: set(f.ids.tolist()) for f in got}
 
 
-def test_two_tracks_on_one_vehicle_become_one():
+def test_a_new_track_beside_an_older_one_on_cluttered_video_is_left_out():
     # Track 7 follows a vehicle from frame 1; track 9 appears on the same vehicle 3 px away from frame 3.
-    tracks = {7: [(k, 10 + 4 * k, 50) for k in range(1, 11)], 9: [(k, 10 + 4 * k, 53) for k in range(3, 11)]}
-    out = _merge_run(tracks)
-    assert all(ids == {7} for ids in out.values())
+    tracks = {7: [(k, 10 + 4 * k, 50) for k in range(1, 21)], 9: [(k, 10 + 4 * k, 53) for k in range(3, 21)]}
+    out = _merge_run(tracks, cluttered=range(1, 21), age=5)
+    assert all(out[k] == {7} for k in range(1, 8))                     # 9 younger than 5 frames: left out
+    assert all(out[k] == {7, 9} for k in range(8, 21))                 # then established: kept
+    out = _merge_run(tracks, cluttered=(1,), age=5)                     # the gate raised on frame 1 only
+    assert all(out[k] == {7} for k in range(1, 7)) and out[7] == {7, 9}  # frame 7 is 6 frames after it
     assert _merge_run(tracks, merge=0.0)[5] == {7, 9}                   # off: both kept
+    assert _merge_run(tracks, cluttered=())[5] == {7, 9}                # clean video: vehicles meeting, both kept
+    assert _merge_run(tracks, cluttered=(1,), age=1)[3] == {7, 9}        # the clutter too long ago
 
 
-def test_vehicles_that_only_pass_each_other_are_both_kept():
-    # Opposite directions: 3 px apart at frame 5 only.
-    tracks = {1: [(k, 10 + 4 * k, 50) for k in range(1, 11)], 2: [(k, 70 - 4 * k + 0.0, 53) for k in range(1, 11)]}
-    out = _merge_run(tracks)
-    assert all(ids == {1, 2} for ids in out.values())
+def test_tracks_apart_are_both_kept_on_cluttered_video():
     # Side by side 8 px apart for the whole run: two vehicles.
-    tracks = {1: [(k, 10 + 4 * k, 50) for k in range(1, 11)], 2: [(k, 10 + 4 * k, 58) for k in range(1, 11)]}
-    assert all(ids == {1, 2} for ids in _merge_run(tracks).values())
+    tracks = {1: [(k, 10 + 4 * k, 50) for k in range(1, 11)], 2: [(k, 10 + 4 * k, 58) for k in range(3, 11)]}
+    assert all(ids == ({1, 2} if k >= 3 else {1}) for k, ids in _merge_run(tracks, cluttered=range(1, 11)).items())
 
 
 def test_gate_margin_bounds_the_difference_of_a_misregistration():
@@ -93,9 +98,15 @@ def test_gate_margin_bounds_the_difference_of_a_misregistration():
 
 
 def test_gate_margin_removes_a_detection_explained_by_the_residual():
-    det = _frame(2, 0, [[10.0, 10.0], [40.0, 40.0]])._replace(motion=np.array([8.0, 8.0]), clutter=np.array([4.0, 1.0]))
-    assert len(det.moving(0.0, 5.0, 1.0).scores) == 1
+    det = _frame(2, 0, [[10.0, 10.0], [40.0, 40.0]])._replace(motion=np.array([8.0, 8.0]), clutter=np.array([4.5, 1.0]))
+    assert len(det.moving(0.0, 5.0, 1.0).scores) == 1          # needs 5 + (4.5 - 1) = 8.5 > 8
     assert len(det.moving(0.0, 5.0, 0.0).scores) == 2
+
+
+def test_gate_margin_ignores_a_difference_below_one_grey_level():
+    # Motion evidence is whole grey levels: a detection at exactly min_motion is not refused for 0.9 of a level.
+    det = _frame(2, 0, [[10.0, 10.0], [40.0, 40.0]])._replace(motion=np.array([5.0, 5.0]), clutter=np.array([0.9, 1.2]))
+    assert det.moving(0.0, 5.0, 1.0).positions.tolist() == [[10.0, 10.0]]
 
 
 def _cli(*args):
@@ -116,3 +127,24 @@ def test_bad_frame_folders_are_one_line_errors(tmp_path):
     assert r.returncode != 0 and r.stderr.strip().count("\n") == 0
     assert r.stderr.startswith("torchtrack track: error:") and "2.png" in r.stderr
     assert not (tmp_path / "o2").exists()
+
+
+class FixedPoints:
+    """Two detections per frame, moving 3 px/frame."""
+
+    def detect(self, frame, prev_frame, prev_points):
+        return SimpleNamespace(xy=torch.tensor([[40.0, 40.0], [80.0, 90.0]]), score=torch.ones(2),
+                               velocity=torch.tensor([[3.0, 0.0], [3.0, 0.0]]))
+
+
+def test_gate_is_raised_only_on_frames_where_the_plain_gate_passes_more_than_its_budget():
+    base = cv2.GaussianBlur(_texture((128, 128), 4), (0, 0), 1.0)
+    noisy = np.clip(base.astype(int) + np.random.default_rng(0).integers(-2, 3, base.shape), 0, 255).astype(np.uint8)
+    shifted = cv2.warpAffine(base, np.float32([[1, 0, 0.8], [0, 1, 0.0]]), (128, 128))  # a 0.8 px misregistration
+    detection = Detection(FixedPoints(), Registration(RegistrationConfig(method="none")), StageTimer(),
+                          gate=(5.0, 3.0, 2.0, 0.05))
+    assert not detection(1, base).cluttered                    # no previous frame
+    clean = detection(2, noisy)                                 # sensor noise only: a few % pass
+    assert detection.gate_pass <= 0.05 and not clean.cluttered and not clean.clutter.any()
+    moved = detection(3, shifted)
+    assert moved.cluttered

@@ -52,7 +52,10 @@ class PipelineConfig(Checked):
     gate_registration: the motion-evidence threshold is raised by this times the difference the
     registration's frame-to-frame residual leaves at the detection (residual × local gradient,
     ``detection.misregistration``): on a real camera edges of roofs and roads then stop passing for motion
-    where the registration is off by a fraction of a pixel (0: off).
+    where the registration is off by a fraction of a pixel (0: off). Only the part beyond one grey level
+    counts (``frame_detections.gate_margin``), and only on frames where the plain gate (``min_motion``) passes
+    more than ``gate_budget`` of the pixels: on a frame where it passes fewer, they are the vehicles' and the
+    gate stays as it is.
     detector_weights: a weights file (``None``: the shipped weights).
     vehicle_length: the vehicles' typical length in this video (px): the detector gets the frames resampled by
     :data:`TRAINED_VEHICLE_LENGTH` / ``vehicle_length`` (the scale it was trained at) and its detections are
@@ -75,8 +78,10 @@ class PipelineConfig(Checked):
     output_lag, lag_distance: a frame's tracks are written ``output_lag`` frames later, after backfilling
     new tracks, filling short gaps and trimming coasting tails with what those frames showed (0: online;
     :mod:`torchtrack.pipeline.fixed_lag`).
-    merge_distance: two tracks that stay within this many px of each other over the fixed lag's frames follow
-    one vehicle: the younger is left out (0: off; needs ``output_lag`` > 0).
+    merge_distance, merge_age: on frames within ``merge_age`` frames of one where the moving-object gate was
+    raised (``gate_budget``), a track younger than ``merge_age`` frames within ``merge_distance`` px of an older
+    one is left out (a second response to one vehicle or to the clutter beside it; 0: off; needs
+    ``output_lag`` > 0; :mod:`torchtrack.pipeline.fixed_lag`).
     prior: where the detector's prior heatmap comes from: the previous frame's ``detections`` (the
     paper's eq. 1) or its ``tracks``.
     threshold: CLEAR-MOT centre-distance threshold in pixels (the paper's 10 px).
@@ -95,7 +100,8 @@ class PipelineConfig(Checked):
     trackers: dict = field(default_factory=lambda: copy.deepcopy(SELECTED_TRACKERS))
     min_speed: float = option(2.0, ge=0)
     min_motion: float = option(5.0, ge=0)
-    gate_registration: float = option(1.0, ge=0)
+    gate_registration: float = option(3.0, ge=0)
+    gate_budget: float = option(0.05, ge=0, le=1)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
     vehicle_length: float | None = option(None, gt=0)
@@ -108,6 +114,7 @@ class PipelineConfig(Checked):
     output_lag: int = option(3, ge=0)
     lag_distance: float = option(3.0, gt=0)
     merge_distance: float = option(6.0, ge=0)
+    merge_age: int = option(10, ge=1)
     prior: str = option("detections", one_of=("detections", "tracks"))
     threshold: float = option(10.0, gt=0)
     video: bool = True

@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography, homography_jacobian, warp_previous
-from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy
+from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy, gate_margin
 from torchtrack.pipeline.registration import Registration, RegistrationResult
 from torchtrack.pipeline.timer import StageTimer
 
@@ -86,7 +86,7 @@ def misregistration(image: np.ndarray, previous: np.ndarray, residual: float | n
 def gate_pass_fraction(image: np.ndarray, previous: np.ndarray, min_motion: float, margin: float,
                        residual: float) -> float:
     """The fraction of the frame's pixels whose motion evidence passes the moving-object gate, ``≥ min_motion
-    + margin · misregistration`` (computed on bands of rows, as :func:`_banded`)."""
+    + gate_margin(margin · misregistration)`` (computed on bands of rows, as :func:`_banded`)."""
     margin = margin * residual if np.isfinite(residual) else 0.0
     h, w = image.shape
     halo = MOTION_WINDOW // 2 + 1
@@ -96,7 +96,7 @@ def gate_pass_fraction(image: np.ndarray, previous: np.ndarray, min_motion: floa
         rows = slice(y0 - top, y0 - top + min(BAND_ROWS, h - y0))
         a, b = image[top:bottom], previous[top:bottom]
         motion = cv2.blur(cv2.absdiff(a, b), (MOTION_WINDOW, MOTION_WINDOW))
-        need = min_motion + margin * _edge(a, b) if margin else min_motion
+        need = min_motion + gate_margin(margin * _edge(a, b)) if margin else min_motion
         passed += int(np.count_nonzero((motion >= need)[rows]))
     return passed / (h * w)
 
@@ -143,16 +143,19 @@ class Detection:
 
     Each detection's ``clutter`` is the difference the registration's residual near it leaves there
     (:func:`local_residual`, :func:`misregistration`: parallax included), which the moving-object gate adds
-    to its threshold. With ``gate = (min_motion,
-    margin, min_speed)`` the fraction of the frame's pixels that gate passes is measured too (``gate_pass``;
-    :func:`gate_pass_fraction`). With ``scale`` the detector sees the frames resampled by that factor (its
+    to its threshold. With ``gate = (min_motion, margin, min_speed, budget)`` the fraction of the frame's
+    pixels the plain gate (``min_motion``) passes is measured (``gate_pass``; :func:`gate_pass_fraction`);
+    only on a frame where it exceeds ``budget`` (and ``min_motion`` > 0) — misregistration or parallax
+    showing as change over large areas — is the gate raised (``clutter`` kept, ``cluttered`` set, and
+    ``gate_pass`` measured with ``margin``); elsewhere ``clutter`` is zero, and the passing pixels are the
+    vehicles'. With ``scale`` the detector sees the frames resampled by that factor (its
     training scale) and its detections are mapped back. A frame the registration could not register (a new
     segment) is treated like the first: no previous frame, no prior.
     """
 
     def __init__(self, detector, registration: Registration, timer: StageTimer,
                  threshold: float | None = None, weak_threshold: float | None = None,
-                 gate: tuple[float, float, float] | None = None, scale: float = 1.0) -> None:
+                 gate: tuple[float, float, float, float] | None = None, scale: float = 1.0) -> None:
         self.detector = detector
         self.scale = scale
         self.gate = gate
@@ -199,19 +202,27 @@ class Detection:
                 vel_ref, motion = np.full_like(vel_ref, np.nan), np.full(len(pos), np.inf)
                 clutter = np.zeros(len(pos))
                 self.gate_pass = float("nan")
+                raised = False
             else:
                 motion = motion_evidence(image, prev, pos)
                 residual = local_residual(pos, self.last.corners, self.last.corner_errors, self.last.residual,
                                           self.gate[2] if self.gate else 0.0)
                 clutter = misregistration(image, prev, residual, pos)
+                raised = False
                 if self.gate is not None:
-                    self.gate_pass = gate_pass_fraction(image, prev, *self.gate[:2], self.last.residual)
+                    min_motion, margin, _, budget = self.gate
+                    self.gate_pass = gate_pass_fraction(image, prev, min_motion, 0.0, self.last.residual)
+                    raised = bool(margin and min_motion) and self.gate_pass > budget
+                    if raised:
+                        self.gate_pass = gate_pass_fraction(image, prev, min_motion, margin, self.last.residual)
+                    else:
+                        clutter = np.zeros(len(pos))
         self.prev_image, self.prev_h = image, h
         prior = scores >= self.prior_threshold
         self.prior_ref = pos_ref[prior]
         self.prior_velocity = None if np.isnan(vel_ref).any() else vel[prior]
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion, scores >= self.strong_threshold,
-                               grey_level(image, pos), clutter, self.segment)
+                               grey_level(image, pos), clutter, self.segment, raised)
 
     def _detect(self, image: np.ndarray, prev: np.ndarray, prior: np.ndarray, extra: dict):
         """The detector on the frames resampled by ``scale`` (pixel centres kept: ``x_s = (x + ½) s − ½``), its

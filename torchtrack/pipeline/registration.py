@@ -78,7 +78,7 @@ class RegistrationConfig(Checked):
     window: int = option(11, ge=3)
     levels: int = option(3, ge=0)
     refresh_every: int = option(15, ge=1)
-    max_residual: float = option(0.25, gt=0)
+    max_residual: float = option(0.5, gt=0)
     min_inliers: int = option(40, ge=4)
     min_inlier_fraction: float = option(0.3, ge=0, le=1)
     ransac_threshold: float = option(0.7, gt=0)

@@ -57,7 +57,8 @@ class TrackerStream:
         self.tracker = tracker
         self.config = config
         self.dtype = getattr(torch, config.dtype)
-        self.output = FixedLagTracks(config.output_lag, config.lag_distance, config.merge_distance)
+        self.output = FixedLagTracks(config.output_lag, config.lag_distance, config.merge_distance,
+                                     config.merge_age)
         self.previous = np.zeros((0, 2))
         self.duplicates = 0
         self.segment = 0
@@ -85,7 +86,7 @@ class TrackerStream:
         if det.segment != self.segment:
             done = self.output.finish()
             self.output = FixedLagTracks(self.config.output_lag, self.config.lag_distance,
-                                         self.config.merge_distance)
+                                         self.config.merge_distance, self.config.merge_age)
             self.tracker.reset()
             self.segment, self.id_offset, self.previous = det.segment, self.next_id, np.zeros((0, 2))
         given = self.tracker_input(det)
@@ -97,7 +98,8 @@ class TrackerStream:
         self.previous = positions
         if self.config.weak_continues_pending and hasattr(self.tracker, "pending_positions"):
             self.previous = np.concatenate([positions, as_numpy(self.tracker.pending_positions, (2,))])
-        return ids, positions, done + self.output.push(det.index, ids, positions, given.positions, given.velocities)
+        return ids, positions, done + self.output.push(det.index, ids, positions, given.positions, given.velocities,
+                                                                det.cluttered)
 
     def finish(self) -> list[LaggedFrame]:
         """The frames still pending at the end of the stream."""
