@@ -42,9 +42,10 @@ def test_rounds_fine_tune_on_confident_tracks_with_unsure_cells_dont_care(frames
     # unsure cells (detections no confident track explains) are never taught as background
     assert [s for s, _ in seen] == ["dont_care", "dont_care"]
     assert [n for _, n in seen] == [r["pseudo_labels"] for r in report["rounds"]]
-    start, end = load_checkpoint(adapt_module.DEFAULT_WEIGHTS)["model"], load_checkpoint(report["weights"])["model"]
+    weights = tmp_path / report["weights"]
+    start, end = load_checkpoint(adapt_module.DEFAULT_WEIGHTS)["model"], load_checkpoint(weights)["model"]
     assert any(not torch.equal(start[k], end[k]) for k in start)
-    assert load_detector(report["weights"]) is not None            # the shipped format: track --weights takes it
+    assert load_detector(weights) is not None                  # the shipped format: track --weights takes it
     assert (tmp_path / "report.json").is_file() and (tmp_path / "adapt.png").is_file()
 
 

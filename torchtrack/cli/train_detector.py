@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from torchtrack.cli._common import add_common_options, config_file, nonnegative_int, positive_int
+from torchtrack.cli._common import add_common_options, add_force_option, config_file, nonnegative_int, positive_int
 from torchtrack.cli._labelled import add_labelled_options, check_labelled_options, load_labelled
 from torchtrack.io.outputs import write_json
 
@@ -59,6 +59,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--rounds", type=positive_int, default=3, help="--adapt: at most this many rounds (default 3)")
     parser.add_argument("--weights", type=Path, default=None, metavar="PT",
                         help="--adapt: the weights to start from (default: the shipped ones)")
+    add_force_option(parser)
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("--threads", type=positive_int, default=None,
                         help="torch intra-op threads per process (1 is fastest on a busy machine)")
@@ -148,7 +149,7 @@ def _adapt(args) -> int:
     from torchtrack.detector.config import load_config
     from torchtrack.errors import TorchtrackError
     from torchtrack.io.frames import open_frames
-    from torchtrack.io.outputs import check_output_folder
+    from torchtrack.io.outputs import OutputFolder, atomic_file, check_output_file
     from torchtrack.pipeline.adapt import AdaptSettings, adapt, load_frames
     from torchtrack.threads import torch_threads
 
@@ -161,15 +162,16 @@ def _adapt(args) -> int:
     if args.export is None:
         raise TorchtrackError("--adapt needs --export PT (where the adapted weights go)")
     out = args.out if args.out is not None else Path("out/detector-adapt")
-    check_output_folder(out, "--out")
-    name = f"--frames {args.frames}" if args.frames is not None else f"--video {args.video}"
-    frames = load_frames(open_frames(args.frames if args.frames is not None else args.video), name)
+    check_output_file(args.export, "--export")
+    source = args.frames if args.frames is not None else args.video
+    frames = load_frames(open_frames(source), f"--{'frames' if args.frames is not None else 'video'} {source}")
     settings = load_config(args.config).finetune
-    with torch_threads(args.threads):
-        report = adapt(frames, out, args.weights, dataclasses.replace(AdaptSettings(), rounds=args.rounds),
+    folder = OutputFolder(out, "torchtrack train-detector --adapt", args.force, inputs=[source])
+    with torch_threads(args.threads), folder as staging:
+        report = adapt(frames, staging, args.weights, dataclasses.replace(AdaptSettings(), rounds=args.rounds),
                        settings, seed=args.seed, progress=not args.no_progress)
-    args.export.parent.mkdir(parents=True, exist_ok=True)
-    shutil.copy2(report["weights"], args.export)
+        with atomic_file(args.export) as tmp:
+            shutil.copyfile(staging / report["weights"], tmp)
     print(f"adapted in {len(report['rounds'])} round(s), {report['seconds']:.0f} s: {args.export} "
           f"(report: {out / 'report.json'})")
     write_json(args.json, report)

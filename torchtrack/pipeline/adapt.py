@@ -81,7 +81,8 @@ def adapt(frames: np.ndarray, out: str | Path, weights: str | Path | None = None
           settings: AdaptSettings = AdaptSettings(), finetune_config: FinetuneConfig | None = None,
           pipeline: PipelineConfig | None = None, seed: int = 0, progress: bool = True, log=print) -> dict:
     """Adapt ``weights`` (default: the shipped ones) to ``frames (T, H, W)`` uint8 (module docstring); writes
-    under ``out``; returns the report (``rounds``, ``weights``: the last weights' path, ``seconds``)."""
+    under ``out``; returns the report (``rounds``, ``weights``: the last weights' path relative to ``out``,
+    ``seconds``)."""
     started = time.perf_counter()
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -117,10 +118,11 @@ def adapt(frames: np.ndarray, out: str | Path, weights: str | Path | None = None
                                      {"seed": seed, "adapted_from": report["start"], "round": r}))
         state = load_checkpoint(current)["model"]
         previous = labels
-        report["rounds"].append({**row, "loss": tuned["history"][-1]["loss"], "weights": current,
-                                 "seconds": time.perf_counter() - t0})
+        report["rounds"].append({**row, "loss": tuned["history"][-1]["loss"],
+                                 "weights": str(Path(current).relative_to(out)), "seconds": time.perf_counter() - t0})
         _write_report(out, report)
-    report["weights"], report["seconds"] = current, time.perf_counter() - started
+    report["weights"] = str(Path(current).relative_to(out))
+    report["seconds"] = time.perf_counter() - started
     _write_report(out, report)
     return report
 
