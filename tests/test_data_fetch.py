@@ -266,3 +266,21 @@ def test_cli_refuses_a_corrupted_wpafb_copy_with_exit_2(server, tmp_path, capsys
     assert err.count("\n") == 0 and err.startswith("torchtrack data: error: ")
     assert "frame_000103.png: SHA-256" in err
     assert not out.exists()
+
+
+def test_clif2007_lists_its_250_consecutive_frames_and_fetches_from_a_local_copy(tmp_path):
+    from torchtrack.io.datasets import CLIF2007
+
+    frames = [f for f in CLIF2007.files if f.path.startswith("frames/")]
+    assert [f.path for f in frames] == [f"frames/000000-{n}.jpg" for n in range(100006, 100256)]
+    assert all(len(f.sha256) == 64 and f.size > 100_000 for f in frames)
+    assert CLIF2007.marker in {f.path for f in CLIF2007.files}
+    # --from with one file corrupted: refused, naming it, nothing kept under its final name.
+    source = tmp_path / "copy"
+    contents = {f.path: b"x" * f.size for f in CLIF2007.files[:2]}
+    for path, body in contents.items():
+        (source / path).parent.mkdir(parents=True, exist_ok=True)
+        (source / path).write_bytes(body)
+    with pytest.raises(TorchtrackError, match="README.md"):
+        fetch_dataset(CLIF2007, tmp_path / "out", source=source, progress=False)
+    assert not (tmp_path / "out" / "README.md").exists()

@@ -61,7 +61,8 @@ def _run(tmp_path, sequence, monkeypatch, detector, **cfg):
     monkeypatch.setattr(tv, "make_tracker", lambda name, options: tracker)
     source = ArraySource([f.image for f in sequence])
     # ArraySource converts with np.asarray (no copy for uint8 grey), so the oracle finds its frames.
-    cfg = {"min_speed": 0.0, "min_motion": 0.0, **cfg}  # stand-in detectors give no velocity: no moving gate
+    cfg = {"min_speed": 0.0, "min_motion": 0.0, "merge_distance": 0.0, **cfg}  # stand-ins: no velocity, no gate;
+    # the oracle reports every vehicle, neighbours a few px apart included: no merging either
     result = tv.track_video(source, tmp_path, PipelineConfig(**cfg), detector=detector, progress=False,
                             camera=np.stack([f.homography for f in sequence]))
     return result, tracker
@@ -81,6 +82,11 @@ def test_positions_reach_the_tracker_in_reference_coordinates(tmp_path, sequence
         np.testing.assert_allclose(tracks.centers()[idx], f.xy, atol=2e-3)
     m = json.loads(result.files["metrics"].read_text())
     assert m["frames"] == 5 and m["registration_error_px"]["median"] < 0.5
+    # The registration's own account: one segment, a small frame-to-frame residual, a line per frame.
+    reg = m["registration"]
+    assert reg["segments"] == 1 and reg["residual_px"]["frames"] == 4 and reg["residual_px"]["median"] < 0.3
+    lines = result.files["registration"].read_text().splitlines()
+    assert lines[0].startswith("frame,residual_px") and [int(x.split(",")[0]) for x in lines[1:]] == [1, 2, 3, 4, 5]
     assert {"registration", "detection", "tracking", "io", "render"} <= set(m["timings_s"])
     assert m["fps"]["end_to_end"] > 0
     assert (tmp_path / "frame_000001.png").exists()

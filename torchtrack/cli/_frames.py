@@ -143,6 +143,12 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
     print(format_table(HEADER, [_score_row(name, m.get("clear_mot"), m["fps"]["end_to_end"])], floatfmt=".2f"))
     timings = ", ".join(f"{k} {v:.2f}s" for k, v in m["timings_s"].items())
     print(f"{m['frames']} frames, tracker {config.tracker}: {timings}")
+    reg = m["registration"]
+    if reg["residual_px"] and reg["gate_pass_fraction"]:
+        print(f"registration: frame-to-frame residual median {reg['residual_px']['median']:.3f} px "
+              f"(max {reg['residual_px']['max']:.3f}), {reg['segments']} segment(s); the gate passes at most "
+              f"{100 * reg['gate_pass_fraction']['max']:.1f} % of a frame's pixels (median "
+              f"{100 * reg['gate_pass_fraction']['median']:.1f} %)")
     if "registration_error_px" in m:
         print(f"registration error vs camera truth: median {m['registration_error_px']['median']:.3f} px")
     print("wrote " + ", ".join(str(p) for p in files.values()))

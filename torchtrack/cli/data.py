@@ -7,11 +7,11 @@ import os
 from pathlib import Path
 
 from torchtrack.cli._common import add_common_options
-from torchtrack.io.datasets import DATASETS, WPAFB
+from torchtrack.io.datasets import CLIF2007, DATASETS, WPAFB
 from torchtrack.io.outputs import write_json
 
 NAME = "data"
-HELP = "get the data sets that the WPAFB benchmark and the real-frame evaluation need (data fetch wpafb)"
+HELP = "get the real data sets: WPAFB truth and frames, CLIF 2007 frames (data fetch wpafb|clif2007)"
 DESCRIPTION = f"""Get the data sets that some commands need; they are not part of the repository.
 
   wpafb  {WPAFB.title}
@@ -19,7 +19,12 @@ DESCRIPTION = f"""Get the data sets that some commands need; they are not part o
          (licence: {WPAFB.licence}). Needed by torchtrack track --benchmark wpafb, torchtrack tune
          --config tune-gmphd-wpafb and the real-frame part of torchtrack eval-detector.
 
-Commands look for it in ./data/{WPAFB.folder} (also in the source checkout's data/), then in
+  clif2007  {CLIF2007.title},
+         as published in github.com/{CLIF2007.repository} (AFRL public release; the repository states no
+         licence). Real wide-area video without truth, for torchtrack track --frames data/clif2007/frames
+         (docs/real-video.md).
+
+Commands look for WPAFB in ./data/{WPAFB.folder} (also in the source checkout's data/), then in
 ${WPAFB.env}, then in ../shared/data/{WPAFB.folder}; data/README.md describes the files.
 
 action:
@@ -31,6 +36,7 @@ action:
 examples:
   torchtrack data fetch wpafb
   torchtrack data fetch wpafb --from ../shared/data/{WPAFB.folder}
+  torchtrack data fetch clif2007
 """
 
 

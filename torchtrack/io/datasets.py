@@ -97,7 +97,35 @@ WPAFB = Dataset(
                  "from the WPAFB 2009 data set (AFRL, public release).",
 )
 
-DATASETS: dict[str, Dataset] = {WPAFB.name: WPAFB}
+_CLIF = "Data/CLIF_2007"
+
+
+def _clif_frames() -> tuple[DataFile, ...]:
+    from torchtrack.io.clif2007_sums import FRAMES
+
+    rows = (line.split() for line in FRAMES.splitlines())
+    return tuple(DataFile(f"frames/000000-{n}.jpg", f"{_CLIF}/jpg/000000-{n}.jpg", int(size), digest)
+                 for n, size, digest in rows)
+
+
+CLIF2007 = Dataset(
+    name="clif2007",
+    title="CLIF 2007, camera 0: 250 consecutive real frames of 668 x 1004 px (grey JPEG, 4x downsampled; no truth)",
+    folder="clif2007",
+    env="TORCHTRACK_CLIF2007",
+    marker="README.md",
+    files=(DataFile("README.md", f"{_CLIF}/README.md", 650,
+                    "23843c3a85e2b4ec5cb090349f2eb371a6cc200ab994c64c305d244e52230e38"), *_clif_frames()),
+    repository="mleotta/cvpr2015-opensfm",
+    commit="0dd6693462ebfb9c847c08413f06326dac1a8d51",
+    licence="none stated",
+    licence_file="",
+    licence_note="The repository states no licence. Its README.md (copied here) says the frames are a sample of "
+                 "the CLIF 2007 data set, provided by the U.S. Air Force and publicly available from AFRL's SDMS "
+                 "(public release), downsampled by 4 and encoded as JPEG.",
+)
+
+DATASETS: dict[str, Dataset] = {WPAFB.name: WPAFB, CLIF2007.name: CLIF2007}
 
 
 def checkout_root() -> Path | None:

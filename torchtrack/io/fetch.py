@@ -127,7 +127,8 @@ def source_note(dataset: Dataset, origin: str, when: datetime) -> str:
     return (f"# {dataset.title}\n\n"
             f"Fetched {when:%Y-%m-%dT%H:%MZ} by `torchtrack data fetch {dataset.name}` from {origin}.\n\n"
             f"- Published in: {repo} (commit {dataset.commit})\n"
-            f"- Licence: {dataset.licence} ({repo}/blob/{dataset.commit}/{dataset.licence_file}). "
+            f"- Licence: {dataset.licence}"
+            f"{f' ({repo}/blob/{dataset.commit}/{dataset.licence_file})' if dataset.licence_file else ''}. "
             f"{dataset.licence_note}\n"
             f"- SHA-256 of every file: `SHA256SUMS` (check with `sha256sum -c SHA256SUMS`).\n\n"
             f"## Files (here ← in the repository)\n{files}\n")

@@ -13,6 +13,7 @@ from torchtrack.config import Checked, from_mapping, option, read_mapping
 from torchtrack.detector.network import MULTIPLE
 from torchtrack.filters.trackers.options import DEFAULTS, tracker_config
 from torchtrack.pipeline.registration import RegistrationConfig
+from torchtrack.sim.video_config import VideoConfig
 
 SELECTED_TRACKERS: dict = {
     "gmphd": {"fix_separation": 4.0, "confirm_new": True, "handover_distance": 10.0, "coast_threshold": 0.03,
@@ -32,6 +33,10 @@ validation-split sequences, with the fixed-lag output and weak detections of the
 The GM-PHD keeps these options on the first frame too, which has no velocities (``positions_only: {}``)."""
 
 
+TRAINED_VEHICLE_LENGTH = VideoConfig().vehicle_length_median
+"""px: the median vehicle length of the detector's training video."""
+
+
 @dataclass
 class PipelineConfig(Checked):
     """Every knob of the tracker stream and of :func:`torchtrack.pipeline.track_video.track_video`.
@@ -44,7 +49,17 @@ class PipelineConfig(Checked):
     previous frame around the detection, grey levels; ``detection.motion_evidence``) is below these are
     not given to the tracker (they are still recorded in ``detections.txt`` and feed the detector's prior
     heatmap). 0 passes every detection.
+    gate_registration: the motion-evidence threshold is raised by this times the difference the
+    registration's frame-to-frame residual leaves at the detection (residual × local gradient,
+    ``detection.misregistration``): on a real camera edges of roofs and roads then stop passing for motion
+    where the registration is off by a fraction of a pixel (0: off). Only the part beyond one grey level
+    counts (``frame_detections.gate_margin``), and only on frames where the plain gate (``min_motion``) passes
+    more than ``gate_budget`` of the pixels: on a frame where it passes fewer, they are the vehicles' and the
+    gate stays as it is.
     detector_weights: a weights file (``None``: the shipped weights).
+    vehicle_length: the vehicles' typical length in this video (px): the detector gets the frames resampled by
+    :data:`TRAINED_VEHICLE_LENGTH` / ``vehicle_length`` (the scale it was trained at) and its detections are
+    mapped back into the frame (``None``: frames as they are).
     detector_tile: a frame larger than this (px, a multiple of 16) is detected in tiles of this side, each
     with 128 px of frame around it, with the whole frame's result and memory bounded by the tiles
     (``torchtrack.detector.inference``; ``None``: the detector's own setting, 1024; 0: whole frames).
@@ -63,6 +78,10 @@ class PipelineConfig(Checked):
     output_lag, lag_distance: a frame's tracks are written ``output_lag`` frames later, after backfilling
     new tracks, filling short gaps and trimming coasting tails with what those frames showed (0: online;
     :mod:`torchtrack.pipeline.fixed_lag`).
+    merge_distance, merge_age: on frames within ``merge_age`` frames of one where the moving-object gate was
+    raised (``gate_budget``), a track younger than ``merge_age`` frames within ``merge_distance`` px of an older
+    one is left out (a second response to one vehicle or to the clutter beside it; 0: off; needs
+    ``output_lag`` > 0; :mod:`torchtrack.pipeline.fixed_lag`).
     prior: where the detector's prior heatmap comes from: the previous frame's ``detections`` (the
     paper's eq. 1) or its ``tracks``.
     threshold: CLEAR-MOT centre-distance threshold in pixels (the paper's 10 px).
@@ -81,8 +100,11 @@ class PipelineConfig(Checked):
     trackers: dict = field(default_factory=lambda: copy.deepcopy(SELECTED_TRACKERS))
     min_speed: float = option(2.0, ge=0)
     min_motion: float = option(5.0, ge=0)
+    gate_registration: float = option(3.0, ge=0)
+    gate_budget: float = option(0.05, ge=0, le=1)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)
     detector_weights: str | None = None
+    vehicle_length: float | None = option(None, gt=0)
     detector_tile: int | None = option(None, ge=0)
     detector_backend: str = option("float", one_of=("auto", "float", "int8"))
     detection_threshold: float | None = option(None, ge=0, lt=1)
@@ -91,6 +113,8 @@ class PipelineConfig(Checked):
     weak_continues_pending: bool = False
     output_lag: int = option(3, ge=0)
     lag_distance: float = option(3.0, gt=0)
+    merge_distance: float = option(6.0, ge=0)
+    merge_age: int = option(10, ge=1)
     prior: str = option("detections", one_of=("detections", "tracks"))
     threshold: float = option(10.0, gt=0)
     video: bool = True
@@ -122,6 +146,11 @@ class PipelineConfig(Checked):
             raise self.refuse("device", f"is {self.device}, but torch sees no CUDA device here")
         if not isinstance(self.trackers, dict) or not all(isinstance(v, dict) for v in self.trackers.values()):
             raise self.refuse("trackers", "must map tracker names to option mappings")
+
+    @property
+    def detector_scale(self) -> float:
+        """The factor the detector's frames are resampled by (``vehicle_length``)."""
+        return 1.0 if self.vehicle_length is None else TRAINED_VEHICLE_LENGTH / self.vehicle_length
 
     def options_for(self, name: str) -> dict | None:
         """The options tracker ``name`` runs with in the pipeline (``None``: its defaults)."""

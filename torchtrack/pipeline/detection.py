@@ -7,15 +7,19 @@ import inspect
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography, homography_jacobian, warp_previous
-from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy
-from torchtrack.pipeline.registration import Registration
+from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy, gate_margin
+from torchtrack.pipeline.registration import Registration, RegistrationResult
 from torchtrack.pipeline.timer import StageTimer
 
 MOTION_WINDOW = 5
 """Side (px) of the window over which :func:`motion_evidence` averages the frame difference."""
+
+BAND_ROWS = 256
+"""Rows of the frame filtered at once by :func:`_banded` and :func:`gate_pass_fraction`."""
 
 
 def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray) -> np.ndarray:
@@ -27,6 +31,76 @@ def motion_evidence(image: np.ndarray, previous: np.ndarray, points: np.ndarray)
                    points, MOTION_WINDOW // 2)
 
 
+def _gradient(image: np.ndarray) -> np.ndarray:
+    """Mean gradient magnitude (grey levels per px, 3×3 Sobel) over a ``MOTION_WINDOW``-px square."""
+    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3) / 8
+    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3) / 8
+    return cv2.blur(cv2.magnitude(gx, gy), (MOTION_WINDOW, MOTION_WINDOW))
+
+
+def _edge(image: np.ndarray, previous: np.ndarray) -> np.ndarray:
+    """The smaller of the two frames' mean gradient magnitudes: a static edge shows in both, while where a
+    vehicle moved only the frame holding it has one (its place in the other frame is road)."""
+    return np.minimum(_gradient(image), _gradient(previous))
+
+
+LOCAL_RADIUS = 16.0
+"""Radius (px) of the neighbourhood over which :func:`local_residual` takes the corners' median error."""
+
+LOCAL_CORNERS = 3
+"""Corners a neighbourhood needs for its own residual (a vehicle holds at most one corner)."""
+
+
+def local_residual(points: np.ndarray, corners: np.ndarray | None, errors: np.ndarray | None,
+                   residual: float, moving: float) -> np.ndarray:
+    """The registration's residual near each of ``points (K, 2)``: the median error of the registration's
+    ``corners (M, 2)`` within ``LOCAL_RADIUS`` px where at least ``LOCAL_CORNERS`` lie there, else the frame's
+    ``residual``. Corners whose error reaches ``moving`` px (the gate's ``min_speed``) are left out: they move
+    like vehicles. On a tall building the corners share its parallax, so its neighbourhood's residual is its
+    parallax. ``(K,)``."""
+    out = np.full(len(points), residual, np.float64)
+    if corners is not None and moving > 0:
+        corners, errors = corners[errors < moving], errors[errors < moving]
+    if corners is None or len(corners) < LOCAL_CORNERS or not len(points):
+        return out
+    near = cKDTree(corners).query_ball_point(points, LOCAL_RADIUS)
+    for k, idx in enumerate(near):
+        if len(idx) >= LOCAL_CORNERS:
+            out[k] = np.median(errors[idx])
+    return out
+
+
+def misregistration(image: np.ndarray, previous: np.ndarray, residual: float | np.ndarray,
+                    points: np.ndarray) -> np.ndarray:
+    """The frame difference a registration error of ``residual`` px leaves at each of ``points (K, 2)``:
+    ``residual · |∇I|``, the bound on ``|I(x + δ) − I(x)| ≈ |∇I · δ|`` (first order, ``|δ| = residual``), with
+    ``|∇I|`` averaged over the motion window and the smaller of ``image``'s and the registered ``previous``
+    frame's; ``residual`` the frame's (px) or one per point (:func:`local_residual`). Zero where it is unknown
+    (NaN). ``(K,)``."""
+    residual = np.broadcast_to(np.asarray(residual, np.float64), (len(points),))
+    if not len(points) or not np.isfinite(residual).any():
+        return np.zeros(len(points))
+    return np.nan_to_num(residual) * _banded(_edge, (image, previous), points, MOTION_WINDOW // 2 + 1)
+
+
+def gate_pass_fraction(image: np.ndarray, previous: np.ndarray, min_motion: float, margin: float,
+                       residual: float) -> float:
+    """The fraction of the frame's pixels whose motion evidence passes the moving-object gate, ``≥ min_motion
+    + gate_margin(margin · misregistration)`` (computed on bands of rows, as :func:`_banded`)."""
+    margin = margin * residual if np.isfinite(residual) else 0.0
+    h, w = image.shape
+    halo = MOTION_WINDOW // 2 + 1
+    passed = 0
+    for y0 in range(0, h, BAND_ROWS):
+        top, bottom = max(0, y0 - halo), min(h, y0 + BAND_ROWS + halo)
+        rows = slice(y0 - top, y0 - top + min(BAND_ROWS, h - y0))
+        a, b = image[top:bottom], previous[top:bottom]
+        motion = cv2.blur(cv2.absdiff(a, b), (MOTION_WINDOW, MOTION_WINDOW))
+        need = min_motion + gate_margin(margin * _edge(a, b)) if margin else min_motion
+        passed += int(np.count_nonzero((motion >= need)[rows]))
+    return passed / (h * w)
+
+
 TONE_WINDOW = 3
 """Side (px) of the window over which :func:`grey_level` averages the frame."""
 
@@ -36,10 +110,6 @@ def grey_level(image: np.ndarray, points: np.ndarray) -> np.ndarray:
     tone of the vehicle detected there, the attribute the GM-PHD's ``tone_sigma`` compares between frames.
     ``(K,)``."""
     return _banded(lambda a: cv2.blur(a, (TONE_WINDOW, TONE_WINDOW)), (image,), points, TONE_WINDOW // 2)
-
-
-BAND_ROWS = 256
-"""Rows of the frame filtered at once by :func:`_banded`."""
 
 
 def _banded(op, images: tuple[np.ndarray, ...], points: np.ndarray, halo: int) -> np.ndarray:
@@ -70,11 +140,28 @@ class Detection:
     down still: the detections between the two are marked weak (``FrameDetections.strong`` false). The prior
     heatmap of the next frame takes only the detections at or above the detector's own threshold, so that
     weak peaks do not feed themselves.
+
+    Each detection's ``clutter`` is the difference the registration's residual near it leaves there
+    (:func:`local_residual`, :func:`misregistration`: parallax included), which the moving-object gate adds
+    to its threshold. With ``gate = (min_motion, margin, min_speed, budget)`` the fraction of the frame's
+    pixels the plain gate (``min_motion``) passes is measured (``gate_pass``; :func:`gate_pass_fraction`);
+    only on a frame where it exceeds ``budget`` (and ``min_motion`` > 0) — misregistration or parallax
+    showing as change over large areas — is the gate raised (``clutter`` kept, ``cluttered`` set, and
+    ``gate_pass`` measured with ``margin``); elsewhere ``clutter`` is zero, and the passing pixels are the
+    vehicles'. With ``scale`` the detector sees the frames resampled by that factor (its
+    training scale) and its detections are mapped back. A frame the registration could not register (a new
+    segment) is treated like the first: no previous frame, no prior.
     """
 
     def __init__(self, detector, registration: Registration, timer: StageTimer,
-                 threshold: float | None = None, weak_threshold: float | None = None) -> None:
+                 threshold: float | None = None, weak_threshold: float | None = None,
+                 gate: tuple[float, float, float, float] | None = None, scale: float = 1.0) -> None:
         self.detector = detector
+        self.scale = scale
+        self.gate = gate
+        self.last: RegistrationResult | None = None  # the last frame's registration
+        self.gate_pass = float("nan")                  # and the fraction of its pixels the gate passes
+        self.segment = 0
         self.registration = registration
         self.timer = timer
         if "threshold" not in inspect.signature(detector.detect).parameters:
@@ -93,7 +180,11 @@ class Detection:
 
     def __call__(self, index: int, image: np.ndarray) -> FrameDetections:
         with self.timer("registration"):
-            h = self.registration(image).homography
+            self.last = self.registration(image)
+            h = self.last.homography
+            if self.last.segment != self.segment:     # a frame no search registered: start afresh
+                self.segment, self.prev_image, self.prior_ref, self.prior_velocity = (
+                    self.last.segment, None, np.zeros((0, 2)), None)
             h_inv = np.linalg.inv(h)
             # Previous frame resampled into the current frame: x_{k-1} = H_{k-1}^{-1} H_k x_k.
             prev = image if self.prev_image is None else warp_previous(
@@ -103,21 +194,52 @@ class Detection:
             extra = {} if self.decode_threshold is None else {"threshold": self.decode_threshold}
             if self.takes_velocity and self.prior_velocity is not None:
                 extra["prev_velocity"] = self.prior_velocity
-            found = self.detector.detect(image, prev, prior, **extra)
-        pos, vel, scores = as_numpy(found.xy, (2,)), as_numpy(found.velocity, (2,)), as_numpy(found.score, ())
+            pos, vel, scores = self._detect(image, prev, prior, extra)
         with self.timer("registration"):
             pos_ref = apply_homography(pos, h)
             vel_ref = (homography_jacobian(h, pos) @ vel[:, :, None])[:, :, 0] if len(pos) else vel
             if self.prev_image is None:
                 vel_ref, motion = np.full_like(vel_ref, np.nan), np.full(len(pos), np.inf)
+                clutter = np.zeros(len(pos))
+                self.gate_pass = float("nan")
+                raised = False
             else:
                 motion = motion_evidence(image, prev, pos)
+                residual = local_residual(pos, self.last.corners, self.last.corner_errors, self.last.residual,
+                                          self.gate[2] if self.gate else 0.0)
+                clutter = misregistration(image, prev, residual, pos)
+                raised = False
+                if self.gate is not None:
+                    min_motion, margin, _, budget = self.gate
+                    self.gate_pass = gate_pass_fraction(image, prev, min_motion, 0.0, self.last.residual)
+                    raised = bool(margin and min_motion) and self.gate_pass > budget
+                    if raised:
+                        self.gate_pass = gate_pass_fraction(image, prev, min_motion, margin, self.last.residual)
+                    else:
+                        clutter = np.zeros(len(pos))
         self.prev_image, self.prev_h = image, h
         prior = scores >= self.prior_threshold
         self.prior_ref = pos_ref[prior]
         self.prior_velocity = None if np.isnan(vel_ref).any() else vel[prior]
         return FrameDetections(index, h, pos_ref, vel_ref, scores, pos, vel, motion, scores >= self.strong_threshold,
-                               grey_level(image, pos))
+                               grey_level(image, pos), clutter, self.segment, raised)
+
+    def _detect(self, image: np.ndarray, prev: np.ndarray, prior: np.ndarray, extra: dict):
+        """The detector on the frames resampled by ``scale`` (pixel centres kept: ``x_s = (x + ½) s − ½``), its
+        positions and velocities mapped back: ``(positions, velocities, scores)`` in frame pixels."""
+        s = self.scale
+        if s != 1.0:
+            size = (max(1, round(image.shape[1] * s)), max(1, round(image.shape[0] * s)))
+            how = cv2.INTER_AREA if s < 1 else cv2.INTER_LINEAR
+            image, prev = (cv2.resize(a, size, interpolation=how) for a in (image, prev))
+            prior = (np.asarray(prior, np.float64) + 0.5) * s - 0.5
+            if "prev_velocity" in extra:
+                extra = {**extra, "prev_velocity": np.asarray(extra["prev_velocity"]) * s}
+        found = self.detector.detect(image, prev, prior, **extra)
+        pos, vel, scores = as_numpy(found.xy, (2,)), as_numpy(found.velocity, (2,)), as_numpy(found.score, ())
+        if s != 1.0:
+            pos, vel = (pos + 0.5) / s - 0.5, vel / s
+        return pos, vel, scores
 
     def set_prior(self, points: np.ndarray) -> None:
         """Use ``points (N, 2)`` (reference coordinates, without velocities) for the next frame's prior heatmap

@@ -13,7 +13,14 @@ frame ``k`` lets the pipeline correct three systematic losses with what the next
 3. **trimming** — a position with no detection within ``distance`` px (the tracker coasting) is kept only
    if the same identity has a detection within the next ``L`` frames: the coasting tail of a track whose
    vehicle has gone is dropped, coasting through a short miss is kept (positions of the last ``L``
-   frames of the stream, whose future is unknown, are kept).
+   frames of the stream, whose future is unknown, are kept);
+4. **leaving out tracks beside older ones on a cluttered video** (``merge_distance`` > 0) — on a frame
+   within ``merge_age`` frames of one where the moving-object gate had to be raised (``cluttered``: the
+   plain gate passed more than its budget of the pixels, misregistration or parallax showing as change),
+   an identity first reported fewer than ``merge_age`` frames ago that lies within ``merge_distance`` px
+   of an identity reported before it is left out of that frame: on such video a new track beside an
+   established one is a second response to the same vehicle or to the clutter around it. On clean video
+   (never cluttered) nothing is left out: new tracks beside old ones there are vehicles meeting.
 
 Everything is in the tracker's (reference) coordinates. Memory is bounded: ``L`` frames of tracks and
 detections plus the identities seen in the last ``L + 1`` frames and the set of identities ever reported.
@@ -46,6 +53,7 @@ class _Pending:
     supported: list[bool]
     detections: np.ndarray   # (K, 2) the tracker's input positions
     velocities: np.ndarray   # (K, 2) their velocities (NaN: unknown)
+    cluttered: bool = False  # within merge_age frames of a frame whose gate was raised (item 4)
 
     def holds(self, point: np.ndarray, distance: float) -> bool:
         """Whether a reported track of this frame lies within ``distance`` of ``point``."""
@@ -74,6 +82,10 @@ class FixedLagTracks:
 
     lag: int = 3
     distance: float = 3.0
+    merge_distance: float = 0.0
+    merge_age: int = 10
+    _first: dict = field(default_factory=dict, init=False)     # id -> the frame it was first reported
+    _cluttered_at: float = field(default=-np.inf, init=False)   # the last frame pushed as cluttered
     _pending: deque = field(default_factory=deque, init=False)
     _last: dict = field(default_factory=dict, init=False)      # id -> (frame, position) of its last report
     _known: set = field(default_factory=set, init=False)       # every identity reported so far
@@ -83,16 +95,19 @@ class FixedLagTracks:
             raise TorchtrackError(f"FixedLagTracks needs lag >= 0 and distance > 0, got {self.lag}, {self.distance}")
 
     def push(self, index: int, ids: np.ndarray, positions: np.ndarray, detections: np.ndarray,
-             velocities: np.ndarray) -> list[LaggedFrame]:
+             velocities: np.ndarray, cluttered: bool = False) -> list[LaggedFrame]:
         """Frame ``index``: the tracker's ``ids (N,)`` and ``positions (N, 2)``, its input ``detections
-        (K, 2)`` with their ``velocities (K, 2)``. Returns the frames final now."""
+        (K, 2)`` with their ``velocities (K, 2)``, and whether the moving-object gate was raised on it
+        (``cluttered``, item 4). Returns the frames final now."""
         ids = np.asarray(ids, np.int64).reshape(-1)
         positions = np.asarray(positions, np.float64).reshape(-1, 2)
         if self.lag == 0:
             return [LaggedFrame(index, ids, positions)]
         detections = np.asarray(detections, np.float64).reshape(-1, 2)
         velocities = np.asarray(velocities, np.float64).reshape(-1, 2)
-        frame = _Pending(index, [], [], [], detections, velocities)
+        if cluttered:
+            self._cluttered_at = index
+        frame = _Pending(index, [], [], [], detections, velocities, index - self._cluttered_at <= self.merge_age)
         for ident, pos in zip(ids.tolist(), positions):
             q, d = _nearest(detections, pos) if len(detections) else (-1, np.inf)
             supported = d < self.distance
@@ -101,6 +116,7 @@ class FixedLagTracks:
             elif ident not in self._known and supported:
                 self._backfill(ident, detections[q], velocities[q], index)
             frame.add(ident, pos, supported)
+            self._first.setdefault(ident, index)
             self._last[ident] = (index, pos)
             self._known.add(ident)
         self._pending.append(frame)
@@ -134,9 +150,27 @@ class FixedLagTracks:
                 return
             point, velocity, at = frame.detections[q], frame.velocities[q], frame.index
             frame.add(ident, point, True)
+            self._first[ident] = at
 
     def _final(self, frame: _Pending, trim: bool = True) -> LaggedFrame:
         later = {i for f in self._pending for i, s in zip(f.ids, f.supported) if s}
         keep = np.array([not trim or s or i in later for i, s in zip(frame.ids, frame.supported)], bool)
         positions = np.array(frame.positions, np.float64).reshape(-1, 2)
-        return LaggedFrame(frame.index, np.array(frame.ids, np.int64)[keep], positions[keep])
+        ids = np.array(frame.ids, np.int64)
+        if self.merge_distance > 0 and frame.cluttered:
+            keep &= ~self._beside_older(frame.index, ids, positions, keep)
+        return LaggedFrame(frame.index, ids[keep], positions[keep])
+
+    def _beside_older(self, index: int, ids: np.ndarray, positions: np.ndarray, keep: np.ndarray) -> np.ndarray:
+        """``(N,)`` whether each position belongs to an identity younger than ``merge_age`` frames within
+        ``merge_distance`` of an older one (item 4 of the module docstring)."""
+        out = np.zeros(len(ids), bool)
+        cand = np.flatnonzero(keep)
+        if len(cand) < 2:
+            return out
+        d = np.hypot(*(positions[cand, None] - positions[None, cand]).transpose(2, 0, 1))
+        for a, b in zip(*np.nonzero(np.triu(d < self.merge_distance, 1))):
+            old, new = sorted((cand[a], cand[b]), key=lambda i: (self._first[ids[i]], ids[i]))
+            if self._first[ids[old]] < self._first[ids[new]] and index - self._first[ids[new]] < self.merge_age:
+                out[new] = True
+        return out

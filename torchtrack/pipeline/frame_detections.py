@@ -19,7 +19,11 @@ class FrameDetections(NamedTuple):
     (:func:`~torchtrack.pipeline.detection.motion_evidence`); ``strong (K,)`` whether it scored at least the
     detection threshold (the others are weak detections, decoded further down for
     :class:`~torchtrack.pipeline.tracker_stream.TrackerStream` to continue tracks); ``tones (K,)`` the grey
-    level at each detection (:func:`~torchtrack.pipeline.detection.grey_level`; None where not measured).
+    level at each detection (:func:`~torchtrack.pipeline.detection.grey_level`; None where not measured);
+    ``clutter (K,)`` the frame difference the registration's residual leaves at each detection (grey levels,
+    :func:`~torchtrack.pipeline.detection.misregistration`; None: not measured); ``segment`` the registration's
+    segment (a frame it could not register starts the next, and the tracks restart there); ``cluttered`` whether
+    the moving-object gate was raised on this frame (its plain form passed more than its budget of the pixels).
     On the first frame there is no previous frame: ``velocities`` are NaN (unknown) and ``motion`` is ``inf``,
     so that the moving-object gate passes everything and the trackers start without a velocity."""
 
@@ -33,6 +37,9 @@ class FrameDetections(NamedTuple):
     motion: np.ndarray
     strong: np.ndarray
     tones: np.ndarray | None = None
+    clutter: np.ndarray | None = None
+    segment: int = 0
+    cluttered: bool = False
 
     @classmethod
     def registered(cls, index: int, positions: np.ndarray, velocities: np.ndarray | None = None,
@@ -49,13 +56,26 @@ class FrameDetections(NamedTuple):
     def select(self, keep: np.ndarray) -> FrameDetections:
         """The detections where ``keep (K,)`` (a mask or indices)."""
         return self._replace(**{k: v[keep] for k, v in self._asdict().items()
-                                if k not in ("index", "homography") and v is not None})
+                                if k not in ("index", "homography", "segment", "cluttered") and v is not None})
 
-    def moving(self, min_speed: float = 0.0, min_motion: float = 0.0) -> FrameDetections:
+    def moving(self, min_speed: float = 0.0, min_motion: float = 0.0, margin: float = 0.0) -> FrameDetections:
         """The detections with predicted speed ``>= min_speed`` px/frame (or unknown) and motion evidence
-        ``>= min_motion``."""
+        ``>= min_motion + gate_margin(margin · clutter)``."""
+        need = min_motion + (gate_margin(margin * self.clutter) if margin and self.clutter is not None else 0.0)
         return self.select(~(np.hypot(self.velocities[:, 0], self.velocities[:, 1]) < min_speed)
-                           & (self.motion >= min_motion))
+                           & (self.motion >= need))
+
+
+MOTION_STEP = 1.0
+"""Grey levels: the motion evidence is an 8-bit box-filter mean, rounded to whole grey levels, so a
+misregistration difference below one level is not told apart from that rounding (:func:`gate_margin`)."""
+
+
+def gate_margin(difference: np.ndarray | float) -> np.ndarray | float:
+    """What the moving-object gate adds to ``min_motion`` for a registration ``difference`` (grey levels) at a
+    point: the part beyond :data:`MOTION_STEP`. A detection at exactly ``min_motion`` is then not refused for a
+    tenth of a grey level the residual's measurement noise leaves on a vehicle's own edges."""
+    return np.maximum(np.asarray(difference, np.float64) - MOTION_STEP, 0.0)
 
 
 def as_numpy(x, shape_tail: tuple[int, ...]) -> np.ndarray:

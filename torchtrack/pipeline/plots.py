@@ -1,4 +1,5 @@
-"""Plots of a pipeline run: tracks over the first frame, and MOTA / identity switches per tracker."""
+"""Plots of a pipeline run: tracks over the first frame, MOTA / identity switches per tracker, and the rounds of
+``train-detector --adapt``."""
 
 from __future__ import annotations
 
@@ -45,4 +46,20 @@ def plot_scores(rows: dict[str, dict], path: str | Path) -> Path:
         ax.set_ylabel(label)
         ax.set_xticks(x, names, rotation=20, fontsize=8)
         ax.grid(axis="y", alpha=0.3)
+    return save_figure(fig, path)
+
+
+def plot_rounds(rounds: list[dict], path: str | Path) -> Path:
+    """Per round of ``train-detector --adapt`` (``report.json``'s rows): the pseudo-labels and how much of them
+    changed since the previous round."""
+    r = [row["round"] for row in rounds]
+    fig, axes = plt.subplots(1, 2, figsize=(8, 3.0), dpi=110)
+    axes[0].plot(r, [row["pseudo_labels"] for row in rounds], "o-", color="tab:blue")
+    axes[0].set_ylabel("pseudo-labels")
+    axes[1].plot(r, [100 * row["change"] for row in rounds], "o-", color="tab:red")
+    axes[1].set_ylabel("changed since the previous round (%)")
+    for ax in axes:
+        ax.set_xlabel("round")
+        ax.set_xticks(r)
+        ax.grid(alpha=0.3)
     return save_figure(fig, path)

@@ -23,8 +23,10 @@ For each frame ``k`` (only the previous frame is kept, so memory does not grow w
 
 At the end, the recorded tracks (in memory) are scored against the truth (CLEAR-MOT,
 :func:`torchtrack.metrics.table.score`) where given, and ``metrics.json`` gets the scores, the per-stage
-timings (registration, detection, tracking, I/O, render) and the frames per second. ``metrics.json`` is
-written last, so a folder holding it holds a complete run.
+timings (registration, detection, tracking, I/O, render), the frames per second and the registration's
+summary (frame-to-frame residual, segments, searches, the fraction of pixels the moving-object gate passes;
+per frame in ``registration.csv``). ``metrics.json`` is written last, so a folder holding it holds a
+complete run.
 """
 
 from __future__ import annotations
@@ -52,6 +54,7 @@ from torchtrack.pipeline.fixed_lag import LaggedFrame
 from torchtrack.pipeline.frame_detections import FrameDetections
 from torchtrack.pipeline.recorder import TrackRecorder
 from torchtrack.pipeline.registration import Registration
+from torchtrack.pipeline.registration_log import RegistrationLog
 from torchtrack.pipeline.timer import StageTimer
 from torchtrack.pipeline.tracker_stream import TrackerStream
 from torchtrack.threads import torch_threads
@@ -114,7 +117,9 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         detector = load_detector(cfg.detector_weights, cfg.detector_tile, cfg.detector_backend)
     timer = StageTimer()
     detection = Detection(detector, Registration(cfg.registration), timer, cfg.detection_threshold,
-                          cfg.weak_threshold)
+                          cfg.weak_threshold,
+                          gate=(cfg.min_motion, cfg.gate_registration, cfg.min_speed, cfg.gate_budget),
+                          scale=cfg.detector_scale)
     if tracker is None:
         tracker = make_tracker(cfg.tracker, cfg.options_for(cfg.tracker))
     stream = TrackerStream(tracker, cfg)
@@ -125,6 +130,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                                  scale=cfg.scale, legend=marks) if cfg.video else None
     kept: list[FrameDetections] = []
     reg_errors: list[float] = []
+    per_frame = RegistrationLog(out / "registration.csv")
+    files["registration"] = per_frame.path
     waiting: dict[int, tuple[np.ndarray, np.ndarray]] = {}  # frames whose tracks are not final: image, H_k
     frames = 0
     t_start = time.perf_counter()
@@ -149,7 +156,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         with (torch_threads(cfg.threads),
               tqdm(total=n_frames or None, desc=f"track {cfg.tracker}", unit="frame", disable=not progress,
                    leave=False) as bar,
-              TrackRecorder(files["tracks"]) as tracks_out, TrackRecorder(files["detections"]) as det_out):
+              TrackRecorder(files["tracks"]) as tracks_out, TrackRecorder(files["detections"]) as det_out,
+              per_frame):
             frames_in = prefetch(source)
             while True:
                 with timer("io"):
@@ -157,6 +165,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                 if frame is None:
                     break
                 det = detection(frame.index, frame.image)
+                per_frame.add(frame.index, detection.last, detection.gate_pass)
                 if camera is not None and frame.index <= len(camera):
                     # True frame k → frame 1 map: H_1 H_k^{-1} (the generator's H maps reference → frame).
                     true_h = camera[0] @ np.linalg.inv(camera[frame.index - 1])
@@ -203,6 +212,7 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
     metrics["timings_s"] = {**seconds, "total": wall}
     metrics["fps"] = {"end_to_end": frames / wall,
                       **{f"{k}_only": frames / v for k, v in seconds.items() if v > 0}}
+    metrics["registration"] = per_frame.summary()
     if reg_errors:
         metrics["registration_error_px"] = {"median": float(np.median(reg_errors)),
                                             "p90": float(np.percentile(reg_errors, 90)),

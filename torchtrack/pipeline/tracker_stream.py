@@ -2,7 +2,8 @@
 
 Per frame (:class:`TrackerStream`):
 
-1. the **moving-object gate** (``min_speed``, ``min_motion``; :meth:`FrameDetections.moving`);
+1. the **moving-object gate** (``min_speed``, ``min_motion`` raised by ``gate_registration`` times the
+   difference the registration's residual leaves at the detection; :meth:`FrameDetections.moving`);
 2. **weak detections that continue a track** — detections decoded below the detector's threshold
    (down to ``weak_threshold``) are given to the tracker only where they continue a track: their position
    minus their velocity lies within ``weak_distance`` px of a position the tracker reported at the previous
@@ -56,14 +57,19 @@ class TrackerStream:
         self.tracker = tracker
         self.config = config
         self.dtype = getattr(torch, config.dtype)
-        self.output = FixedLagTracks(config.output_lag, config.lag_distance)
+        self.output = FixedLagTracks(config.output_lag, config.lag_distance, config.merge_distance,
+                                     config.merge_age)
         self.previous = np.zeros((0, 2))
         self.duplicates = 0
+        self.segment = 0
+        self.id_offset = 0   # identities of a new segment start above every earlier one
+        self.next_id = 0
 
     def tracker_input(self, det: FrameDetections) -> FrameDetections:
         """The detections the tracker gets: moving, and strong or continuing a previous position."""
         gated = self.config.min_speed > 0 or self.config.min_motion > 0
-        moving = det.moving(self.config.min_speed, self.config.min_motion) if gated else det
+        moving = det.moving(self.config.min_speed, self.config.min_motion, self.config.gate_registration) \
+            if gated else det
         keep = moving.strong.copy()
         weak = np.flatnonzero(~keep & (moving.scores >= (self.config.weak_threshold or np.inf)))
         if len(weak) and len(self.previous) and not np.isnan(moving.velocities).any():
@@ -73,14 +79,27 @@ class TrackerStream:
         return moving if keep.all() else moving.select(keep)
 
     def step(self, det: FrameDetections) -> tuple[np.ndarray, np.ndarray, list[LaggedFrame]]:
-        """One frame: the tracker's online ``ids (N,)``, ``positions (N, 2)`` and the frames final now."""
+        """One frame: the tracker's online ``ids (N,)``, ``positions (N, 2)`` and the frames final now.
+        A frame of a new registration segment ends every track: the pending frames are final at once, the
+        tracker starts afresh, and its identities continue above the earlier ones."""
+        done = []
+        if det.segment != self.segment:
+            done = self.output.finish()
+            self.output = FixedLagTracks(self.config.output_lag, self.config.lag_distance,
+                                         self.config.merge_distance, self.config.merge_age)
+            self.tracker.reset()
+            self.segment, self.id_offset, self.previous = det.segment, self.next_id, np.zeros((0, 2))
         given = self.tracker_input(det)
         ids, positions, dropped = run_tracker_step(self.tracker, given, self.dtype, self.config.device)
+        ids = ids + self.id_offset
+        if len(ids):
+            self.next_id = max(self.next_id, int(ids.max()) + 1)
         self.duplicates += dropped
         self.previous = positions
         if self.config.weak_continues_pending and hasattr(self.tracker, "pending_positions"):
             self.previous = np.concatenate([positions, as_numpy(self.tracker.pending_positions, (2,))])
-        return ids, positions, self.output.push(det.index, ids, positions, given.positions, given.velocities)
+        return ids, positions, done + self.output.push(det.index, ids, positions, given.positions, given.velocities,
+                                                                det.cluttered)
 
     def finish(self) -> list[LaggedFrame]:
         """The frames still pending at the end of the stream."""
