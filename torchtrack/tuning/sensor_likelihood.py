@@ -90,9 +90,11 @@ def log_likelihood(theta: Tensor, data: SensorPairs) -> Tensor:
                                                                            "amax")
     peak = torch.where(torch.isfinite(peak), peak, torch.zeros_like(peak))
     summed = torch.zeros(M, dtype=ratio.dtype).index_add(0, data.track_frame, (ratio - peak[data.track_frame]).exp())
-    log_sum = torch.log(summed) + peak                                   # log Σ_j g/c, −inf where no candidate
-    inner = torch.logaddexp(torch.log1p(-pd).expand_as(log_sum), torch.log(pd) + log_sum)
-    ends = torch.where(torch.isfinite(log_sum), log_sum, torch.zeros_like(log_sum))
+    has = summed > 0                                                     # a candidate in the gate
+    log_sum = torch.log(torch.where(has, summed, torch.ones_like(summed))) + peak      # log Σ_j g/c_i
+    miss = torch.log1p(-pd).expand_as(log_sum)
+    inner = torch.where(has, torch.logaddexp(miss, torch.log(pd) + log_sum), miss)
+    ends = torch.where(has, log_sum, torch.zeros_like(log_sum))
     return torch.where(data.endpoint, ends, inner).sum()
 
 
