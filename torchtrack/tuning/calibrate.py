@@ -8,7 +8,8 @@ Expectation–maximisation with the tracker as the E-step:
    at each frame it is reported; tracks with fewer than :data:`MIN_DETECTIONS` detections are dropped; a
    batched CV Rauch–Tung–Striebel smoother (:mod:`torchtrack.tuning.track_smoother`) gives every frame of a
    track's life (first to last detection) the leave-one-out predictive of its detection.
-2. **M-step** — the sensor (σ, p_D, κ and, with velocities, σ_v and the clutter's velocity spread τ) maximises
+2. **M-step** — from three starts of p_D (the share of frames inside the tracks' lives with a detection, 0.5 and
+   0.9; the likelihood can have more than one maximum), the sensor (σ, p_D, κ and, with velocities, σ_v and the clutter's velocity spread τ) maximises
    the multi-object likelihood of every frame's detections given those states
    (:mod:`torchtrack.tuning.sensor_likelihood`); the process noise ``q`` maximises the tracks' Kalman likelihood
    (golden-section search on ``log q``); survival and birth rate are counted from the tracks' ends and starts.
@@ -31,7 +32,7 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.mot import MOTData
 from torchtrack.tuning.background import measure_background
-from torchtrack.tuning.sensor_likelihood import SensorPairs, fit_sensor_likelihood
+from torchtrack.tuning.sensor_likelihood import SensorPairs, fit_sensor_likelihood, other_tracks, to_theta
 from torchtrack.tuning.track_smoother import q_profile, smooth
 
 ITERATIONS = 1
@@ -154,7 +155,10 @@ def associate(data: DetectionFrames, tracks: dict[int, list[tuple[int, np.ndarra
 def sensor_pairs(data: DetectionFrames, tracks: Tracks, loo_mean: torch.Tensor, loo_cov: torch.Tensor,
                  radius: float, clutter_density: float, clutter_velocity_sigma: float | None) -> SensorPairs:
     """The likelihood's data: every frame of every track's life with its :data:`CANDIDATES` nearest detections
-    within ``radius`` px, and the clutter's log-intensity at each."""
+    within ``radius`` px, and the log-intensity of what is not the track at each: the clutter's, or the local
+    density of detections in the ring from ``radius`` to ``2 radius`` around the track over its life where that
+    is higher (vehicles parked beside the track that no track follows: on WPAFB truth 29 % of the vehicles have
+    another within 6 px)."""
     B, T = tracks.detected.shape
     length = torch.from_numpy(tracks.length)
     alive = torch.arange(T)[None, :] < length[:, None]
@@ -162,7 +166,7 @@ def sensor_pairs(data: DetectionFrames, tracks: Tracks, loo_mean: torch.Tensor, 
     endpoint = (ti == 0) | (ti == length[bi] - 1)
     frame_np = (torch.from_numpy(tracks.start)[bi] + ti).numpy()
     mu_np = loo_mean[bi, ti].numpy()
-    tf, res, log_c, det = [], [], [], []
+    tf, res, log_c, det, ring_tf, ring_n = [], [], [], [], [], []
     offsets = np.cumsum([0] + [len(p) for p in data.positions])
     order = np.argsort(frame_np, kind="stable")
     bounds = np.searchsorted(frame_np[order], np.arange(len(data.positions) + 1))
@@ -171,11 +175,15 @@ def sensor_pairs(data: DetectionFrames, tracks: Tracks, loo_mean: torch.Tensor, 
         pts = data.positions[k]
         if not len(idx) or not len(pts):
             continue
-        d, j = cKDTree(pts).query(mu_np[idx, :2], k=min(CANDIDATES, len(pts)), distance_upper_bound=radius)
+        tree = cKDTree(pts)
+        ring_tf.append(idx)
+        ring_n.append(tree.query_ball_point(mu_np[idx, :2], 2 * radius, return_length=True)
+                      - tree.query_ball_point(mu_np[idx, :2], radius, return_length=True))
+        d, j = tree.query(mu_np[idx, :2], k=min(CANDIDATES, len(pts)), distance_upper_bound=radius)
         d, j = d.reshape(len(idx), -1), j.reshape(len(idx), -1)
         rows, cols = np.nonzero(np.isfinite(d))
         jj = j[rows, cols]
-        lc = np.full(len(jj), math.log(clutter_density))
+        lc = np.zeros(len(jj))
         if data.velocities is None:
             z = pts[jj]
         else:
@@ -187,7 +195,12 @@ def sensor_pairs(data: DetectionFrames, tracks: Tracks, loo_mean: torch.Tensor, 
         res.append(z - mu_np[idx[rows]])
         log_c.append(lc)
         det.append(offsets[k] + jj)
-    return SensorPairs(log_clutter=torch.from_numpy(np.concatenate(log_c)), endpoint=endpoint,
+    per_frame = np.zeros(len(bi))
+    per_frame[np.concatenate(ring_tf)] = np.concatenate(ring_n)
+    bi_np = bi.numpy()
+    local = np.bincount(bi_np, per_frame, B) / np.maximum(np.bincount(bi_np, None, B), 1) / (3 * math.pi * radius ** 2)
+    density = np.maximum(local, clutter_density)[bi_np[np.concatenate(tf)]]
+    return SensorPairs(log_clutter=torch.from_numpy(np.concatenate(log_c) + np.log(density)), endpoint=endpoint,
                        loo_cov=loo_cov[bi, ti], track_frame=torch.from_numpy(np.concatenate(tf)),
                        detection=torch.from_numpy(np.unique(np.concatenate(det), return_inverse=True)[1]),
                        residual=torch.from_numpy(np.concatenate(res)))
@@ -323,7 +336,12 @@ def calibrate_sensor(data: DetectionFrames, tracker_config: Callable[[dict], dic
                 stderr["clutter_velocity_sigma"] = bg.clutter_velocity_sigma_stderr
         pairs = sensor_pairs(data, tracks, sm.loo_mean, sm.loo_state_cov, 4.0 * max(values["sigma"], 1.0) + 2.0,
                              values["clutter_density"], values.get("clutter_velocity_sigma") if velocities else None)
-        est = fit_sensor_likelihood(pairs, values)
+        inner = [tracks.detected[b, 1:n - 1] for b, n in enumerate(tracks.length.tolist())]
+        seen = sum(int(x.sum()) for x in inner) / max(sum(x.numel() for x in inner), 1)
+        values["p_detection"] = min(max(seen, 0.05), 0.99)
+        pairs.others = other_tracks(to_theta(values, velocities), pairs)
+        est = max((fit_sensor_likelihood(pairs, {**values, "p_detection": start})
+                   for start in (min(max(seen, 0.05), 0.99), 0.5, 0.9)), key=lambda e: e.loglik_after)
         trace += est.trace
         values.update(est.values)
         stderr.update(est.stderr)

@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from torchtrack.filters.trackers.options import POSITIONS_ONLY
 from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.mot import MOTData, from_points
 from torchtrack.metrics.clear_mot import clear_mot
@@ -75,6 +76,8 @@ def gmphd_section(values: dict[str, float], decisions: dict[str, Any] | None = N
         filt["velocity_clutter_density"] = _r(velocity_clutter_density(values["clutter_velocity_sigma"]))
         birth["sigma_vel_detector"] = _r(values["velocity_sigma"])
     out: dict[str, Any] = {"filter": filt, "birth": birth}
+    if "velocity_sigma" not in values:       # the built-in positions-only options, but for the fitted sensor
+        out["positions_only"] = {k: v for k, v in POSITIONS_ONLY.items() if k != "filter"}
     for key, value in (decisions or {}).items():
         if key == "birth_weight":
             birth[key] = value

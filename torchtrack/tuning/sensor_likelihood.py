@@ -12,7 +12,8 @@ gates disjoint the association sums out exactly (the PMB update's Bernoulli fact
 with ``c_i = c``. Where gates overlap (vehicles parked a few px apart), a detection that another track explains
 is not clutter to track ``i``: ``c_i(z_j) = c(z_j) + Σ_{i' ≠ i} w_{i'} g_{i'}(z_j)`` (``w = p_D``; the
 other tracks' Poisson approximation, as in the PHD update, Mahler 2003, eq. 72), so that a neighbour's
-detection does not widen σ or stand in for a missed detection.
+detection does not widen σ or stand in for a missed detection. The other tracks' term is evaluated once, at
+the E-step's sensor (:func:`other_tracks`), and held through the M-step like the tracks' states.
 
 A track's first and last detected frames are conditioned on a detection (the tracker found the track there),
 so their factor is ``Σ_j g_i(z_j) / c(z_j)`` without ``p_D``: p_D counts only the frames strictly inside a
@@ -47,6 +48,7 @@ class SensorPairs:
     track_frame: Tensor
     detection: Tensor
     residual: Tensor
+    others: Tensor | None = None
 
     @property
     def velocities(self) -> bool:
@@ -69,10 +71,8 @@ def to_theta(values: dict[str, float], velocities: bool) -> Tensor:
     return torch.tensor(t, dtype=torch.float64)
 
 
-def log_likelihood(theta: Tensor, data: SensorPairs) -> Tensor:
-    """The log-likelihood (module docstring) of the whole window at unconstrained ``theta``."""
+def _log_g(theta: Tensor, data: SensorPairs) -> Tensor:
     v = _values(theta, data.velocities)
-    pd = v["p_detection"]
     m = data.loo_cov.shape[-1]
     noise = [v["sigma"] ** 2] * 2 + ([v["velocity_sigma"] ** 2] * 2 if m == 4 else [])
     C = data.loo_cov + torch.diag_embed(torch.stack(noise)).expand_as(data.loo_cov)
@@ -80,11 +80,24 @@ def log_likelihood(theta: Tensor, data: SensorPairs) -> Tensor:
     Lp = L[data.track_frame]
     w = torch.linalg.solve_triangular(Lp, data.residual.unsqueeze(-1), upper=False).squeeze(-1)
     log_det = 2 * torch.log(torch.diagonal(Lp, dim1=-2, dim2=-1)).sum(-1)
-    log_g = -0.5 * ((w ** 2).sum(-1) + log_det + m * math.log(2 * math.pi))
-    w = torch.where(data.endpoint[data.track_frame], torch.ones_like(pd), pd) * log_g.exp()
-    total = torch.zeros(int(data.detection.max()) + 1, dtype=w.dtype).index_add(0, data.detection, w)
-    others = (total[data.detection] - w).clamp_min(0.0)
-    ratio = log_g - torch.log(data.log_clutter.exp() + others)
+    return -0.5 * ((w ** 2).sum(-1) + log_det + m * math.log(2 * math.pi))
+
+
+def other_tracks(theta: Tensor, data: SensorPairs) -> Tensor:
+    """``Σ_{i' ≠ i} w_{i'} g_{i'}(z_j)`` for each candidate pair ``(i, j)`` at ``theta`` (module docstring)."""
+    with torch.no_grad():
+        pd = _values(theta, data.velocities)["p_detection"]
+        w = torch.where(data.endpoint[data.track_frame], torch.ones_like(pd), pd) * _log_g(theta, data).exp()
+        total = torch.zeros(int(data.detection.max()) + 1, dtype=w.dtype).index_add(0, data.detection, w)
+        return (total[data.detection] - w).clamp_min(0.0)
+
+
+def log_likelihood(theta: Tensor, data: SensorPairs) -> Tensor:
+    """The log-likelihood (module docstring) of the whole window at unconstrained ``theta``."""
+    pd = _values(theta, data.velocities)["p_detection"]
+    log_g = _log_g(theta, data)
+    clutter = data.log_clutter.exp() if data.others is None else data.log_clutter.exp() + data.others
+    ratio = log_g - torch.log(clutter)
     M = data.endpoint.shape[0]
     peak = torch.full((M,), -torch.inf, dtype=ratio.dtype).scatter_reduce(0, data.track_frame, ratio.detach(),
                                                                            "amax")
@@ -110,15 +123,15 @@ class SensorEstimate:
     trace: list[float]
 
 
-def fit_sensor_likelihood(data: SensorPairs, start: dict[str, float], iterations: int = 50) -> SensorEstimate:
-    """Maximise :func:`log_likelihood` from ``start`` by L-BFGS (strong Wolfe line search)."""
+def fit_sensor_likelihood(data: SensorPairs, start: dict[str, float], iterations: int = 50,
+                          rounds: int = 6) -> SensorEstimate:
+    """Maximise :func:`log_likelihood` from ``start`` by L-BFGS (strong Wolfe line search), restarted up to
+    ``rounds`` times while it still gains."""
     theta = to_theta(start, data.velocities).requires_grad_(True)
     scale = float(max(data.residual.shape[0], 1))
     with torch.no_grad():
         before = float(log_likelihood(theta, data))
     trace = [-before / scale]
-    opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe",
-                            tolerance_grad=1e-9, tolerance_change=1e-12)
 
     def closure() -> Tensor:
         opt.zero_grad()
@@ -127,7 +140,13 @@ def fit_sensor_likelihood(data: SensorPairs, start: dict[str, float], iterations
         trace.append(float(loss.detach()))
         return loss
 
-    opt.step(closure)
+    for _ in range(rounds):                 # L-BFGS stops early on a flat start; restart it until it settles
+        opt = torch.optim.LBFGS([theta], lr=1.0, max_iter=iterations, line_search_fn="strong_wolfe",
+                                tolerance_grad=1e-9, tolerance_change=1e-12)
+        best = min(trace)
+        opt.step(closure)
+        if best - min(trace) < 1e-7:
+            break
     theta = theta.detach()
     after = float(log_likelihood(theta, data))
     return SensorEstimate(_as_floats(_values(theta, data.velocities)), _stderr(theta, data), before, after, trace)
