@@ -8,13 +8,15 @@ Expectation–maximisation with the tracker as the E-step:
    at each frame it is reported; tracks with fewer than :data:`MIN_DETECTIONS` detections are dropped; a
    batched CV Rauch–Tung–Striebel smoother (:mod:`torchtrack.tuning.track_smoother`) gives every frame of a
    track's life (first to last detection) the leave-one-out predictive of its detection.
-2. **M-step** — from three starts of p_D (the share of frames inside the tracks' lives with a detection, 0.5 and
-   0.9; the likelihood can have more than one maximum), the sensor (σ, p_D, κ and, with velocities, σ_v and the clutter's velocity spread τ) maximises
-   the multi-object likelihood of every frame's detections given those states
-   (:mod:`torchtrack.tuning.sensor_likelihood`); the process noise ``q`` maximises the tracks' Kalman likelihood
-   (golden-section search on ``log q``); survival and birth rate are counted from the tracks' ends and starts.
+2. **M-step** — the clutter density κ and velocity spread τ are measured in the cells no track crosses
+   (:mod:`torchtrack.tuning.background`); σ, p_D and (with velocities) σ_v maximise the multi-object
+   likelihood of every frame's detections given the smoothed states (:mod:`torchtrack.tuning.sensor_likelihood`),
+   from three starts of p_D (the share of the frames inside the tracks' lives with a detection, 0.5 and 0.9;
+   the best is kept); each track's CWNA ``q`` maximises its Kalman likelihood on :data:`Q_GRID` and the tracker's
+   is their median; survival and birth rate are counted from the tracks' ends and starts.
 
-The iteration starts from :func:`initial_values` and runs :data:`ITERATIONS` times.
+The iteration starts from :func:`initial_values` and runs :data:`ITERATIONS` times (one: a second E-step
+with the fitted sensor but the built-in decisions drifted on the harshest validation sensor).
 """
 
 from __future__ import annotations
