@@ -55,10 +55,14 @@ class SensorPairs:
         return self.residual.shape[-1] == 4
 
 
+LOG_NOISE = (math.log(0.02), math.log(100.0))
+"""Bounds of log σ and log σ_v (px, px/frame) that keep an L-BFGS line search's trial points finite."""
+
+
 def _values(theta: Tensor, velocities: bool) -> dict[str, Tensor]:
-    out = {"sigma": theta[0].exp(), "p_detection": torch.sigmoid(theta[1])}
+    out = {"sigma": theta[0].clamp(*LOG_NOISE).exp(), "p_detection": torch.sigmoid(theta[1].clamp(-20, 20))}
     if velocities:
-        out["velocity_sigma"] = theta[2].exp()
+        out["velocity_sigma"] = theta[2].clamp(*LOG_NOISE).exp()
     return out
 
 
@@ -96,8 +100,8 @@ def log_likelihood(theta: Tensor, data: SensorPairs) -> Tensor:
     """The log-likelihood (module docstring) of the whole window at unconstrained ``theta``."""
     pd = _values(theta, data.velocities)["p_detection"]
     log_g = _log_g(theta, data)
-    clutter = data.log_clutter.exp() if data.others is None else data.log_clutter.exp() + data.others
-    ratio = log_g - torch.log(clutter)
+    log_c = data.log_clutter if data.others is None else torch.logaddexp(data.log_clutter, torch.log(data.others))
+    ratio = log_g - log_c
     M = data.endpoint.shape[0]
     peak = torch.full((M,), -torch.inf, dtype=ratio.dtype).scatter_reduce(0, data.track_frame, ratio.detach(),
                                                                            "amax")

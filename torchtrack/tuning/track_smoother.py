@@ -127,4 +127,7 @@ def smooth(z: Tensor, q: Tensor | float, sigma: float, velocity_sigma: float | N
     e = zz - hm
     loo_mean = torch.where(ok[..., None], zz - (RSinv @ e.unsqueeze(-1)).squeeze(-1), hm)
     loo_state = torch.where(ok[..., None, None], symmetrize(RSinv @ R) - R, hph)
-    return Smoothed(mean, cov, loo_mean, symmetrize(loo_state), ll)
+    # a detection that alone fixes part of the state (S_s near singular) leaves rounding in A: keep A PSD
+    evals, evecs = torch.linalg.eigh(symmetrize(loo_state))
+    loo_state = symmetrize((evecs * evals.clamp(0.0, DIFFUSE).unsqueeze(-2)) @ evecs.transpose(-1, -2))
+    return Smoothed(mean, cov, loo_mean, loo_state, ll)
