@@ -11,7 +11,7 @@ Rules:
   first ``n`` with ``n ℓ ≥ log B``, ``ℓ = log(p_D / κ) − log(2π σ²) − 1`` the expected log-ratio per frame of a
   target's detection against clutter, ``B`` anchored so that the benchmark sensor confirms where the built-in
   default does (:data:`CONFIRM_EVIDENCE`);
-- PMB: clutter rate κ |A| over the detections' region, birth density from the fitted birth rate.
+- PMB: clutter rate ``κ |A|`` over the detections' region, birth density from the fitted birth rate.
 
 Bootstrap (:func:`bootstrap_decisions`): the last E-step's smoothed tracks are the pseudo-truth; detections are
 simulated from them with the fitted p_D, σ, σ_v and clutter (velocities ``N(0, τ² I)``) over the last
