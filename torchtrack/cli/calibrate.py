@@ -15,7 +15,7 @@ the clutter density and velocity spread are measured where no track passes; the 
 birth rate come from the tracks. The tracker's birth weight, coasting and confirmation are then chosen by the
 MOTA of a parametric bootstrap under the fitted model.
 
-Writes DIR/track.yaml (a `torchtrack track --config` file with gmphd, labelled-gmphd, glmb and pmb sections),
+Writes DIR/track.yaml (a torchtrack track --config file with gmphd, labelled-gmphd, glmb and pmb sections),
 DIR/calibration.json (fitted values with standard errors, the likelihood before and after, frames used,
 seconds, the decisions and the bootstrap's scores) and DIR/loss.png, as one set. Progress on stderr.
 
