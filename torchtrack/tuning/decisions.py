@@ -16,7 +16,8 @@ Rules:
 Bootstrap (:func:`bootstrap_decisions`): the last E-step's smoothed tracks are the pseudo-truth; detections are
 simulated from them with the fitted p_D, σ, σ_v and clutter (velocities ``N(0, τ² I)``) over the last
 :data:`BOOTSTRAP_FRAMES` frames; each candidate decision is scored by the tracker's MOTA on them, one option at a
-time from the rules' configuration.
+time from the rules' configuration; the GLMB's clutter velocity density is chosen the same way with the GLMB
+(rule or built-in), since it weighs false velocities in its own way.
 """
 
 from __future__ import annotations
@@ -81,6 +82,8 @@ def gmphd_section(values: dict[str, float], decisions: dict[str, Any] | None = N
     for key, value in (decisions or {}).items():
         if key == "birth_weight":
             birth[key] = value
+        elif key == "glmb_velocity_clutter_density":
+            continue
         elif key == "velocity_clutter_density":
             if value is not None and "velocity_sigma" in values:
                 filt[key] = value
@@ -102,7 +105,8 @@ def tracker_sections(cal: Calibration, decisions: dict[str, Any]) -> dict[str, A
             "confirm_frames": max(3, confirm_frames(pd, sigma, kappa))}
     if cal.velocities:
         glmb.update(velocity_sigma=_r(v["velocity_sigma"]), birth_sigma_vel_detector=_r(v["velocity_sigma"]),
-                    velocity_clutter_density=gm["filter"]["velocity_clutter_density"])
+                    velocity_clutter_density=decisions.get("glmb_velocity_clutter_density")
+                    or gm["filter"]["velocity_clutter_density"])
     x0, y0, x1, y1 = cal.region
     area = (x1 - x0) * (y1 - y0)
     pmb = {"sigma": _r(sigma), "p_detection": pd, "q": _r(v["q"]), "p_survival": gm["filter"]["p_survival"],
@@ -152,8 +156,9 @@ def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
         vel = None if det.vx is None else torch.from_numpy(np.stack([det.vx[a:b], det.vy[a:b]], 1))
         inputs.append((int(f), z, vel))
 
-    def score(decisions: dict[str, Any]) -> float:
-        tracker = make_tracker("gmphd", gmphd_section(v, decisions))
+    def score(decisions: dict[str, Any], name: str = "gmphd") -> float:
+        tracker = make_tracker(name, gmphd_section(v, decisions) if name == "gmphd"
+                               else tracker_sections(cal, decisions)[name])
         fr, ids, xs = [], [], []
         for f, z, vel in inputs:
             i, p = tracker.step(f, z, vel)
@@ -178,4 +183,11 @@ def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
                 progress(f"bootstrap {key}={value}: MOTA {s:.3f} (best {best:.3f})")
             if s > best:
                 best, chosen = s, trial
+    if cal.velocities:                       # the GLMB weighs false velocities in its own way: its own choice
+        scores = {value: score({**chosen, "glmb_velocity_clutter_density": value}, "glmb")
+                  for value in dict(SEARCH)["velocity_clutter_density"]}
+        log += [{"decisions": {"glmb_velocity_clutter_density": k}, "mota": x} for k, x in scores.items()]
+        if progress is not None:
+            progress(f"bootstrap glmb velocity_clutter_density: {scores}")
+        chosen["glmb_velocity_clutter_density"] = max(scores, key=scores.get)
     return chosen, log
