@@ -85,6 +85,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fitted GM-PHD parameters from torchtrack tune (OUT/params.yaml): the tracker is "
                              "built from the file's options with the fitted values, exactly the tuned tracker "
                              "(with --detections; --tracker must be the file's, not with --config)")
+    parser.add_argument("--calibrate", type=positive_int, default=None, metavar="N",
+                        help="with --detections: calibrate the trackers on the first N frames without truth "
+                             "(torchtrack calibrate), then track every frame with the result; OUT also holds "
+                             "track.yaml, calibration.json and loss.png (not with --config/--params)")
     parser.add_argument("--gt", type=Path, default=None, help="ground truth (MOTChallenge) to score against")
     parser.add_argument("--out", type=Path, default=Path("out/track"), help="output folder (default out/track)")
     parser.add_argument("--threshold", type=positive_float, default=10.0, help="CLEAR-MOT centre distance in px "
@@ -140,6 +144,13 @@ def check_arguments(args: argparse.Namespace) -> None:
     check_strip_arguments(args, frame_inputs_given(args))
     if args.compare and args.detections is not None and args.gt is None:
         raise TorchtrackError("--compare needs --gt to score the trackers")
+    if args.calibrate is not None:
+        clash = [flag for flag, value in (("--config", args.config), ("--params", args.params),
+                                          ("--compare", args.compare), ("--benchmark", args.benchmark),
+                                          ("--strips", args.strips)) if value]
+        if clash or args.detections is None:
+            raise TorchtrackError("--calibrate needs --detections and sets the trackers' options itself; "
+                                  f"it does not combine with {', '.join(clash) or '--video/--frames/--sequences'}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -173,6 +184,8 @@ def _run(args: argparse.Namespace) -> int:
     config = detection_file_config(tracker_options, args.threshold, base).replace(device=args.device)
     if args.strips:
         return _run_strips(args, config, fitted)
+    if args.calibrate is not None:
+        return _run_calibrated(args, base)
     if not args.compare:
         result = track(detections=args.detections, tracker=fitted or args.tracker, tracker_name=args.tracker,
                        config=tracker_options, gt=args.gt, device=args.device, threshold=args.threshold,
@@ -185,6 +198,29 @@ def _run(args: argparse.Namespace) -> int:
         report = compare(det, config, staging, gt, args.trackers or tracker_names())
         write_json(staging / "comparison.json", report)
     _print_report(args, report, gt is not None)
+    return 0
+
+
+def _run_calibrated(args: argparse.Namespace, base: PipelineConfig | None) -> int:
+    """``--calibrate N``: calibrate on the first N frames of ``--detections``, track all of them with the result."""
+    import tempfile
+
+    from torchtrack.cli.calibrate import calibrate_into
+    from torchtrack.io.mot import read_mot
+    from torchtrack.pipeline.api import track
+
+    det = read_mot(args.detections)
+    first = int(det.frame.min()) if det.size else 1
+    with tempfile.TemporaryDirectory(prefix="torchtrack-calibrate-") as tmp:
+        folder = Path(tmp)
+        result = calibrate_into(det, folder, (first, first + args.calibrate - 1), None, args.seed,
+                                str(args.detections))
+        tracked = track(detections=det, tracker=args.tracker, config=result.sections, gt=args.gt,
+                        device=args.device, threshold=args.threshold, pipeline_config=base)
+        tracked.files.update(config=folder / "track.yaml", calibration=folder / "calibration.json",
+                             loss=folder / "loss.png")
+        tracked.save(args.out, args.force)
+    _print_report(args, tracked.report, args.gt is not None)
     return 0
 
 

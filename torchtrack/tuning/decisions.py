@@ -1,0 +1,193 @@
+"""The trackers' options from a calibrated sensor (docs/calibrate.md, "Decisions"): the model's values by stated
+rules, and the decisions that no closed form gives (the enhanced GM-PHD's birth weight and coasting) chosen by
+the MOTA of a parametric bootstrap under the fitted model — no truth is used.
+
+Rules:
+
+- the filter's sensor and dynamics are the fitted ones (σ, p_D, κ, σ_v, q, p_S); the clutter's velocity density,
+  a constant in the trackers, is the geometric mean of ``N(v; 0, τ² I)`` under itself, ``1 / (2π e τ²)``;
+- births: position spread σ (the birth sits on a detection), velocity spread σ_v (from the detector's velocity);
+- confirmation (GLMB ``confirm_frames``) by a sequential likelihood-ratio test: a new track is confirmed at the
+  first ``n`` with ``n ℓ ≥ log B``, ``ℓ = log(p_D / κ) − log(2π σ²) − 1`` the expected log-ratio per frame of a
+  target's detection against clutter, ``B`` anchored so that the benchmark sensor confirms where the built-in
+  default does (:data:`CONFIRM_EVIDENCE`);
+- PMB: clutter rate ``κ |A|`` over the detections' region, birth density from the fitted birth rate.
+
+Bootstrap (:func:`bootstrap_decisions`): the last E-step's smoothed tracks are the pseudo-truth; detections are
+simulated from them with the fitted p_D, σ, σ_v and clutter (velocities ``N(0, τ² I)``) over the last
+:data:`BOOTSTRAP_FRAMES` frames; each candidate decision is scored by the tracker's MOTA on them, one option at a
+time from the rules' configuration; the GLMB's clutter velocity density is chosen the same way with the GLMB
+(rule or built-in), since it weighs false velocities in its own way.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+import torch
+
+from torchtrack.filters.trackers.options import POSITIONS_ONLY
+from torchtrack.filters.trackers.protocol import make_tracker
+from torchtrack.io.mot import MOTData, from_points
+from torchtrack.metrics.clear_mot import clear_mot
+from torchtrack.sim.detections import simulate_detections
+from torchtrack.tuning.calibrate import Calibration, Tracks
+
+CONFIRM_EVIDENCE = math.log(1e4)
+"""log B of the sequential test: the benchmark sensor (p_D 0.9, σ 1 px, κ 1e-4 px⁻²) has ℓ ≈ 6.3 per frame and
+confirms at its second frame; the GLMB's built-in 3 frames are kept as a floor."""
+BOOTSTRAP_FRAMES = 150
+SEARCH: tuple[tuple[str, tuple], ...] = (
+    ("birth_weight", (0.05, 0.02, 0.01, 0.005)),
+    ("coast_threshold", (0.03, 0.1, None)),
+    ("confirm_new", (True, 3)),
+    ("velocity_clutter_density", (None, 2.5e-3)),
+)
+"""The enhanced GM-PHD's decisions searched by the bootstrap, in order, each over these values (the first is
+the built-in default; for the clutter's velocity density None is the rule's ``1 / (2π e τ²)`` and 2.5e-3 the
+built-in uniform density over ±10 px/frame: the trackers hold one constant for every gate, and a gate around a
+driving vehicle sees far fewer false velocities than the clutter's average)."""
+
+
+def confirm_frames(p_detection: float, sigma: float, clutter_density: float) -> int:
+    """The smallest ``n`` with ``n ℓ ≥ log B`` (module docstring); 10 when a detection carries no evidence."""
+    per_frame = math.log(p_detection / clutter_density) - math.log(2 * math.pi * sigma ** 2) - 1.0
+    if per_frame <= 0:
+        return 10
+    return max(1, math.ceil(CONFIRM_EVIDENCE / per_frame))
+
+
+def velocity_clutter_density(tau: float) -> float:
+    """``1 / (2π e τ²)``: ``exp E[log N(v; 0, τ² I)]`` for ``v ~ N(0, τ² I)``."""
+    return 1.0 / (2 * math.pi * math.e * tau ** 2)
+
+
+def gmphd_section(values: dict[str, float], decisions: dict[str, Any] | None = None) -> dict[str, Any]:
+    """The enhanced GM-PHD's options for fitted ``values`` (rules of the module docstring) with ``decisions``
+    (the bootstrap's choices: ``birth_weight``, ``coast_threshold``, ``confirm_new``)."""
+    filt = {"sigma": _r(values["sigma"]), "p_detection": _r(min(values["p_detection"], 0.99)),
+            "clutter_density": _r(values["clutter_density"]), "q": _r(values["q"]),
+            "p_survival": _r(min(max(values.get("p_survival", 0.99), 0.9), 0.999))}
+    birth: dict[str, Any] = {"sigma_pos": _r(values["sigma"])}
+    if "velocity_sigma" in values:
+        filt["velocity_sigma"] = _r(values["velocity_sigma"])
+        filt["velocity_clutter_density"] = _r(velocity_clutter_density(values["clutter_velocity_sigma"]))
+        birth["sigma_vel_detector"] = _r(values["velocity_sigma"])
+    out: dict[str, Any] = {"filter": filt, "birth": birth}
+    if "velocity_sigma" not in values:       # the built-in positions-only options, but for the fitted sensor
+        out["positions_only"] = {k: v for k, v in POSITIONS_ONLY.items() if k != "filter"}
+    for key, value in (decisions or {}).items():
+        if key == "birth_weight":
+            birth[key] = value
+        elif key == "glmb_velocity_clutter_density":
+            continue
+        elif key == "velocity_clutter_density":
+            if value is not None and "velocity_sigma" in values:
+                filt[key] = value
+        else:
+            out[key] = value
+    return out
+
+
+def tracker_sections(cal: Calibration, decisions: dict[str, Any]) -> dict[str, Any]:
+    """The ``track --config`` sections of gmphd, labelled-gmphd, glmb and pmb for a calibration."""
+    v = cal.values
+    gm = gmphd_section(v, decisions)
+    labelled = {"filter": {k: x for k, x in gm["filter"].items()
+                           if k not in ("velocity_sigma", "velocity_clutter_density")},
+                "birth": {"sigma_pos": gm["birth"]["sigma_pos"], "birth_weight": decisions.get("birth_weight", 0.05)}}
+    pd, sigma, kappa = gm["filter"]["p_detection"], v["sigma"], v["clutter_density"]
+    glmb = {"sigma": _r(sigma), "p_detection": pd, "clutter_density": _r(kappa), "q": _r(v["q"]),
+            "p_survival": gm["filter"]["p_survival"], "birth_sigma_pos": _r(sigma),
+            "confirm_frames": max(3, confirm_frames(pd, sigma, kappa))}
+    if cal.velocities:
+        glmb.update(velocity_sigma=_r(v["velocity_sigma"]), birth_sigma_vel_detector=_r(v["velocity_sigma"]),
+                    velocity_clutter_density=decisions.get("glmb_velocity_clutter_density")
+                    or gm["filter"]["velocity_clutter_density"])
+    x0, y0, x1, y1 = cal.region
+    area = (x1 - x0) * (y1 - y0)
+    pmb = {"sigma": _r(sigma), "p_detection": pd, "q": _r(v["q"]), "p_survival": gm["filter"]["p_survival"],
+           "clutter_rate": _r(kappa * area), "region": [x0, y0, x1, y1],
+           "birth_density": _r(v["birth_rate"] / (area / 1e6))}
+    return {"gmphd": gm, "labelled-gmphd": labelled, "glmb": glmb, "pmb": pmb}
+
+
+def _r(x: float) -> float:
+    return float(f"{x:.4g}")
+
+
+def pseudo_truth(tracks: Tracks, mean: torch.Tensor, first: int) -> MOTData:
+    """The smoothed tracks as truth: every frame of each track's life (``mean (B, T, 4)``, window start
+    ``first``)."""
+    b, t = np.nonzero(np.arange(mean.shape[1])[None, :] < tracks.length[:, None])
+    pos = mean[b, t, :2].numpy()
+    frames = first + tracks.start[b] + t
+    order = np.lexsort((b, frames))
+    return from_points(frames[order], b[order] + 1, pos[order, 0], pos[order, 1])
+
+
+def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
+                        progress: Callable[[str], None] | None = None) -> tuple[dict[str, Any], list[dict]]:
+    """The enhanced GM-PHD's decisions (:data:`SEARCH`) maximising MOTA on detections simulated under the
+    fitted model from ``truth`` (the pseudo-truth) over its last :data:`BOOTSTRAP_FRAMES` frames. Returns the
+    decisions and every candidate's score."""
+    v = cal.values
+    last = int(truth.frame.max())
+    truth = truth.select(truth.frame > last - BOOTSTRAP_FRAMES)
+    x0, y0, x1, y1 = cal.region
+    g = torch.Generator().manual_seed(seed)
+    sim = simulate_detections(truth, pd=v["p_detection"], sigma=v["sigma"], clutter=v["clutter_density"] * x1 * y1,
+                              image_size=(x1, y1), velocity_sigma=v.get("velocity_sigma"), generator=g)
+    det = sim.detections
+    if det.vx is not None:
+        clutter = sim.source < 0
+        tau = v["clutter_velocity_sigma"]
+        noise = torch.randn(int(clutter.sum()), 2, generator=g, dtype=torch.float64).numpy() * tau
+        det.vx[clutter], det.vy[clutter] = noise[:, 0], noise[:, 1]
+    frames = np.unique(det.frame)
+    cx, cy = det.x + det.w / 2, det.y + det.h / 2
+    bounds = np.searchsorted(det.frame, np.r_[frames, frames[-1] + 1])
+    inputs = []
+    for f, a, b in zip(frames, bounds[:-1], bounds[1:]):
+        z = torch.from_numpy(np.stack([cx[a:b], cy[a:b]], 1))
+        vel = None if det.vx is None else torch.from_numpy(np.stack([det.vx[a:b], det.vy[a:b]], 1))
+        inputs.append((int(f), z, vel))
+
+    def score(decisions: dict[str, Any], name: str = "gmphd") -> float:
+        tracker = make_tracker(name, gmphd_section(v, decisions) if name == "gmphd"
+                               else tracker_sections(cal, decisions)[name])
+        fr, ids, xs = [], [], []
+        for f, z, vel in inputs:
+            i, p = tracker.step(f, z, vel)
+            fr += [f] * len(i)
+            ids += i.tolist()
+            xs.append(p.double().cpu().numpy().reshape(-1, 2))
+        pts = np.concatenate(xs) if xs else np.zeros((0, 2))
+        pred = from_points(fr, ids, pts[:, 0], pts[:, 1])
+        return float(clear_mot(truth, pred)["MOTA"])
+
+    chosen: dict[str, Any] = {key: values[0] for key, values in SEARCH}
+    best = score(chosen)
+    log = [{"decisions": dict(chosen), "mota": best}]
+    for key, values in SEARCH:
+        if key == "velocity_clutter_density" and not cal.velocities:
+            continue
+        for value in values[1:]:
+            trial = {**chosen, key: value}
+            s = score(trial)
+            log.append({"decisions": dict(trial), "mota": s})
+            if progress is not None:
+                progress(f"bootstrap {key}={value}: MOTA {s:.3f} (best {best:.3f})")
+            if s > best:
+                best, chosen = s, trial
+    if cal.velocities:                       # the GLMB weighs false velocities in its own way: its own choice
+        scores = {value: score({**chosen, "glmb_velocity_clutter_density": value}, "glmb")
+                  for value in dict(SEARCH)["velocity_clutter_density"]}
+        log += [{"decisions": {"glmb_velocity_clutter_density": k}, "mota": x} for k, x in scores.items()]
+        if progress is not None:
+            progress(f"bootstrap glmb velocity_clutter_density: {scores}")
+        chosen["glmb_velocity_clutter_density"] = max(scores, key=scores.get)
+    return chosen, log
