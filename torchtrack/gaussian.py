@@ -316,23 +316,32 @@ def innovation_pairs(z: Tensor, z_hat: Tensor) -> Tensor | list[Tensor]:
     return z.unsqueeze(0) - z_hat.unsqueeze(1)
 
 
-def squared_norm(x: Tensor) -> Tensor:
-    """``Σ_k x_k²`` over the last dimension of ``x (*, m)`` → ``(*,)``, entry by entry (a reduction over a
-    short last dimension is several times slower on the CPU)."""
-    total = x[..., 0] * x[..., 0]
-    for k in range(1, x.shape[-1]):
-        total = torch.addcmul(total, x[..., k], x[..., k])
+def _vector_entries(x: Tensor | list[Tensor]) -> list[Tensor]:
+    """The entries of vectors ``x (*, m)`` as ``m`` tensors ``(*,)``; planes (a list, :func:`innovation_pairs`)
+    are that already."""
+    return [x[..., k] for k in range(x.shape[-1])] if isinstance(x, Tensor) else x
+
+
+def squared_norm(x: Tensor | list[Tensor]) -> Tensor:
+    """``Σ_k x_k²`` of vectors ``x (*, m)`` (or their ``m`` planes ``(*,)``) → ``(*,)``, entry by entry (a
+    reduction over a short last dimension is several times slower on the CPU)."""
+    entries = _vector_entries(x)
+    total = entries[0] * entries[0]
+    for e in entries[1:]:
+        total = torch.addcmul(total, e, e)
     return total
 
 
-def whitened_sq_norms(chol_inv: Tensor, nu: list[Tensor]) -> list[Tensor]:
-    """The running sums ``Σ_{i≤k} (L⁻¹ ν)_i²``, ``k = 0 … m−1``, for a lower-triangular ``L⁻¹`` (``chol_inv
-    (*, m, m)``) and the innovations' entries ``nu[k] (*, K)`` (planes, :func:`innovation_planes`).
+def whitened_sq_norms(chol_inv: Tensor, nu: Tensor | list[Tensor]) -> list[Tensor]:
+    """The running sums ``Σ_{i≤k} (L⁻¹ ν)_i²``, ``k = 0 … m−1``, ``(*, K)`` each, for a lower-triangular ``L⁻¹``
+    (``chol_inv (*, m, m)``) and the innovations ``nu (*, K, m)`` or their ``m`` planes ``(*, K)``
+    (:func:`innovation_pairs`).
 
     The last is the NIS ``νᵀ S⁻¹ ν``; the ``p``-th is that of the first ``p`` entries against the leading
     ``p × p`` block of ``S`` (its factor is ``L``'s leading block, and ``L⁻¹``'s leading block is its inverse).
     Entry by entry (``m(m+1)/2`` products): a batched product with ``m`` columns followed by a reduction over a
     last dimension of ``m`` is several times slower on the CPU."""
+    nu = _vector_entries(nu)
     sums, total = [], None
     for i in range(len(nu)):
         white = chol_inv[..., i, 0].unsqueeze(-1) * nu[0]
@@ -352,7 +361,6 @@ def innovations_nis(chol_inv: Tensor, nu: Tensor | list[Tensor]) -> Tensor:
         if not _planes_pay_off(nu.numel() // max(m, 1), m):
             white = batched_matmul(nu, chol_inv.transpose(-1, -2))
             return (white * white).sum(-1)
-        nu = [nu[..., k] for k in range(m)]
     return whitened_sq_norms(chol_inv, nu)[-1]
 
 

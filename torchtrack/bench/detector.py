@@ -43,10 +43,9 @@ def _pass(net, tiles: list[torch.Tensor]) -> tuple[float, float]:
     return CLOCKS[1]() - c0, CLOCKS[0]() - t0
 
 
-def _networks(path: Path | None, label: str) -> dict[str, tuple[torch.nn.Module, str]]:
-    """``{name: (network, "float" | "int8")}`` of one checkpoint: its float network and, where it carries a
-    calibration, its int8 one."""
-    data = load_checkpoint(DEFAULT_WEIGHTS if path is None else path)
+def _networks(data: dict, label: str) -> dict[str, tuple[torch.nn.Module, str]]:
+    """``{name: (network, "float" | "int8")}`` of one loaded checkpoint: its float network and, where it carries
+    a calibration, its int8 one."""
     nets = {f"{label} float": (detector_from_checkpoint(data).net, "float")}
     if int8_unavailable(data) is None:
         nets[f"{label} int8"] = (detector_from_checkpoint(data, backend="int8")._int8[0], "int8")
@@ -68,11 +67,11 @@ def measure(size: int, repeats: int = 5, seed: int = 0, weights: Path | None = N
     """Frames/s of the networks (module docstring) on the tiles of one ``size × size`` frame; ``weights``: the
     other weights (None: only the reference's int8), ``reference_weights`` (None: the shipped ones)."""
     with torch_threads(threads), torch.inference_mode():
-        ref = detector_from_checkpoint(load_checkpoint(DEFAULT_WEIGHTS if reference_weights is None
-                                                       else reference_weights))
-        nets = _networks(reference_weights, "reference")
+        ref_data = load_checkpoint(DEFAULT_WEIGHTS if reference_weights is None else reference_weights)
+        ref = detector_from_checkpoint(ref_data)
+        nets = _networks(ref_data, "reference")
         if weights is not None:
-            nets.update(_networks(weights, "new"))
+            nets.update(_networks(load_checkpoint(weights), "new"))
         if len(nets) < 2:
             raise TorchtrackError("bench detector: the reference weights carry no int8 calibration and no other "
                                   "--weights were given: nothing to compare")

@@ -47,7 +47,7 @@ def gated_candidates(z_hat: Tensor, S: Tensor, gain: KalmanGain, meas: Tensor, g
     ii, jj = gated_pairs(z_hat.detach(), S.detach(), gain.chol_inv.detach(), meas.detach(), gate,
                          torch.ones(N, dtype=torch.bool, device=meas.device), meas.shape[1])
     nu = meas.index_select(0, jj) - z_hat.index_select(0, ii)
-    nis = whitened_sq_norms(gain.chol_inv.index_select(0, ii), [nu[:, k:k + 1] for k in range(nu.shape[1])])
+    nis = whitened_sq_norms(gain.chol_inv.index_select(0, ii), nu.unsqueeze(1))
     loglik = gaussian_log_likelihood(nis[-1].squeeze(-1), log_det_from_cholesky(gain.chol).index_select(0, ii),
                                      meas.shape[1])
     # each row's pairs by decreasing likelihood (pairs come ordered by row), then their column in the table

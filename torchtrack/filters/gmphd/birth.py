@@ -138,8 +138,7 @@ class AdaptiveBirth(nn.Module):
         heavy = pred_log_w.detach() > scalar(math.log(self.options.suppress_weight), pred_log_w)
         pos, z = pred_pos.detach(), z.detach()
         if pos.shape[0] * z.shape[0] <= DENSE_PAIRS:
-            d = innovation_pairs(pos, z)                                   # (M, J, 2) or two planes (M, J)
-            d2 = squared_norm(d) if isinstance(d, torch.Tensor) else torch.addcmul(d[0] * d[0], d[1], d[1])
+            d2 = squared_norm(innovation_pairs(pos, z))                                  # (M, J)
             return torch.where(heavy, d2, scalar(math.inf, d2)).amin(1) > scalar(reach**2, d2)
         radius = torch.where(heavy, scalar(reach, pos), scalar(-1.0, pos))
         jj, kk = disc_candidates(pos, radius, z, cell=reach)

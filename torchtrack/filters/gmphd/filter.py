@@ -458,7 +458,7 @@ def _sparse_pairs(c: _Components, z: Tensor, log_kappa: Tensor, pair_loglik: Pai
     p = c.gain_pos.chol.shape[-1] if robust else m
     jj, kk = gated_pairs(c.z_hat, c.S, c.gain.chol_inv, z, c.gate, c.mask, p)
     nu = z.index_select(0, kk) - c.z_hat.index_select(0, jj)             # (G, m)
-    nis = whitened_sq_norms(c.gain.chol_inv.index_select(0, jj), [nu[:, k:k + 1] for k in range(m)])
+    nis = whitened_sq_norms(c.gain.chol_inv.index_select(0, jj), nu.unsqueeze(1))
     log_num = c.base.index_select(0, jj) + gaussian_log_likelihood(
         nis[-1].squeeze(-1), log_det_from_cholesky(c.gain.chol).index_select(0, jj), m)
     use_pos = None
@@ -505,8 +505,7 @@ def gated_pairs(z_hat: Tensor, S: Tensor, chol_inv: Tensor, z: Tensor, gate: flo
                 <= radius.index_select(0, jj).pow(2)).nonzero().squeeze(1)
         jj, kk = jj.index_select(0, near), kk.index_select(0, near)
         nu = z[kk, :gate_dim] - z_hat[jj, :gate_dim]
-        nis = whitened_sq_norms(chol_inv[:, :gate_dim, :gate_dim].index_select(0, jj),
-                                [nu[:, k:k + 1] for k in range(gate_dim)])[-1].squeeze(-1)
+        nis = whitened_sq_norms(chol_inv[:, :gate_dim, :gate_dim].index_select(0, jj), nu.unsqueeze(1))[-1].squeeze(-1)
         inside = (nis <= gate).nonzero().squeeze(1)
         jj, kk = jj.index_select(0, inside), kk.index_select(0, inside)
         order = torch.argsort(jj * z.shape[0] + kk)

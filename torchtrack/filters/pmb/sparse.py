@@ -58,7 +58,7 @@ def gated_pairs(mean: Tensor, cov: Tensor, valid: Tensor, z: Tensor, zmask: Tens
         ii, jj = gmphd_gated_pairs(z_hat, S, gain.chol_inv, z[meas], gate_d2, valid, z.shape[-1])
         jj = meas[jj]
         nu = z[jj] - z_hat[ii]                                             # (E, d)
-        nis = whitened_sq_norms(gain.chol_inv[ii], [nu[:, k:k + 1] for k in range(nu.shape[1])])[-1].squeeze(-1)
+        nis = whitened_sq_norms(gain.chol_inv[ii], nu.unsqueeze(1))[-1].squeeze(-1)
     log_lik = gaussian_log_likelihood(nis, log_det_from_cholesky(gain.chol)[ii], z.shape[-1])
     return GatedPairs(ii, jj, log_lik, nu, gain.gain, posterior_cov(cov, gain))
 
