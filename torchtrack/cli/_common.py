@@ -75,7 +75,7 @@ TRACKER_PRESETS = ("gmphd", "gmphd-paper")
 """The presets that hold tracker options, one section per tracker name (``torchtrack track --config``)."""
 PIPELINE_PRESETS = ("pipeline", "pipeline-online", "pipeline-fewer-switches", "select-fewer-switches")
 """The presets of the video pipeline's settings (``--pipeline-config``, ``torchtrack demo --config``)."""
-VIDEO_PRESETS = ("video",)
+VIDEO_PRESETS = ("video", "camera-soft", "camera-small-dark", "camera-harsh")
 """The presets of the synthetic video generator (``simulate-video --config``, ``eval-detector --config``)."""
 TUNE_PRESETS = ("tune-gmphd-sim", "tune-gmphd-wpafb", "tune-imm-formation", "tune-kalman", "tune-kalman-wpafb")
 """The presets of ``torchtrack tune --config``."""

@@ -28,6 +28,9 @@ class DataConfig(Checked):
     cache: str = "data/cache/detector"
     crop: int = option(128, ge=16, multiple_of=16)  # training crop (multiple of 16)
     video: dict = field(default_factory=dict)       # overrides of torchtrack.sim.video.VideoConfig
+    # ranges each sequence draws its camera from (torchtrack.sim.cameras.CameraRanges; {} takes its defaults;
+    # None: every sequence has the camera of ``video``)
+    cameras: dict | None = None
     prior_sigma: float = option(1.5, gt=0)          # px, prior heatmap of the previous detections
     target_sigma: float = option(0.8, gt=0)         # output cells, heatmap target
     prior_jitter: float = option(1.0, ge=0)         # px (CenterTrack: centre jitter)
@@ -113,6 +116,10 @@ def config_from_dict(values: dict, source: str = "config") -> DetectorConfig:
         from torchtrack.sim.video_config import VideoConfig
 
         from_mapping(VideoConfig, cfg.data.video, source, "data.video")   # validates the keys and values
+    if cfg.data.cameras is not None:
+        from torchtrack.sim.cameras import ranges_from_dict
+
+        ranges_from_dict(cfg.data.cameras, source)
     return cfg
 
 

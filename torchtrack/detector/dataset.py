@@ -1,7 +1,8 @@
 """Training data: cached synthetic sequences and a dataset of perturbed frame pairs (CenterTrack).
 
 The cache holds ``S`` sequences of ``T`` frames from :func:`torchtrack.sim.video.generate_sequence`
-(uint8) with their truth, saved once under ``data.cache`` (a file named by a hash of everything that
+(uint8) with their truth, each from its own camera where ``data.cameras`` gives ranges
+(:func:`sequence_camera`), saved once under ``data.cache`` (a file named by a hash of everything that
 determines it). :class:`PairDataset` item ``i`` of epoch ``e`` is a pure function of ``(seed, e, i)``:
 a random sequence and frame ``k >= 1``, a random crop and one of the 8 flips/rotations, the previous
 frame ``k-1`` and the prior heatmap of the previous truth perturbed as in CenterTrack (centre jitter,
@@ -34,6 +35,8 @@ from torchtrack.detector.targets import Targets, gaussian_heatmap, make_targets
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography, warp_previous
 from torchtrack.io.outputs import atomic_file
+from torchtrack.sim.cameras import draw_camera, ranges_from_dict
+from torchtrack.sim.video_config import VideoConfig
 
 CACHE_VERSION = 3   # bump when the generator or the cache's content changes
 
@@ -61,6 +64,15 @@ def split_seed(seed: int, split: str, index: int) -> int:
     return {"train": 0, "val": 1, "test": 2}[split] * 10_000_000 + seed * 10_000 + index
 
 
+def sequence_camera(cfg: DetectorConfig, video: VideoConfig, seq_seed: int) -> VideoConfig:
+    """The camera of the sequence of generator seed ``seq_seed``: ``video``, or with ``data.cameras`` one drawn
+    from those ranges by a generator of its own seeded from ``seq_seed``
+    (:func:`torchtrack.sim.cameras.draw_camera`)."""
+    if cfg.data.cameras is None:
+        return video
+    return draw_camera(ranges_from_dict(cfg.data.cameras), video, np.random.default_rng([seq_seed, 1]))
+
+
 def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = None,
                 progress: bool = False) -> SequenceCache:
     """Load the cached sequences of ``split`` or generate and save them (see module docstring)."""
@@ -69,8 +81,8 @@ def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = 
 
     count = count if count is not None else (cfg.data.train_sequences if split == "train" else cfg.data.val_sequences)
     video = from_dict({**cfg.data.video, "frames": cfg.data.frames}, "data.video")
-    key = json.dumps({"v": CACHE_VERSION, "video": repr(video), "split": split, "seed": seed, "n": count},
-                     sort_keys=True)
+    key = json.dumps({"v": CACHE_VERSION, "video": repr(video), "split": split, "seed": seed, "n": count,
+                      "cameras": cfg.data.cameras}, sort_keys=True)
     path = Path(cfg.data.cache) / f"{split}-{hashlib.sha1(key.encode()).hexdigest()[:12]}.pt"
     if path.is_file():
         try:
@@ -80,7 +92,8 @@ def build_cache(cfg: DetectorConfig, split: str, seed: int, count: int | None = 
     frames, ids, xy, vel, homs, start = [], [], [], [], [], [0]
     for i in tqdm(range(count), desc=f"generating {split} sequences", unit="seq", disable=not progress):
         seq, seq_h = [], []
-        for f in generate_sequence(video, torch.Generator().manual_seed(split_seed(seed, split, i))):
+        seq_seed = split_seed(seed, split, i)
+        for f in generate_sequence(sequence_camera(cfg, video, seq_seed), torch.Generator().manual_seed(seq_seed)):
             seq.append(torch.from_numpy(f.image))
             seq_h.append(torch.from_numpy(f.homography))
             ids.append(torch.from_numpy(f.ids))

@@ -5,7 +5,8 @@ The generator mimics the WPAFB 2009 wide-area imagery (``data/wpafb-aoi02``): a 
 parallax (false motion), vehicles 3-15 px long, bright or dark, moving along lanes with lognormal
 speeds (median ``speed_median``, 90th percentile ``speed_p90`` px/frame), slowing near intersections,
 parked in rows 2-5 px apart, born and dying at the borders and in the car parks, with short dropouts.
-A small random homography per frame jitters the camera; sensor blur, noise and gain drift finish it.
+A small random homography per frame jitters the camera; sensor blur, noise and gain drift finish it, and
+:mod:`torchtrack.sim.sensor` adds what real sensors add where asked (motion blur, haze, compression...).
 
 Coordinates: pixels, ``x`` = column and ``y`` = row, origin at the centre of the top-left pixel.
 The *reference* coordinates are those of an unjittered camera; ``homography`` ``H_k`` (3x3) maps
@@ -35,6 +36,7 @@ from tqdm import tqdm
 from torchtrack.errors import TorchtrackError
 from torchtrack.io.frames import Frame, FrameSource
 from torchtrack.io.outputs import partial_name, write_json, write_text
+from torchtrack.sim.sensor import Sensor
 from torchtrack.sim.video_config import VideoConfig, load_video_config
 from torchtrack.sim.video_scene import Scene, build_scene, draw_buildings
 
@@ -236,6 +238,7 @@ def generate_sequence(config: VideoConfig | None, generator: torch.Generator) ->
     to_ref = np.array([[1.0, 0, -m], [0, 1, -m], [0, 0, 1]])
     sun = np.array([1.0, 1.0])
     phase = rng.uniform(0, 2 * np.pi, 3)
+    sensor = Sensor(cfg, rng)
     omega = 0.1
     prev_xy: dict[int, np.ndarray] = {}
     for k in range(cfg.frames):
@@ -258,10 +261,10 @@ def generate_sequence(config: VideoConfig | None, generator: torch.Generator) ->
                                   borderMode=cv2.BORDER_REFLECT)
         if cfg.psf_sigma > 0:
             img = cv2.GaussianBlur(img, (0, 0), cfg.psf_sigma)
+        img = sensor.optics(img)
         gain = 1 + cfg.gain_drift * np.sin(2 * np.pi * k / 40 + phase[1])
         offset = 3.0 * np.sin(2 * np.pi * k / 55 + phase[2])
-        img = gain * img + offset + rng.normal(0, cfg.noise_std, img.shape)
-        image = np.clip(np.rint(img), 0, 255).astype(np.uint8)
+        image = sensor.digitise(gain * img + offset + rng.normal(0, cfg.noise_std, img.shape))
 
         xy_img = _apply(warp, xy_w) if len(vs) else np.zeros((0, 2))
         ids = np.array([v.id for v in vs], np.int64)

@@ -69,6 +69,12 @@ class VideoConfig(Checked):
     jitter_rotation: float = option(0.002, ge=0)                # radians
     jitter_scale: float = option(0.002, ge=0)
     jitter_perspective: float = option(2e-6, ge=0)
+    # sensor effects real WAMI/satellite video has (all off by default; docs/own-camera.md)
+    motion_blur: float = option(0.0, ge=0)                      # px, length of a linear blur in one direction
+    illumination_gradient: float = option(0.0, ge=0, lt=1)      # gain change from one side of the frame to the other
+    haze: float = option(0.0, ge=0, lt=1)                       # share of contrast lost to a uniform veil
+    grey_step: float = option(1.0, ge=1)                        # grey levels per step (a wide range squeezed to 8 bits)
+    jpeg_quality: int = option(0, ge=0, le=100)                 # JPEG compression of each frame (0: none)
     gt_box_size: float = option(10.0, gt=0)                     # w = h of the MOTChallenge box centred on the point
 
     def __post_init__(self) -> None:
