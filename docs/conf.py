@@ -11,7 +11,8 @@ sys.path.insert(0, str(ROOT))
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 project = "torchtrack"
-author = "the torchtrack authors"
+author = "torchtrack contributors"
+copyright = "2026, torchtrack contributors"
 release = version = torchtrack.__version__
 
 extensions = [
