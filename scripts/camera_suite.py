@@ -2,7 +2,8 @@
 (`simulate-video`), track it (`track --frames`), score the tracks on the moving vehicles (`eval --moving`) and the
 detector alone on held-out sequences of that camera (`eval-detector --config`, its moving-vehicle row).
 
-Cameras: the default camera, the presets camera-soft, camera-small-dark and camera-harsh, and --draw N
+Cameras: the default camera, the presets camera-soft, camera-small-dark and camera-harsh, the default camera
+with other vehicle sizes (--scales), and --draw N
 validation cameras drawn from the ranges of configs/detector.yaml (data.cameras) with seeds of their own
 (never a training seed: those are below 10,000,000 · 3).
 
@@ -33,9 +34,12 @@ PRESETS = ("video", "camera-soft", "camera-small-dark", "camera-harsh")
 VALIDATION_SEED = 40_000_000
 
 
-def cameras(draw: int) -> dict[str, VideoConfig]:
-    """The preset cameras and ``draw`` validation cameras (every knob drawn, none kept at the base camera)."""
+def cameras(draw: int, scales: list[float]) -> dict[str, VideoConfig]:
+    """The preset cameras, the default camera with vehicles of each median length of ``scales`` (px) and ``draw``
+    validation cameras (every knob drawn, none kept at the base camera)."""
     out = {name: load_video_config(_preset(name)) for name in PRESETS}
+    for m in scales:
+        out[f"length-{m:g}"] = VideoConfig(vehicle_length_median=m, vehicle_length=(max(2.0, 0.6 * m), 3.0 * m))
     ranges = dataclasses.replace(ranges_from_dict(load_config(_preset("detector")).data.cameras), base_share=0.0)
     for i in range(draw):
         out[f"val-{i}"] = draw_camera(ranges, VideoConfig(), np.random.default_rng(VALIDATION_SEED + i))
@@ -79,6 +83,7 @@ def main() -> None:
     p.add_argument("--weights", help="detector weights (default: the shipped ones)")
     p.add_argument("--out", required=True)
     p.add_argument("--draw", type=int, default=6, help="validation cameras drawn from the ranges")
+    p.add_argument("--scales", type=float, nargs="*", default=[], help="median vehicle lengths (px) to add")
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--seed", type=int, default=1, help="simulate-video seed of every camera's sequence")
     p.add_argument("--detector-sequences", type=int, default=2)
@@ -88,7 +93,7 @@ def main() -> None:
     out = Path(a.out)
     weights = ["--weights", a.weights] if a.weights else []
     rows = []
-    for name, camera in cameras(a.draw).items():
+    for name, camera in cameras(a.draw, a.scales).items():
         if a.only and name not in a.only:
             continue
         rows.append(score(name, camera, out, weights, a.frames, a.seed, a.detector_sequences))

@@ -54,6 +54,8 @@ class TrainConfig(Checked):
     match_weight: float = option(0.5, ge=0)         # cross-entropy of the matching logits on the true displacement
     out: str = "out/detector-train"
     val_frames: int = option(12, ge=2)              # frames of each validation sequence scored per epoch
+    init: str = ""                                  # weights the training starts from (a path, or the name of a
+    #                                                 file shipped in torchtrack/detector/weights; "": random)
 
 
 @dataclass(frozen=True)

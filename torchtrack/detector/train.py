@@ -29,7 +29,7 @@ from torchtrack.detector.checkpoint import load_checkpoint, save_checkpoint
 from torchtrack.detector.config import DetectorConfig
 from torchtrack.detector.dataset import PairDataset, build_cache, collate
 from torchtrack.detector.evaluate import evaluate_cache
-from torchtrack.detector.inference import Detector, detector_from_checkpoint
+from torchtrack.detector.inference import DEFAULT_WEIGHTS, Detector, detector_from_checkpoint
 from torchtrack.detector.losses import detection_loss
 from torchtrack.detector.targets import Targets
 from torchtrack.errors import TorchtrackError
@@ -77,6 +77,10 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
         torch.backends.cudnn.deterministic, torch.backends.cudnn.benchmark = True, False
         torch.use_deterministic_algorithms(True, warn_only=True)
     det = Detector(cfg)
+    if t.init and not resume:
+        det.net.load_state_dict(load_checkpoint(initial_weights(t.init))["model"])
+        if rank == 0:
+            log(f"train.init: starting from {initial_weights(t.init)}")
     model = det.net.to(device)
     net = DistributedDataParallel(model) if world > 1 else model
     if t.optimizer == "sgd":
@@ -155,6 +159,12 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
                 save_checkpoint(out / "best.pt", payload)
         _barrier(world)
     return {"history": history, "best": str(out / "best.pt"), "last": str(out / "last.pt")}
+
+
+def initial_weights(init: str) -> Path:
+    """``train.init``: a path, or the name of a weights file shipped in ``torchtrack/detector/weights``."""
+    shipped = DEFAULT_WEIGHTS.parent / f"{init.removesuffix('.pt')}.pt"
+    return shipped if "/" not in init and shipped.is_file() else Path(init)
 
 
 THRESHOLDS = (0.25, 0.3, 0.35, 0.4, 0.45, 0.5, 0.55)
