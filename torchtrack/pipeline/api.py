@@ -36,6 +36,7 @@ from torchtrack.filters.trackers.options import read_tracker_sections
 from torchtrack.filters.trackers.protocol import Tracker
 from torchtrack.io.frames import ArraySource, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, as_mot, as_rows, read_mot
+from torchtrack.io.moving import SCORES, dont_care, flags_beside
 from torchtrack.io.outputs import OutputFolder
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.detection_file import detection_file_config, track_detections
@@ -103,7 +104,7 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
           video: str | os.PathLike | None = None, detections: MOTInput | None = None, *,
           tracker: str | Tracker = "gmphd", tracker_name: str | None = None,
           config: str | os.PathLike | Mapping | Any | None = None, gt: MOTInput | None = None,
-          gt_name: str | None = None,
+          gt_name: str | None = None, score: str = "moving",
           device: str = "cpu", threshold: float = 10.0,
           pipeline_config: str | os.PathLike | PipelineConfig | None = None,
           weights: str | os.PathLike | None = None, draw_video: bool | None = None, threads: int | None = None,
@@ -120,9 +121,13 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
             tracker object with ``reset()`` and ``step(frame, positions, velocities)``, recorded under
             ``tracker_name`` (default its ``name`` attribute or class name).
         config: the trackers' options (:func:`tracker_options`); default the built-in ones.
-        gt: truth to score against (a path, :class:`MOTData` or rows); ``ignore (K,)`` marks its don't-care
-            lines (e.g. ``~torchtrack.io.moving.moving_mask(truth)``); ``gt_name`` names it in errors (default: its
+        gt: truth to score against (a path, :class:`MOTData` or rows); ``gt_name`` names it in errors (default: its
             path).
+        score: which of ``gt``'s objects are targets (:func:`torchtrack.io.moving.dont_care`): ``moving`` (default)
+            the moving vehicles, the others don't-care, as ``torchtrack eval --moving`` scores (the
+            ``velocity.txt`` beside a ``gt`` path where its sequence has one, else the paper's displacement rule);
+            ``all`` every object. ``ignore (K,)`` replaces the moving rule's don't-care lines with these
+            (``score="moving"`` only).
         device: where the tracker (and the detector) run: ``cpu``, ``cuda`` or ``cuda:N``.
         threshold: the CLEAR-MOT centre distance in px (detections; frames take the pipeline config's).
         pipeline_config: the video pipeline's settings (a YAML path or preset name, or a :class:`PipelineConfig`).
@@ -140,6 +145,7 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
     built = None if isinstance(tracker, str) else tracker
     options = tracker_options(config, name)
     truth = as_mot(gt, "gt") if gt is not None else None
+    ignore = _dont_care(truth, gt, score, ignore)
     scratch = tempfile.TemporaryDirectory(prefix="torchtrack-") if out is None else None
     folder = OutputFolder(out, COMMAND, force, inputs=list(inputs)) if out is not None else None
     with folder if folder is not None else nullcontext(scratch.name) as staging:
@@ -166,6 +172,19 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
         files = {kind: folder.final(path) for kind, path in files.items()}
     return TrackResult(as_rows(tracks), as_rows(given), report if truth is not None else None, report, files,
                        scratch)
+
+
+def _dont_care(truth: MOTData | None, gt: MOTInput | None, score: str, ignore: np.ndarray | None
+               ) -> np.ndarray | None:
+    """The don't-care lines of ``truth`` under ``score``: ``ignore`` where given, else those of
+    :func:`~torchtrack.io.moving.dont_care` (with the ``velocity.txt`` beside ``gt`` where it is a path)."""
+    if score not in SCORES:
+        raise TorchtrackError(f"score must be one of {', '.join(SCORES)}; got {score!r}")
+    if ignore is not None and score != "moving":
+        raise TorchtrackError("ignore marks the don't-care lines of score='moving'; score='all' has none")
+    if truth is None or ignore is not None:
+        return ignore
+    return dont_care(truth, score, flags_beside(gt) if isinstance(gt, str | os.PathLike) else None)
 
 
 def _pipeline_config(value: str | os.PathLike | PipelineConfig | None) -> PipelineConfig:

@@ -33,7 +33,7 @@ from torchtrack.io.frames import FolderSource
 from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.io.moving import flags_beside, moving_mask
 from torchtrack.io.outputs import write_json
-from torchtrack.metrics.table import format_table1, score
+from torchtrack.metrics.table import format_table1, protocol, score
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.plots import plot_scores, plot_tracks
 from torchtrack.pipeline.replay import run_tracker
@@ -100,7 +100,7 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     }
     metrics.update({
         "demo": {"seed": seed, "generator_seed": gen_seed, "frames": vcfg.frames,
-                 "size": [vcfg.height, vcfg.width], "truth": truth,
+                 "size": [vcfg.height, vcfg.width], "truth": truth, "threshold": cfg.threshold,
                  "generate_s": t_generated - t_start, "total_s": time.perf_counter() - t_start},
         "trackers": scores,
         "files": {k: str(Path(v).relative_to(out)) for k, v in {**result.files, **plots}.items()},
@@ -111,7 +111,8 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
 
 def format_demo(metrics: dict) -> str:
     """The Table 1 text plus the end-to-end line."""
-    table = format_table1(metrics["trackers"])
+    demo = metrics["demo"]
+    table = format_table1(metrics["trackers"], protocol(demo["truth"] == "moving", demo["threshold"]))
     fps = metrics["fps"]
     det = metrics.get("detector", {})
     lines = [
