@@ -33,6 +33,11 @@ def gate(threshold: float, iou: float | None = None) -> str:
     return f"IoU >= {iou}" if iou is not None else f"centre distance <= {threshold} px"
 
 
+def scoring(moving_only: bool, threshold: float, iou: float | None = None) -> dict:
+    """The keys of ``eval --json`` that say how tracks were scored: ``gate`` and ``moving_only``."""
+    return {"gate": gate(threshold, iou), "moving_only": bool(moving_only)}
+
+
 def protocol(moving_only: bool, threshold: float, iou: float | None = None) -> str:
     """The line above a scores table: the objects that are targets (:data:`PROTOCOLS`) and the :func:`gate`."""
     return f"scored on {PROTOCOLS[bool(moving_only)]}, {gate(threshold, iou)}"

@@ -7,11 +7,11 @@
     import torchtrack
 
     result = torchtrack.track(frames="seq/frames", gt="seq/gt.txt")   # the video pipeline
-    print(result.metrics["clear_mot"]["MOTA"])
+    print(result.metrics["MOTA"])                                     # the moving vehicles (score="moving")
     result.save("out/seq")                                            # the command's files, as one set
 
     result = torchtrack.track(detections="det.txt", tracker="glmb", gt="gt.txt")
-    scores = torchtrack.evaluate("gt.txt", result.tracks)
+    scores = torchtrack.evaluate("gt.txt", result.tracks, moving=True)   # the scores of result.metrics
 
 Inputs are paths or arrays: a detection or truth array holds MOTChallenge rows ``(K, 6..10)``
 (``frame, id, x, y, w, h[, conf, vx, vy, -1]``, the columns of the files; :func:`torchtrack.io.mot.from_rows`),
@@ -47,6 +47,9 @@ COMMAND = "torchtrack track"
 (:class:`torchtrack.io.outputs.OutputFolder`): ``torchtrack track --out`` may replace them."""
 
 MOTInput = str | os.PathLike | MOTData | np.ndarray
+EXTRAS = ("tracker", "frames_run", "seconds", "FPS")
+"""The keys of :attr:`TrackResult.metrics` beside the scores, for every input: the tracker's name, the frames it
+ran, its seconds and its frames per second (the tracker alone, as Table 1's FPS)."""
 
 
 @dataclass
@@ -58,8 +61,11 @@ class TrackResult:
             the content of ``tracks.txt``.
         detections: ``(M, 10)`` rows of the detections the tracker was given (the detector's, velocities in
             columns 8 and 9, for frames and videos; the input's for detections).
-        metrics: the scores, with the keys of ``metrics.json``; None without truth.
-        report: everything ``metrics.json`` holds (the scores where there is truth, frames, timings, frames/s).
+        metrics: one flat dict for every input, None without truth: the keys of ``torchtrack eval --json``
+            (``MOTA``, ``MOTP``, ``IDF1``, ``HOTA``, ..., ratios as fractions; ``gate`` and ``moving_only`` say how
+            it was scored) and :data:`EXTRAS` beside them.
+        report: everything ``metrics.json`` holds (the scores where there is truth, frames, timings, frames/s;
+            for frames and videos the scores under ``clear_mot``, with the registration's summary).
         files: the files written, by kind (``tracks``, ``detections``, ``metrics``, ``video``).
     """
 
@@ -138,6 +144,16 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
             its ``--force`` and the paths it reads); default a temporary folder, kept while the result lives
             (:meth:`TrackResult.save` copies them).
         progress: draw a progress bar (video pipeline).
+
+    Returns:
+        A :class:`TrackResult`: ``tracks`` and ``detections`` as MOTChallenge rows, ``metrics`` one flat dict
+        whatever the input (the keys of ``torchtrack eval --json`` — ``MOTA``, ``HOTA``, ``IDF1``, ... as
+        fractions, ``gate``, ``moving_only`` — and ``tracker``, ``frames_run``, ``seconds``, ``FPS``; None without
+        ``gt``), ``report`` (all of ``metrics.json``) and ``files`` (the files written, by kind).
+
+    Raises:
+        TorchtrackError: not exactly one input, an unknown ``score``, or an input the reader rejects (one line
+        naming it).
     """
     if sum(x is not None for x in (frames, video, detections)) != 1:
         raise TorchtrackError("give exactly one input: frames, video or detections")
@@ -170,8 +186,18 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
             given = read_mot(files["detections"])
     if folder is not None:
         files = {kind: folder.final(path) for kind, path in files.items()}
-    return TrackResult(as_rows(tracks), as_rows(given), report if truth is not None else None, report, files,
-                       scratch)
+    metrics = _flat_metrics(report, detections is None) if truth is not None else None
+    return TrackResult(as_rows(tracks), as_rows(given), metrics, report, files, scratch)
+
+
+def _flat_metrics(report: dict, video: bool) -> dict:
+    """:attr:`TrackResult.metrics` from a scored ``metrics.json`` payload: the video pipeline's (scores under
+    ``clear_mot``, the tracker's seconds under ``timings_s``) or the detection file's (flat)."""
+    if not video:
+        return {key: value for key, value in report.items() if key != "cap_hits"}
+    seconds = report["timings_s"].get("tracking", 0.0)
+    return {**report["clear_mot"], "tracker": report["tracker"], "frames_run": report["frames"], "seconds": seconds,
+            "FPS": report["frames"] / seconds if seconds > 0 else float("inf")}
 
 
 def _dont_care(truth: MOTData | None, gt: MOTInput | None, score: str, ignore: np.ndarray | None
