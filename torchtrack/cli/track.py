@@ -113,8 +113,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--benchmark", type=benchmark_config, default=None, metavar="CONFIG",
                         help="run the WPAFB real-data benchmark: wpafb (the shipped preset), another preset "
                              "name or a config path")
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1: the per-frame "
-                        "work is small, more threads only add overhead)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads of the detector and the "
+                        "registration (default 1: the other core decodes and encodes); each tracker step runs on "
+                        "the pipeline config's tracker_threads (default 1: its tensors are small)")
     parser.add_argument("--device", default="cpu", help="where the trackers run: cpu (default), cuda or cuda:N "
                         "(the detections are moved there frame by frame)")
     add_force_option(parser)

@@ -39,7 +39,6 @@ from torchtrack.pipeline.plots import plot_scores, plot_tracks
 from torchtrack.pipeline.replay import run_tracker
 from torchtrack.pipeline.track_video import track_video
 from torchtrack.sim.video import VideoConfig, read_camera, write_sequence
-from torchtrack.threads import torch_threads
 
 
 def _paths(data: MOTData, to_first: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -84,9 +83,8 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     metrics["source"] = "sequence/frames"        # relative to out, as ``files``: out is moved into place at the end
     scores = {cfg.tracker: {**metrics["clear_mot"], "FPS": metrics["fps"].get("tracking_only", float("inf"))}}
     for name in [n for n in tracker_names() if n != cfg.tracker]:
-        with torch_threads(cfg.threads):
-            run = run_tracker(make_tracker(name, cfg.options_for(name)), cfg, result.detections,
-                              out / "trackers" / f"{name}.txt")
+        run = run_tracker(make_tracker(name, cfg.options_for(name)), cfg, result.detections,
+                          out / "trackers" / f"{name}.txt")
         scores[name] = {**score(gt, run.tracks, cfg.threshold, ignore), "FPS": run.fps}
     homographies = {d.index: d.homography for d in result.detections}
     first = next(iter(FolderSource(seq / "frames"))).image

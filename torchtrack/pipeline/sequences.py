@@ -43,7 +43,6 @@ from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.replay import run_tracker
 from torchtrack.pipeline.track_video import track_video
 from torchtrack.sim.video import read_camera
-from torchtrack.threads import torch_threads
 
 
 @dataclass
@@ -113,9 +112,8 @@ def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, pro
     seconds = time.perf_counter() - t0
     tracks = {config.tracker: (result.tracks, result.metrics["timings_s"].get("tracking", 0.0))}
     for name in others:
-        with torch_threads(config.threads):
-            run = run_tracker(make_tracker(name, config.options_for(name)), config, result.detections,
-                              out / seq.name / "trackers" / f"{name}.txt")
+        run = run_tracker(make_tracker(name, config.options_for(name)), config, result.detections,
+                          out / seq.name / "trackers" / f"{name}.txt")
         tracks[name] = (run.tracks, run.seconds)
     return {"name": seq.name, "metrics": result.metrics, "seconds": seconds, "gt": gt, "ignore": ignore,
             "tracks": tracks}
