@@ -94,6 +94,11 @@ class VelocityMap:
         return mean.to(pos.dtype), valid
 
 
+def _detached(x: Tensor) -> Tensor:
+    """``x`` without its gradient (itself where it has none: no operation while streaming)."""
+    return x.detach() if x.requires_grad else x
+
+
 class BirthConstants(NamedTuple):
     """The birth model's constrained parameters for one step: standard deviations and log-weight."""
 
@@ -136,8 +141,8 @@ class AdaptiveBirth(nn.Module):
             return torch.ones(z.shape[0], dtype=torch.bool, device=z.device)
         # a selection: no gradient. A component below the suppression weight explains nothing (radius −1).
         reach = self.options.distance_threshold
-        heavy = pred_log_w.detach() > scalar(math.log(self.options.suppress_weight), pred_log_w)
-        pos, z = pred_pos.detach(), z.detach()
+        heavy = _detached(pred_log_w) > scalar(math.log(self.options.suppress_weight), pred_log_w)
+        pos, z = _detached(pred_pos), _detached(z)
         if pos.shape[0] * z.shape[0] <= DENSE_PAIRS:
             d2 = squared_norm(innovation_pairs(pos, z))                                  # (M, J)
             return torch.where(heavy, d2, scalar(math.inf, d2)).amin(1) > scalar(reach**2, d2)

@@ -694,11 +694,13 @@ def _reach_matrix(mean: Tensor, cov: Tensor, threshold: float) -> Tensor:
 def _owners_dense(reach: Tensor, rounds: int) -> Tensor:
     """The greedy leader rounds of :func:`merge` on a dense reach matrix; ``owner (J,)`` per component."""
     owner = torch.arange(reach.shape[0], device=reach.device)
-    alive = torch.ones_like(owner, dtype=torch.bool)
+    alive = None                                   # every component, in the first round (no mask to apply)
     live = reach                                   # [i, j]: alive heavier j within reach of i
     for _ in range(rounds):
-        blocked = live.any(1) & alive              # an alive heavier component within reach: not a leader
-        leader = alive & ~blocked
+        blocked = live.any(1)                      # an alive heavier component within reach: not a leader
+        if alive is not None:
+            blocked = blocked & alive
+        leader = ~blocked if alive is None else alive & ~blocked
         has, first = (live & leader.unsqueeze(0)).max(1)     # first (heaviest) leader within reach
         owner = torch.where(blocked & has, first, owner)     # joins its leader
         alive = blocked & ~has
