@@ -15,6 +15,7 @@ from torchtrack.cli import main
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.sort import SORT
 from torchtrack.io.mot import from_rows, read_mot
+from torchtrack.pipeline.api import EXTRAS
 from torchtrack.sim.video import VideoConfig, write_sequence
 
 TINY = VideoConfig(height=256, width=256, frames=5)
@@ -31,9 +32,10 @@ def _rows(path):
     return rows[np.lexsort((rows[:, 1], rows[:, 0]))]
 
 
-def _same_scores(a: dict, b: dict) -> None:
-    timing = {"seconds", "FPS", "fps", "timings_s"}
-    assert {k: v for k, v in a.items() if k not in timing} == {k: v for k, v in b.items() if k not in timing}
+def _same_scores(metrics: dict, written: dict) -> None:
+    """``TrackResult.metrics`` holds what ``metrics.json`` says, timings aside."""
+    timing = {"seconds", "FPS"}
+    assert {k: v for k, v in metrics.items() if k not in timing} == {k: written[k] for k in metrics if k not in timing}
 
 
 def test_detection_file_and_rows_equal_the_command(tmp_path, capsys):
@@ -78,9 +80,9 @@ def test_frames_and_video_equal_the_command(sequence, tmp_path, capsys):
     np.testing.assert_allclose(result.tracks, _rows(out / "tracks.txt"), atol=6e-4)
     np.testing.assert_allclose(result.detections, _rows(out / "detections.txt"), atol=6e-4)
     written = json.loads((out / "metrics.json").read_text())
-    assert result.metrics["clear_mot"] == written["clear_mot"]
+    assert {k: result.metrics[k] for k in written["clear_mot"]} == written["clear_mot"]
     # the printed table is in percent (MOTA %), as every other table
-    assert "MOTA (%)" in printed and f"{100 * written['clear_mot']['MOTA']:.2f}" in printed
+    assert "MOTA (%)" in printed and f"{100 * result.metrics['MOTA']:.2f}" in printed
 
     video = tmp_path / "in.avi"
     writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"FFV1"), 2.0, (256, 256), False)
@@ -93,6 +95,17 @@ def test_frames_and_video_equal_the_command(sequence, tmp_path, capsys):
     from_arrays = torchtrack.track(frames=np.stack(images), gt=sequence / "gt.txt", draw_video=False)
     np.testing.assert_allclose(from_arrays.tracks, result.tracks, atol=6e-4)
 
+    # one flat shape for every input: the keys of eval --json, the tracker's extras beside them
+    pred = tmp_path / "pred.txt"
+    np.savetxt(pred, result.tracks, delimiter=",", fmt="%.6f")
+    assert main(["eval", "--gt", str(sequence / "gt.txt"), "--pred", str(pred), "--moving", "--json",
+                 str(tmp_path / "e.json")]) == 0
+    evaluated = json.loads((tmp_path / "e.json").read_text())
+    from_detections = torchtrack.track(detections=result.detections, gt=sequence / "gt.txt")
+    keys = set(evaluated) | set(EXTRAS)
+    assert set(result.metrics) == set(from_video.metrics) == set(from_detections.metrics) == keys
+    assert result.metrics["MOTA"] == pytest.approx(evaluated["MOTA"], abs=1e-12)
+    assert result.metrics["moving_only"] is evaluated["moving_only"] is True
 
 def test_evaluate_equals_eval_json(tmp_path):
     gt, det = scene(tmp_path)

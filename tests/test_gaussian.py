@@ -7,8 +7,10 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.gaussian import (
     chi2_quantile,
     cholesky,
+    gain_from_cholesky,
     kalman_gain,
     kalman_update,
+    leading_gain,
     log_prob,
     mahalanobis_sq,
     moment_match,
@@ -104,6 +106,22 @@ def test_kalman_gain_against_a_dense_solve(batch, m):
     torch.testing.assert_close(W @ W.transpose(-1, -2), K @ S @ K.transpose(-1, -2), rtol=1e-12, atol=1e-12)
     with pytest.raises(TorchtrackError, match="innovation covariance S"):
         kalman_gain(-S, C)
+
+
+@pytest.mark.parametrize("batch", [3, 200])          # the LAPACK and the unrolled small-matrix paths
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_leading_gain_is_the_gain_of_the_leading_block_to_the_bit(batch, dtype):
+    g = torch.Generator().manual_seed(batch)
+    S = (_spd(g, batch, n=4) * torch.rand(batch, 1, 1, generator=g, dtype=torch.float64) * 50).to(dtype)
+    C = torch.randn(batch, 4, 4, generator=g, dtype=torch.float64).to(dtype)
+    gain = kalman_gain(S, C)
+    for p in (1, 2, 3):
+        lead, alone = leading_gain(gain, C[..., :p]), gain_from_cholesky(gain.chol[..., :p, :p], C[..., :p])
+        for a, b in zip(lead, alone):
+            assert torch.equal(a, b), p
+        K = torch.linalg.solve(S[..., :p, :p].double(), C[..., :p].double().transpose(-1, -2)).transpose(-1, -2)
+        torch.testing.assert_close(lead.gain.double(), K, **({} if dtype == torch.float32 else
+                                                              {"rtol": 1e-10, "atol": 1e-10}))
 
 
 def test_scalar_under_torch_compile_gives_no_warning():

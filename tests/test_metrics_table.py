@@ -8,7 +8,7 @@ import pytest
 from torchtrack.io.mot import concat_mot, from_points
 from torchtrack.metrics import clear_mot, hota
 from torchtrack.metrics.hota import KEYS as HOTA_KEYS
-from torchtrack.metrics.table import TABLE1_HEADER, format_table1, score, table1_row
+from torchtrack.metrics.table import TABLE1_HEADER, format_table1, protocol, score, table1_row
 
 
 def moving_tracks(seed: int, frames=25, objects=8):
@@ -68,7 +68,9 @@ def test_ignored_truth_is_scored_as_if_removed_with_the_predictions_on_it():
 def test_table1_header_shows_hota_and_idf1_beside_mota():
     m = {"GT": 4, "MT": 1, "PT": 2, "ML": 1, "FP": 3, "FN": 4, "IDS": 1, "MOTA": 0.5, "HOTA": 0.4125,
          "IDF1": 0.6, "MOTP": 1.25, "FPS": 10.0}
-    header, _, row = format_table1({"x": m}).splitlines()
+    title, header, _, row = format_table1({"x": m}, protocol(True, 10.0)).splitlines()
+    assert title == "scored on moving vehicles (the others don't-care), centre distance <= 10.0 px"
+    assert protocol(False, 5.0) == "scored on all objects, centre distance <= 5.0 px"
     assert re.split(r"\s{2,}", header.strip()) == TABLE1_HEADER
     assert TABLE1_HEADER[-5:] == ["MOTA (%)", "HOTA (%)", "IDF1 (%)", "MOTP (px)", "FPS"]
     assert row.split()[-5:] == ["50.00", "41.25", "60.00", "1.25", "10.00"]

@@ -1,8 +1,10 @@
 """One definition of "moving vehicles" (:func:`torchtrack.io.moving.moving_mask`): ``torchtrack eval --moving``
 on a sequence's ``gt.txt`` and a command's tracks gives the scores that command printed — the demo,
-``track --sequences`` and the WPAFB benchmark."""
+``track --sequences``, ``track --frames/--detections --gt`` (``--score moving``, the default) and the WPAFB
+benchmark; ``track --score all`` scores as ``eval`` without ``--moving``."""
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -23,10 +25,19 @@ COUNTED = ("MOTA", "IDF1")
 LOCALISED = ("MOTP", "HOTA", "DetA", "AssA")
 
 
-def _eval_moving(tmp_path, gt, pred) -> dict:
+def _eval_moving(tmp_path, gt, pred, moving: bool = True) -> dict:
     js = tmp_path / "eval.json"
-    assert main(["eval", "--gt", str(gt), "--pred", str(pred), "--moving", "--json", str(js)]) == 0
+    assert main(["eval", "--gt", str(gt), "--pred", str(pred), *(["--moving"] if moving else []),
+                 "--json", str(js)]) == 0
     return json.loads(js.read_text())
+
+
+def _printed_mota(text: str) -> tuple[str, str]:
+    """The protocol line and the MOTA (%) cell of the one-row scores table printed in ``text``."""
+    lines = text.splitlines()
+    at = next(i for i, line in enumerate(lines) if "MOTA (%)" in line)
+    header, row = re.split(r"\s{2,}", lines[at].strip()), lines[at + 2].split()
+    return lines[at - 1], row[header.index("MOTA (%)")]
 
 
 def _same_scores(got: dict, printed: dict, what: str) -> None:
@@ -61,6 +72,32 @@ def test_eval_moving_reproduces_track_sequences(tmp_path, capsys):
     printed = json.loads((out / "metrics.json").read_text())["sequences"]["s1"]["clear_mot"]
     got = _eval_moving(tmp_path, root / "s1" / "gt.txt", out / "s1" / "tracks.txt")
     _same_scores(got, printed, "track --sequences")
+
+
+def test_track_gt_prints_the_mota_of_eval_moving(tmp_path, capsys):
+    seq = write_sequence(SHORT, torch.Generator().manual_seed(20_000_003), tmp_path / "seq", progress=False)
+    gt = seq / "gt.txt"
+    out = tmp_path / "frames"
+    assert main(["track", "--frames", str(seq / "frames"), "--gt", str(gt), "--out", str(out), "--no-video",
+                 "--no-progress"]) == 0
+    title, mota = _printed_mota(capsys.readouterr().out)
+    moving = _eval_moving(tmp_path, gt, out / "tracks.txt")
+    every = _eval_moving(tmp_path, gt, out / "tracks.txt", moving=False)
+    assert f"{moving['MOTA']:.4f}" != f"{every['MOTA']:.4f}"     # the protocols differ on this sequence
+    capsys.readouterr()
+    assert mota == f"{100 * moving['MOTA']:.2f}" and title.startswith("scored on moving vehicles")
+    # the detections it wrote, tracked from the file: the same rule
+    assert main(["track", "--detections", str(out / "detections.txt"), "--gt", str(gt), "--out",
+                 str(tmp_path / "det")]) == 0
+    title, mota = _printed_mota(capsys.readouterr().out)
+    assert mota == f"{100 * _eval_moving(tmp_path, gt, tmp_path / 'det' / 'tracks.txt')['MOTA']:.2f}"
+    assert title.startswith("scored on moving vehicles")
+    capsys.readouterr()
+    # --score all: every object a target, as eval without --moving
+    assert main(["track", "--frames", str(seq / "frames"), "--gt", str(gt), "--out", str(out), "--no-video",
+                 "--no-progress", "--score", "all"]) == 0
+    title, mota = _printed_mota(capsys.readouterr().out)
+    assert mota == f"{100 * every['MOTA']:.2f}" and title.startswith("scored on all objects")
 
 
 def test_eval_moving_reproduces_the_benchmark(tmp_path):

@@ -16,6 +16,7 @@ from torchtrack.pipeline import track_video as tv
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.detection import motion_evidence
 from torchtrack.sim.video import VideoConfig, generate_sequence
+from torchtrack.threads import TRACKER_THREADS, available_cores, torch_threads
 
 
 @pytest.fixture(scope="module")
@@ -248,3 +249,34 @@ def test_detection_threshold_feeds_the_tracker_but_not_the_prior(tmp_path, seque
     _, tracker = _run(tmp_path, sequence, monkeypatch, detector, detection_threshold=0.1, video=False)
     assert [len(seen) for seen in tracker.seen] == [2] * 5
     assert [len(p) for p in detector.priors] == [0, 1, 1, 1, 1]  # only the strong peak becomes the prior
+
+
+@pytest.mark.skipif(available_cores() < 2, reason="needs two cores to tell two threads from one")
+def test_the_detector_runs_on_the_configured_threads_the_tracker_on_one(tmp_path, sequence, monkeypatch):
+    class CountingDetector(OracleDetector):
+        def detect(self, frame, prev_frame, prev_points):
+            self.threads = {*getattr(self, "threads", set()), torch.get_num_threads()}
+            return super().detect(frame, prev_frame, prev_points)
+
+    class CountingTracker(RecordingTracker):
+        threads: set = set()
+
+        def step(self, frame_index, positions, velocities):
+            CountingTracker.threads = {*CountingTracker.threads, torch.get_num_threads()}
+            return super().step(frame_index, positions, velocities)
+
+    detector, before = CountingDetector(sequence), torch.get_num_threads()
+    tracker = CountingTracker()
+    monkeypatch.setattr(tv, "make_tracker", lambda name, options: tracker)
+    cfg = PipelineConfig(min_speed=0.0, min_motion=0.0, merge_distance=0.0, threads=2, video=False)
+    tv.track_video(ArraySource([f.image for f in sequence]), tmp_path, cfg, detector=detector, progress=False)
+    assert detector.threads == {2} and CountingTracker.threads == {TRACKER_THREADS} == {1}
+    assert torch.get_num_threads() == before                     # restored after the run
+
+
+def test_the_filters_benches_default_to_the_trackers_threads():
+    from torchtrack.bench import kf
+
+    with torch_threads(min(2, available_cores())):
+        result = kf.measure(tracks=64, steps=2, general_steps=2, loop_tracks=2, compile=False)
+    assert result.extra["threads"] == TRACKER_THREADS

@@ -74,8 +74,15 @@ SMALL_BATCH = 64
 
 def _batch_size(*tensors: Tensor) -> int:
     """The largest number of matrices in the batches of ``tensors`` (from the shapes alone: no tensor
-    operation and no ``torch.broadcast_shapes``, which cost microseconds per call)."""
-    return max(math.prod(t.shape[:-2]) for t in tensors)
+    operation and no ``torch.broadcast_shapes``, which cost microseconds per call; a loop, not a generator
+    and ``math.prod``, for the common ``(batch, n, k)`` shapes: this runs several times per filter step)."""
+    most = 1
+    for t in tensors:
+        shape = t.shape
+        size = shape[0] if len(shape) == 3 else math.prod(shape[:-2])
+        if size > most:
+            most = size
+    return most
 
 
 def _is_small(A: Tensor, B: Tensor | None = None) -> bool:
@@ -259,11 +266,29 @@ def kalman_gain(S: Tensor, C: Tensor, what: str = "innovation covariance S", che
 
 
 def gain_from_cholesky(L: Tensor, C: Tensor) -> KalmanGain:
-    """:func:`kalman_gain` from an existing factor ``L`` of ``S`` (e.g. its leading block, the factor
-    of ``S``'s leading block)."""
-    Linv = solve_lower(L, torch.eye(L.shape[-1], dtype=L.dtype, device=L.device).expand_as(L))
+    """:func:`kalman_gain` from an existing factor ``L`` of ``S``."""
+    return _gain(L, solve_lower(L, _identity(L.shape[-1], L.dtype, L.device).expand_as(L)), C)
+
+
+def leading_gain(gain: KalmanGain, C: Tensor) -> KalmanGain:
+    """:func:`kalman_gain` of ``S``'s leading ``p × p`` block from ``S``'s own ``gain``, for ``C (*, n, p)``: the
+    leading blocks of ``L`` and ``L⁻¹`` are that block's factor and its inverse (forward substitution on the
+    first ``p`` rows reads nothing else), so no factorisation or solve is repeated — the same numbers as
+    :func:`gain_from_cholesky` on ``L[..., :p, :p]``."""
+    p = C.shape[-1]
+    return _gain(gain.chol[..., :p, :p], gain.chol_inv[..., :p, :p], C)
+
+
+def _gain(L: Tensor, Linv: Tensor, C: Tensor) -> KalmanGain:
     W = small_matmul(C, Linv.transpose(-1, -2))
     return KalmanGain(L, Linv, W, small_matmul(W, Linv))
+
+
+@functools.lru_cache(maxsize=64)
+def _identity(n: int, dtype: torch.dtype, device: torch.device) -> Tensor:
+    """A cached ``n × n`` identity (read only: expanded, never written)."""
+    with torch.inference_mode(False):
+        return torch.eye(n, dtype=dtype, device=device)
 
 
 def batched_matmul(A: Tensor, B: Tensor) -> Tensor:

@@ -1,4 +1,12 @@
-"""The number of torch intra-op threads, set for the length of a block."""
+"""The number of torch intra-op threads, set for the length of a block, and chosen per workload.
+
+The workloads differ: the detector's convolutions are large and split well over threads, while the trackers
+and filters (Kalman, IMM, particle, GM-PHD, GLMB, PMB) step tensors of tens to thousands of elements, where
+each op split over threads costs an OpenMP fork and join and threads that wait on each other — more than the
+op itself. So the trackers run on :data:`TRACKER_THREADS` by default whatever the detector is given: the
+pipeline (``torchtrack track``, ``demo``) switches to them around each tracker step
+(``PipelineConfig.tracker_threads``) and the trackers' and filters' benches default to them.
+"""
 
 from __future__ import annotations
 
@@ -11,6 +19,9 @@ import torch
 
 from torchtrack.errors import TorchtrackError
 
+TRACKER_THREADS = 1
+"""Intra-op threads of the small-tensor workloads (the trackers and the filters' benches) by default."""
+
 
 @contextmanager
 def torch_threads(n: int | None) -> Iterator[None]:
@@ -22,12 +33,14 @@ def torch_threads(n: int | None) -> Iterator[None]:
     if n is not None:
         n = clamp_threads(n)
     previous = torch.get_num_threads()
-    if n is not None:
+    if n is not None and n != previous:  # set only to change it: setting also clears oneDNN's primitive cache
         torch.set_num_threads(n)
     try:
         yield
     finally:
-        torch.set_num_threads(previous)
+        if torch.get_num_threads() != previous:
+            torch.set_num_threads(previous)
+
 
 
 def clamp_threads(n: int) -> int:

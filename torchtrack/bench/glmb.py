@@ -24,7 +24,7 @@ from torchtrack.bench.glmb_reference import ReferenceGLMB
 from torchtrack.bench.gmphd import WORKLOADS, scenario
 from torchtrack.filters.trackers.options import tracker_config
 from torchtrack.filters.trackers.protocol import make_tracker
-from torchtrack.threads import torch_threads
+from torchtrack.threads import TRACKER_THREADS, torch_threads
 
 DETECTOR_VELOCITY_SIGMA = 1.0   # px/frame: the workload's velocity noise
 
@@ -52,7 +52,7 @@ class _Clock:
 
 
 def measure(targets: int = 100, warmup: int = 10, frames: int = 100, reference_frames: int = 20,
-            velocities: bool = False, threads: int = 1, seed: int = 0) -> BenchResult:
+            velocities: bool = False, threads: int = TRACKER_THREADS, seed: int = 0) -> BenchResult:
     """Time our ``glmb`` tracker and the NumPy reference on the same frames (module docstring)."""
     w, scene = workload(targets, warmup + max(frames, reference_frames), seed)
     options = {"clutter_density": w["clutter"] / (w["high"] - w["low"]) ** 2, "seed": seed,

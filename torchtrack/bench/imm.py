@@ -21,7 +21,7 @@ from torchtrack.bench._timing import BenchResult, best_time, cpu_time, format_re
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.imm.cv import ConstantVelocityIMM
 from torchtrack.models import LinearPosition, ModeControlInput
-from torchtrack.threads import torch_threads
+from torchtrack.threads import TRACKER_THREADS, torch_threads
 
 G = 9.81
 CONTROLS = [[0.0, 0.0], [0.0, 3 * G], [0.0, -G]]
@@ -87,7 +87,7 @@ def filterpy_rate(z: torch.Tensor, x0: torch.Tensor, model: ConstantVelocityIMM)
 
 
 def measure(tracks: int = 100_000, steps: int = 20, reference_tracks: int = 100, dtype: str = "float32",
-            threads: int = 1, compile: bool = True, seed: int = 0) -> BenchResult:
+            threads: int = TRACKER_THREADS, compile: bool = True, seed: int = 0) -> BenchResult:
     """Time our IMM on ``tracks`` tracks x ``steps`` steps (best of 3, on ``threads`` torch threads, compiled
     or eager) and FilterPy on the first ``reference_tracks`` of them; ``extra`` holds the CPU-time rates and
     the largest deviation of the final estimates from FilterPy's."""

@@ -26,6 +26,7 @@ import torch
 from torchtrack.bench._timing import BenchResult, best_time, format_result
 from torchtrack.filters.kalman.filter import GaussianState, KalmanFilter
 from torchtrack.models import ConstantVelocity, LinearPosition
+from torchtrack.threads import TRACKER_THREADS, torch_threads
 
 DT, Q, SIGMA = 1.0, 0.05, 1.0
 
@@ -59,10 +60,17 @@ def _filterpy_loop(z: np.ndarray, x0: np.ndarray, P0: np.ndarray, F, Qm, H, R) -
 
 
 def measure(tracks: int = 100_000, steps: int = 100, general_steps: int = 10, loop_tracks: int = 200,
-            compile: bool = True, seed: int = 0) -> BenchResult:
+            compile: bool = True, seed: int = 0, threads: int = TRACKER_THREADS) -> BenchResult:
     """Time the axis-decoupled engine on ``tracks`` x ``steps`` (``compile``: torch.compile'd), the general
     path on ``general_steps`` steps, the NumPy reference and FilterPy's per-track loop on ``loop_tracks``
-    tracks (when installed); the general path's and the loop's rates are in ``extra``."""
+    tracks (when installed), torch on ``threads`` intra-op threads; the general path's and the loop's rates
+    are in ``extra``."""
+    with torch_threads(threads):
+        return _measure(tracks, steps, general_steps, loop_tracks, compile, seed)
+
+
+def _measure(tracks: int, steps: int, general_steps: int, loop_tracks: int, compile: bool, seed: int
+             ) -> BenchResult:
     gen = torch.Generator().manual_seed(seed)
     N, T = tracks, steps
     dtype = torch.float32
@@ -96,7 +104,7 @@ def measure(tracks: int = 100_000, steps: int = 100, general_steps: int = 10, lo
     Tr = min(T, 10)
     ref_s = best_time(lambda: _numpy_reference(z_np[:Tr], x0, P0, F32, Q32, H32, R32), repeats=1, warmup=0)
 
-    extra = {"tracks": N, "steps": T, "dtype": "float32", "compile": compile,
+    extra = {"tracks": N, "steps": T, "dtype": "float32", "compile": compile, "threads": torch.get_num_threads(),
              "warmup_s": warmup_s,
              "general_path_per_s": N * Tg / general_s,
              "general_path_eager_per_s": N * Tg / general_eager_s,

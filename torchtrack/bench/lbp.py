@@ -16,7 +16,7 @@ import torch
 from torchtrack.association.lbp import LOG_NEW_FLOOR, lbp_marginals
 from torchtrack.bench._timing import CLOCKS, BenchResult, best_time, format_result, load_average
 from torchtrack.metrics.table import format_table
-from torchtrack.threads import torch_threads
+from torchtrack.threads import TRACKER_THREADS, torch_threads
 
 
 def _np_sum_of_others(v: np.ndarray, floor, axis: int) -> tuple[np.ndarray, np.ndarray]:
@@ -63,8 +63,8 @@ def make_problem(n: int, density: float, gen: torch.Generator, dtype: torch.dtyp
     return log_w.to(dtype), log_miss.to(dtype), log_new.to(dtype)
 
 
-def measure(sizes: list[int], iterations: int = 15, density: float = 0.2, dtype: str = "float32", threads: int = 1,
-            repeats: int = 5, seed: int = 0) -> BenchResult:
+def measure(sizes: list[int], iterations: int = 15, density: float = 0.2, dtype: str = "float32",
+            threads: int = TRACKER_THREADS, repeats: int = 5, seed: int = 0) -> BenchResult:
     """Time ours and the NumPy reference (best of ``repeats``, on ``threads`` torch threads) on one random
     ``n x n`` problem per ``sizes`` entry (``density``: the gated fraction), ``iterations`` fixed; the rates are
     the last size's, every size's times and largest marginal difference are ``extra["per_size"]``."""

@@ -23,7 +23,7 @@ import torch
 from torchtrack.bench._timing import BenchResult, best_time, cpu_time, format_result, load_average
 from torchtrack.filters.particle.jtc import MultipleModelParticleFilter, paper_bank
 from torchtrack.sim.jtc_trajectory import jtc_trajectory, simulate_measurements
-from torchtrack.threads import torch_threads
+from torchtrack.threads import TRACKER_THREADS, torch_threads
 
 PRIOR_STD = (150.0, 150.0, 20.0, 20.0)
 
@@ -85,8 +85,8 @@ def numpy_bank(bank: MultipleModelParticleFilter, z: np.ndarray, mean: np.ndarra
     return np.stack(out)
 
 
-def measure(runs: int = 20, particles: int = 3000, scans: int = 80, dtype: str = "float32", threads: int = 1,
-            compile: bool = False, repeats: int = 3, seed: int = 0) -> BenchResult:
+def measure(runs: int = 20, particles: int = 3000, scans: int = 80, dtype: str = "float32",
+            threads: int = TRACKER_THREADS, compile: bool = False, repeats: int = 3, seed: int = 0) -> BenchResult:
     """Time the bank (best of ``repeats`` passes, on ``threads`` torch threads; ``compile``: its step
     ``torch.compile``d) and the NumPy reference on the same measurements of ``runs`` runs."""
     with torch_threads(threads):

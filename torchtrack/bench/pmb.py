@@ -19,7 +19,7 @@ from torchtrack.bench._timing import CLOCKS, BenchResult, best_time, format_resu
 from torchtrack.bench.lbp import numpy_lbp
 from torchtrack.filters.pmb.filter import PMBFilter, PMBState
 from torchtrack.models import ConstantVelocity, LinearPosition
-from torchtrack.threads import torch_threads
+from torchtrack.threads import TRACKER_THREADS, torch_threads
 
 HALF = 1000.0   # surveillance region (-1000, 1000)^2 m
 SIGMA = 5.0     # measurement noise, m
@@ -124,7 +124,7 @@ def _to_numpy_state(st: PMBState) -> dict:
 
 
 def measure(targets: int = 100, measurements: int = 150, scans: int = 20, dtype: str = "float64",
-            lbp_iterations: int = 30, lbp_tol: float = 1e-6, threads: int = 1, repeats: int = 3,
+            lbp_iterations: int = 30, lbp_tol: float = 1e-6, threads: int = TRACKER_THREADS, repeats: int = 3,
             seed: int = 0) -> BenchResult:
     """Time ``scans`` TOMB/P scans (best of ``repeats``, on ``threads`` torch threads) of our filter and of the
     NumPy step from the same state after a warm-up; ``lbp_tol`` 0: a fixed number of LBP iterations."""

@@ -13,7 +13,6 @@ ranks split every frame into strips and rank 0 alone writes the folder.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -24,8 +23,9 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import tracker_names
 from torchtrack.io.frames import open_frames
 from torchtrack.io.mot import MOTData, read_mot
+from torchtrack.io.moving import dont_care, flags_beside
 from torchtrack.io.outputs import OutputFolder, write_json
-from torchtrack.metrics.table import TABLE1_HEADER, format_table, format_table1, table1_row
+from torchtrack.metrics.table import TABLE1_HEADER, format_table, format_table1, protocol, table1_row
 from torchtrack.pipeline.api import track
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.sequences import destroy, run_sequences, shared_output
@@ -58,9 +58,9 @@ def add_frame_options(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--camera", type=Path, metavar="JSON", default=None,
                    help="true camera motion (camera.json of a synthetic sequence) to measure registration")
     g.add_argument("--truth-csv", type=Path, metavar="CSV", default=None,
-                   help="score against a WPAFB truth CSV (transformed_object_states.csv) with the paper's "
-                        "protocol: moving vehicles are targets, the others don't-care; frame 1 of the CSV "
-                        "is the first frame; CSV frames beyond the video are not scored")
+                   help="score against a WPAFB truth CSV (transformed_object_states.csv) as --score says "
+                        "(default: the paper's protocol, moving vehicles are targets, the others don't-care); "
+                        "frame 1 of the CSV is the first frame; CSV frames beyond the video are not scored")
     g.add_argument("--no-video", action="store_true", help="do not write annotated.mp4")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
 
@@ -105,7 +105,7 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
         try:
             with shared_output(out, command, args.force, inputs) as staging:
                 summary = run_sequences(args.sequences, staging, config, progress=not args.no_progress,
-                                        compare=compare)
+                                        compare=compare, score=args.score)
         finally:
             destroy()
         if summary is None:  # a torchrun rank other than 0
@@ -113,13 +113,14 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
         rows = [_score_row(n, m.get("clear_mot"), m["fps"]["end_to_end"]) for n, m in summary["sequences"].items()]
         if "aggregate" in summary:
             rows.append(_score_row("ALL", summary["aggregate"], summary["fps_per_process"]))
+        print(protocol(args.score == "moving", config.threshold))
         print(format_table(HEADER, rows, floatfmt=".2f"))
         print(f"{len(summary['sequences'])} sequences, {summary['frames']} frames, tracker {config.tracker}, "
               f"{summary['world_size']} process(es); wrote {out}/metrics.json and {out}/<sequence>/")
         if "trackers" in summary:
             print(f"all trackers on the same detections, pooled over {summary['aggregate']['sequences']} sequences "
                   "(FPS: the tracker alone):")
-            print(format_table1(summary["trackers"]))
+            print(format_table1(summary["trackers"], protocol(args.score == "moving", config.threshold)))
         if "registration_error_px" in summary:
             print("registration error vs camera truth: median of sequence medians "
                   f"{summary['registration_error_px']['median_of_sequence_medians']:.3f} px")
@@ -135,11 +136,13 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
         source = open_frames(args.video or args.frames)
         gt, ignore = _truth(args, len(source))
         result = track(frames=args.frames, video=args.video, tracker=config.tracker, gt=gt, ignore=ignore,
-                       gt_name=str(args.truth_csv or args.gt),
+                       gt_name=str(args.truth_csv or args.gt), score=args.score,
                        device=args.device, pipeline_config=config, camera=_camera(args), out=out, force=args.force,
                        inputs=inputs, progress=not args.no_progress)
         m, files = result.report, result.files
     name = Path(args.video or args.frames).name
+    gt_given = bool(args.gt or args.truth_csv)
+    print(protocol(args.score == "moving", config.threshold) if gt_given else "not scored (no truth given)")
     print(format_table(HEADER, [_score_row(name, m.get("clear_mot"), m["fps"]["end_to_end"])], floatfmt=".2f"))
     timings = ", ".join(f"{k} {v:.2f}s" for k, v in m["timings_s"].items())
     print(f"{m['frames']} frames, tracker {config.tracker}: {timings}")
@@ -157,14 +160,15 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
 
 
 def _truth(args: argparse.Namespace, frames: int) -> tuple[MOTData | None, np.ndarray | None]:
-    """``--gt`` or ``--truth-csv`` (with its don't-care mask) for a video of ``frames`` frames."""
+    """``--gt`` or ``--truth-csv`` for a video of ``frames`` frames, with its don't-care lines under ``--score``
+    (:func:`torchtrack.io.moving.dont_care`)."""
     if args.truth_csv:
-        return wpafb_truth(args.truth_csv, frames)
-    if args.gt and Path(args.gt).with_name("velocity.txt").is_file():
-        print(f"note: every vehicle of {args.gt} is a target, parked ones too, while the pipeline tracks "
-              "moving objects; track --sequences on the sequence's folder scores the moving ones (the "
-              "paper's protocol, with its velocity.txt)", file=sys.stderr)
-    return (read_mot(args.gt) if args.gt else None), None
+        gt, not_moving = wpafb_truth(args.truth_csv, frames)
+        return gt, not_moving if args.score == "moving" else None
+    if not args.gt:
+        return None, None
+    gt = read_mot(args.gt)
+    return gt, dont_care(gt, args.score, flags_beside(args.gt))
 
 
 def _camera(args: argparse.Namespace) -> np.ndarray | None:

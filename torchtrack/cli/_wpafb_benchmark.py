@@ -54,8 +54,7 @@ def run_benchmark(name_or_path: str | Path, out: Path, seed: int, trackers: list
     tracker_options = read_tracker_sections(tracker_config or config.tracker_config)
     found = run(config, read_wpafb_csv(truth_csv(raw)), out, seed, tracker_options, trackers)
     for subset, result in found.items():
-        print(f"\n{result.title(subset, config)}")
-        print(format_table1(result.results))
+        print(f"\n{format_table1(result.results, result.title(subset, config))}")
     payload = {"config": str(name_or_path), **benchmark_payload(config, seed, found)}
     write_json(Path(out) / "benchmark.json", payload)
     return payload

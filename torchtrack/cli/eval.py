@@ -74,7 +74,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="IoU gate instead (e.g. 0.5)")
     parser.add_argument("--moving", action="store_true",
                         help="score only moving vehicles: those flagged in the velocity.txt beside gt.txt, else those "
-                             "that moved more than 5 px over the last 15 frames (default: all)")
+                             "that moved more than 5 px over the last 15 frames, as track --score moving (its default) "
+                             "scores (default here: all objects)")
     parser.add_argument("--count-zero-conf", action="store_true",
                         help="score ground-truth lines with conf 0 as objects (default: ignored, as MOTChallenge)")
     parser.add_argument("--ospa", type=positive_float, default=None, metavar="C",
@@ -107,13 +108,12 @@ def _options(args: argparse.Namespace) -> EvalOptions:
 
 def run(args: argparse.Namespace) -> int:
     options = _options(args)
-    scored = f"({options.gate}{', moving objects only' if args.moving else ''})"
     if args.gt is not None:
         pairs = [("", args.gt, args.pred)]
-        print(f"{args.pred} vs {args.gt} {scored}")
+        print(f"{args.pred} vs {args.gt}: {options.protocol}")
     else:
         pairs = benchmark_sequences(args.gt_folder, args.pred_folder)
-        print(f"{args.pred_folder} vs {args.gt_folder}: {len(pairs)} sequences {scored}")
+        print(f"{args.pred_folder} vs {args.gt_folder}: {len(pairs)} sequences, {options.protocol}")
     if args.gt is not None:
         rows = {"": evaluate_scores(args.gt, args.pred, threshold=options.threshold, iou=options.iou,
                                     moving=options.moving, count_zero_conf=options.count_zero_conf,

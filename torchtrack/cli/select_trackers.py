@@ -10,7 +10,7 @@ from torchtrack.cli._common import PIPELINE_PRESETS, add_common_options, add_for
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import tracker_names
 from torchtrack.io.outputs import OutputFolder, check_output_file, write_json, write_yaml
-from torchtrack.metrics.table import format_table
+from torchtrack.metrics.table import format_table, protocol
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.selection import GRIDS, check_ids_reference, collect, select
 
@@ -109,6 +109,7 @@ def run(args) -> int:
              json.dumps(best[n]["options"])] for n in trackers if n in best]
     print(f"{len(data)} sequences, {len(log)} tracker runs; min_speed {chosen.min_speed} px/frame, "
           f"min_motion {chosen.min_motion}")
+    print(protocol(True, config.threshold))
     print(format_table(["tracker", "MOTA (%)", "HOTA (%)", "IDF1 (%)", "IDS", "FP", "FN", "options"], rows,
                        floatfmt=".2f"))
     print(f"wrote {args.out} and {args.out.with_suffix('.json')}")

@@ -35,11 +35,15 @@ from torchtrack.cli._wpafb_benchmark import benchmark_config
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.options import read_tracker_sections
 from torchtrack.filters.trackers.protocol import Tracker, tracker_names
+from torchtrack.io.moving import SCORES, dont_care, flags_beside
 from torchtrack.io.outputs import OutputFolder, write_json
-from torchtrack.metrics.table import format_table1
+from torchtrack.metrics.table import format_table1, protocol
 from torchtrack.threads import torch_threads
 
 if TYPE_CHECKING:
+    import numpy as np
+
+    from torchtrack.io.mot import MOTData
     from torchtrack.pipeline.config import PipelineConfig
 
 NAME = "track"
@@ -51,6 +55,10 @@ DESCRIPTION = """Track the moving objects of a video (--video FILE) or a folder 
 frame is registered to the first, the detector finds the objects and the tracker (--tracker) follows them.
 A MOTChallenge detection file (--detections DET) skips registration and detection; --sequences DIR runs
 every sequence folder in DIR; --benchmark wpafb runs the WPAFB real-data benchmark end to end.
+
+Scoring (--gt, --truth-csv, --sequences): the moving vehicles are the targets and the other objects
+don't-care, as torchtrack eval --moving, torchtrack demo and the WPAFB benchmark score; --score all makes
+every object a target (as eval without --moving). Every table names the protocol in its first line.
 
 Trackers: gmphd (the enhanced GM-PHD, default), labelled-gmphd, sort, greedy, pmb and glmb. With --compare
 every tracker (or those of --trackers) runs on the same detections and one table compares them.
@@ -90,6 +98,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(torchtrack calibrate), then track every frame with the result; OUT also holds "
                              "track.yaml, calibration.json and loss.png (not with --config/--params)")
     parser.add_argument("--gt", type=Path, default=None, help="ground truth (MOTChallenge) to score against")
+    parser.add_argument("--score", choices=SCORES, default="moving",
+                        help="which objects of the truth are targets: moving (default) the moving vehicles, the "
+                             "others don't-care, as eval --moving, demo and the WPAFB benchmark score them (the "
+                             "velocity.txt beside --gt where there is one, else those that moved more than 5 px "
+                             "over the last 15 frames); all: every object, as eval without --moving")
     parser.add_argument("--out", type=Path, default=Path("out/track"), help="output folder (default out/track)")
     parser.add_argument("--threshold", type=positive_float, default=10.0, help="CLEAR-MOT centre distance in px "
                         "(default 10)")
@@ -100,8 +113,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--benchmark", type=benchmark_config, default=None, metavar="CONFIG",
                         help="run the WPAFB real-data benchmark: wpafb (the shipped preset), another preset "
                              "name or a config path")
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads (default 1: the per-frame "
-                        "work is small, more threads only add overhead)")
+    parser.add_argument("--threads", type=positive_int, default=1, help="torch CPU threads of the detector and the "
+                        "registration (default 1: the other core decodes and encodes); each tracker step runs on "
+                        "the pipeline config's tracker_threads (default 1: its tensors are small)")
     parser.add_argument("--device", default="cpu", help="where the trackers run: cpu (default), cuda or cuda:N "
                         "(the detections are moved there frame by frame)")
     add_force_option(parser)
@@ -188,14 +202,15 @@ def _run(args: argparse.Namespace) -> int:
         return _run_calibrated(args, base)
     if not args.compare:
         result = track(detections=args.detections, tracker=fitted or args.tracker, tracker_name=args.tracker,
-                       config=tracker_options, gt=args.gt, device=args.device, threshold=args.threshold,
+                       config=tracker_options, gt=args.gt, score=args.score, device=args.device,
+                       threshold=args.threshold,
                        pipeline_config=base, out=args.out, force=args.force, inputs=inputs(args))
         _print_report(args, result.report, args.gt is not None)
         return 0
     with OutputFolder(args.out, OUTPUT, args.force, inputs=inputs(args)) as staging:
         det = read_mot(args.detections)
         gt = read_mot(args.gt) if args.gt is not None else None
-        report = compare(det, config, staging, gt, args.trackers or tracker_names())
+        report = compare(det, config, staging, gt, args.trackers or tracker_names(), _dont_care(args, gt))
         write_json(staging / "comparison.json", report)
     _print_report(args, report, gt is not None)
     return 0
@@ -216,7 +231,7 @@ def _run_calibrated(args: argparse.Namespace, base: PipelineConfig | None) -> in
         result = calibrate_into(det, folder, (first, first + args.calibrate - 1), None, args.seed,
                                 str(args.detections))
         tracked = track(detections=det, tracker=args.tracker, config=result.sections, gt=args.gt,
-                        device=args.device, threshold=args.threshold, pipeline_config=base)
+                        score=args.score, device=args.device, threshold=args.threshold, pipeline_config=base)
         tracked.files.update(config=folder / "track.yaml", calibration=folder / "calibration.json",
                              loss=folder / "loss.png")
         tracked.save(args.out, args.force)
@@ -235,7 +250,7 @@ def _run_strips(args: argparse.Namespace, config: PipelineConfig, fitted: Tracke
     with strip_group() as rank:
         tracker = strip_tracker(fitted or make_tracker(args.tracker, config.options_for(args.tracker)), det, args)
         with rank_output(rank, args.out, OUTPUT, args.force, inputs(args)) as staging:
-            report = track_detections(det, args.tracker, config, staging, gt, tracker)
+            report = track_detections(det, args.tracker, config, staging, gt, tracker, _dont_care(args, gt))
             report.update(strip_metrics(tracker))
             if rank == 0:
                 write_json(staging / "metrics.json", report)
@@ -244,9 +259,15 @@ def _run_strips(args: argparse.Namespace, config: PipelineConfig, fitted: Tracke
     return 0
 
 
+def _dont_care(args: argparse.Namespace, gt: MOTData | None) -> np.ndarray | None:
+    """The don't-care lines of ``--gt`` under ``--score`` (:func:`torchtrack.io.moving.dont_care`)."""
+    return dont_care(gt, args.score, flags_beside(args.gt)) if gt is not None else None
+
+
 def _print_report(args: argparse.Namespace, report: dict, scored: bool) -> None:
     if args.compare or scored:
-        print(format_table1(report if args.compare else {args.tracker: report}))
+        print(format_table1(report if args.compare else {args.tracker: report},
+                            protocol(args.score == "moving", args.threshold)))
     else:
         print(f"{args.tracker}: {report['frames_run']} frames, {report['FPS']:.1f} frames/s; tracks in "
               f"{args.out / 'tracks.txt'}")

@@ -89,3 +89,17 @@ def moving_mask(truth: MOTData, flags: str | os.PathLike | None = None,
     if flags is not None:
         return flagged_moving(truth, flags)
     return displacement_rule(truth, min_displacement, window)
+
+
+SCORES = ("moving", "all")
+"""The scoring protocols of every command that tracks and scores: ``moving`` (the default, the paper's: the
+moving vehicles are the targets, the others don't-care) or ``all`` (every object is a target)."""
+
+
+def dont_care(truth: MOTData, score: str = "moving", flags: str | os.PathLike | None = None) -> np.ndarray | None:
+    """(K,) bool over ``truth``'s lines: the don't-care objects under the protocol ``score`` (:data:`SCORES`) —
+    for ``moving`` the lines that are not moving (:func:`moving_mask` with ``flags``), as ``eval --moving``
+    scores; for ``all`` None (every line is a target)."""
+    if score not in SCORES:
+        raise TorchtrackError(f"score must be one of {', '.join(SCORES)}; got {score!r}")
+    return ~moving_mask(truth, flags) if score == "moving" else None

@@ -30,6 +30,7 @@ from torchtrack.metrics import clear_mot, hota
 from torchtrack.metrics.clear_mot import combine as combine_clear_mot
 from torchtrack.metrics.hota import KEYS as HOTA_KEYS
 from torchtrack.metrics.hota import combine as combine_hota
+from torchtrack.metrics.table import gate, protocol, scoring
 
 OSPA_KEYS = ("OSPA", "OSPA_localisation", "OSPA_cardinality", "GOSPA", "GOSPA_localisation", "GOSPA_missed",
              "GOSPA_false")
@@ -56,7 +57,12 @@ class EvalOptions:
 
     @property
     def gate(self) -> str:
-        return f"IoU >= {self.iou}" if self.iou is not None else f"centre distance <= {self.threshold} px"
+        return gate(self.threshold, self.iou)
+
+    @property
+    def protocol(self) -> str:
+        """The line naming the objects scored and the gate (:func:`torchtrack.metrics.table.protocol`)."""
+        return protocol(self.moving, self.threshold, self.iou)
 
 
 @dataclass(frozen=True)
@@ -113,7 +119,7 @@ def evaluate_scores(gt: str | os.PathLike | MOTData | np.ndarray, pred: str | os
     if flags is None and isinstance(gt, str | os.PathLike):
         flags = flags_beside(gt)
     scores = evaluate(as_mot(gt, "gt"), as_mot(pred, "pred"), options, flags).scores()
-    return {**scores, "gate": options.gate, "moving_only": bool(moving)}
+    return {**scores, **scoring(moving, threshold, iou)}
 
 
 def combine(evaluations: Sequence[Evaluation]) -> Evaluation:

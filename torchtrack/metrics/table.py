@@ -4,7 +4,9 @@
 (:func:`torchtrack.metrics.hota`, centre similarity at the same threshold) with plain floats;
 :func:`format_table1` prints tracker → scores in the layout of Table 1 of Aguilar et al. (ICASSP 2023): GT
 trajectories, MT/PT/ML as % of them, FP, FN, IDS, MOTA %, MOTP (mean matched centre distance, px) and the
-tracker's frames per second, with HOTA % and IDF1 % added beside MOTA.
+tracker's frames per second, with HOTA % and IDF1 % added beside MOTA. Every table opens with the line that
+names how it was scored (:func:`protocol`): the moving vehicles (the default of every command that tracks and
+scores, as ``eval --moving``) or all objects, and the gate.
 """
 
 from __future__ import annotations
@@ -20,6 +22,25 @@ from torchtrack.metrics.hota import hota
 
 TABLE1_HEADER = ["Method", "GT", "MT (%)", "PT (%)", "ML (%)", "FP", "FN", "IDS", "MOTA (%)", "HOTA (%)",
                  "IDF1 (%)", "MOTP (px)", "FPS"]
+
+
+PROTOCOLS = {True: "moving vehicles (the others don't-care)", False: "all objects"}
+"""The scoring protocols as the tables name them: ``moving_only`` → the objects that are targets."""
+
+
+def gate(threshold: float, iou: float | None = None) -> str:
+    """How a prediction matches an object (``eval --json``'s ``gate``): a centre distance or an IoU."""
+    return f"IoU >= {iou}" if iou is not None else f"centre distance <= {threshold} px"
+
+
+def scoring(moving_only: bool, threshold: float, iou: float | None = None) -> dict:
+    """The keys of ``eval --json`` that say how tracks were scored: ``gate`` and ``moving_only``."""
+    return {"gate": gate(threshold, iou), "moving_only": bool(moving_only)}
+
+
+def protocol(moving_only: bool, threshold: float, iou: float | None = None) -> str:
+    """The line above a scores table: the objects that are targets (:data:`PROTOCOLS`) and the :func:`gate`."""
+    return f"scored on {PROTOCOLS[bool(moving_only)]}, {gate(threshold, iou)}"
 
 
 def score(gt: MOTData, tracks: MOTData, threshold: float = 10.0, ignore: np.ndarray | None = None) -> dict:
@@ -40,9 +61,11 @@ def table1_row(name: str, m: Mapping) -> list:
             int(m["FN"]), int(m["IDS"]), 100 * m["MOTA"], 100 * m["HOTA"], 100 * m["IDF1"], m["MOTP"], m["FPS"]]
 
 
-def format_table1(scores: Mapping[str, Mapping]) -> str:
-    """Table 1 with one row per tracker of ``scores`` (tracker name → :func:`score` dict with ``FPS``)."""
-    return format_table(TABLE1_HEADER, [table1_row(name, m) for name, m in scores.items()], floatfmt=".2f")
+def format_table1(scores: Mapping[str, Mapping], title: str) -> str:
+    """Table 1 with one row per tracker of ``scores`` (tracker name → :func:`score` dict with ``FPS``), under
+    ``title``: the line naming how it was scored (:func:`protocol`)."""
+    rows = [table1_row(name, m) for name, m in scores.items()]
+    return f"{title}\n{format_table(TABLE1_HEADER, rows, floatfmt='.2f')}"
 
 
 def format_table(header: Sequence[str], rows: Sequence[Sequence], floatfmt: str = ".3f") -> str:

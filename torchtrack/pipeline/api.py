@@ -7,11 +7,11 @@
     import torchtrack
 
     result = torchtrack.track(frames="seq/frames", gt="seq/gt.txt")   # the video pipeline
-    print(result.metrics["clear_mot"]["MOTA"])
+    print(result.metrics["MOTA"])                                     # the moving vehicles (score="moving")
     result.save("out/seq")                                            # the command's files, as one set
 
     result = torchtrack.track(detections="det.txt", tracker="glmb", gt="gt.txt")
-    scores = torchtrack.evaluate("gt.txt", result.tracks)
+    scores = torchtrack.evaluate("gt.txt", result.tracks, moving=True)   # the scores of result.metrics
 
 Inputs are paths or arrays: a detection or truth array holds MOTChallenge rows ``(K, 6..10)``
 (``frame, id, x, y, w, h[, conf, vx, vy, -1]``, the columns of the files; :func:`torchtrack.io.mot.from_rows`),
@@ -36,6 +36,7 @@ from torchtrack.filters.trackers.options import read_tracker_sections
 from torchtrack.filters.trackers.protocol import Tracker
 from torchtrack.io.frames import ArraySource, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, as_mot, as_rows, read_mot
+from torchtrack.io.moving import SCORES, dont_care, flags_beside
 from torchtrack.io.outputs import OutputFolder
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.detection_file import detection_file_config, track_detections
@@ -46,6 +47,9 @@ COMMAND = "torchtrack track"
 (:class:`torchtrack.io.outputs.OutputFolder`): ``torchtrack track --out`` may replace them."""
 
 MOTInput = str | os.PathLike | MOTData | np.ndarray
+EXTRAS = ("tracker", "frames_run", "seconds", "FPS")
+"""The keys of :attr:`TrackResult.metrics` beside the scores, for every input: the tracker's name, the frames it
+ran, its seconds and its frames per second (the tracker alone, as Table 1's FPS)."""
 
 
 @dataclass
@@ -57,8 +61,11 @@ class TrackResult:
             the content of ``tracks.txt``.
         detections: ``(M, 10)`` rows of the detections the tracker was given (the detector's, velocities in
             columns 8 and 9, for frames and videos; the input's for detections).
-        metrics: the scores, with the keys of ``metrics.json``; None without truth.
-        report: everything ``metrics.json`` holds (the scores where there is truth, frames, timings, frames/s).
+        metrics: one flat dict for every input, None without truth: the keys of ``torchtrack eval --json``
+            (``MOTA``, ``MOTP``, ``IDF1``, ``HOTA``, ..., ratios as fractions; ``gate`` and ``moving_only`` say how
+            it was scored) and :data:`EXTRAS` beside them.
+        report: everything ``metrics.json`` holds (the scores where there is truth, frames, timings, frames/s;
+            for frames and videos the scores under ``clear_mot``, with the registration's summary).
         files: the files written, by kind (``tracks``, ``detections``, ``metrics``, ``video``).
     """
 
@@ -103,7 +110,7 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
           video: str | os.PathLike | None = None, detections: MOTInput | None = None, *,
           tracker: str | Tracker = "gmphd", tracker_name: str | None = None,
           config: str | os.PathLike | Mapping | Any | None = None, gt: MOTInput | None = None,
-          gt_name: str | None = None,
+          gt_name: str | None = None, score: str = "moving",
           device: str = "cpu", threshold: float = 10.0,
           pipeline_config: str | os.PathLike | PipelineConfig | None = None,
           weights: str | os.PathLike | None = None, draw_video: bool | None = None, threads: int | None = None,
@@ -120,9 +127,13 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
             tracker object with ``reset()`` and ``step(frame, positions, velocities)``, recorded under
             ``tracker_name`` (default its ``name`` attribute or class name).
         config: the trackers' options (:func:`tracker_options`); default the built-in ones.
-        gt: truth to score against (a path, :class:`MOTData` or rows); ``ignore (K,)`` marks its don't-care
-            lines (e.g. ``~torchtrack.io.moving.moving_mask(truth)``); ``gt_name`` names it in errors (default: its
+        gt: truth to score against (a path, :class:`MOTData` or rows); ``gt_name`` names it in errors (default: its
             path).
+        score: which of ``gt``'s objects are targets (:func:`torchtrack.io.moving.dont_care`): ``moving`` (default)
+            the moving vehicles, the others don't-care, as ``torchtrack eval --moving`` scores (the
+            ``velocity.txt`` beside a ``gt`` path where its sequence has one, else the paper's displacement rule);
+            ``all`` every object. ``ignore (K,)`` replaces the moving rule's don't-care lines with these
+            (``score="moving"`` only).
         device: where the tracker (and the detector) run: ``cpu``, ``cuda`` or ``cuda:N``.
         threshold: the CLEAR-MOT centre distance in px (detections; frames take the pipeline config's).
         pipeline_config: the video pipeline's settings (a YAML path or preset name, or a :class:`PipelineConfig`).
@@ -133,6 +144,16 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
             its ``--force`` and the paths it reads); default a temporary folder, kept while the result lives
             (:meth:`TrackResult.save` copies them).
         progress: draw a progress bar (video pipeline).
+
+    Returns:
+        A :class:`TrackResult`: ``tracks`` and ``detections`` as MOTChallenge rows, ``metrics`` one flat dict
+        whatever the input (the keys of ``torchtrack eval --json`` — ``MOTA``, ``HOTA``, ``IDF1``, ... as
+        fractions, ``gate``, ``moving_only`` — and ``tracker``, ``frames_run``, ``seconds``, ``FPS``; None without
+        ``gt``), ``report`` (all of ``metrics.json``) and ``files`` (the files written, by kind).
+
+    Raises:
+        TorchtrackError: not exactly one input, an unknown ``score``, or an input the reader rejects (one line
+        naming it).
     """
     if sum(x is not None for x in (frames, video, detections)) != 1:
         raise TorchtrackError("give exactly one input: frames, video or detections")
@@ -140,6 +161,7 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
     built = None if isinstance(tracker, str) else tracker
     options = tracker_options(config, name)
     truth = as_mot(gt, "gt") if gt is not None else None
+    ignore = _dont_care(truth, gt, score, ignore)
     scratch = tempfile.TemporaryDirectory(prefix="torchtrack-") if out is None else None
     folder = OutputFolder(out, COMMAND, force, inputs=list(inputs)) if out is not None else None
     with folder if folder is not None else nullcontext(scratch.name) as staging:
@@ -164,8 +186,31 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
             given = read_mot(files["detections"])
     if folder is not None:
         files = {kind: folder.final(path) for kind, path in files.items()}
-    return TrackResult(as_rows(tracks), as_rows(given), report if truth is not None else None, report, files,
-                       scratch)
+    metrics = _flat_metrics(report, detections is None) if truth is not None else None
+    return TrackResult(as_rows(tracks), as_rows(given), metrics, report, files, scratch)
+
+
+def _flat_metrics(report: dict, video: bool) -> dict:
+    """:attr:`TrackResult.metrics` from a scored ``metrics.json`` payload: the video pipeline's (scores under
+    ``clear_mot``, the tracker's seconds under ``timings_s``) or the detection file's (flat)."""
+    if not video:
+        return {key: value for key, value in report.items() if key != "cap_hits"}
+    seconds = report["timings_s"].get("tracking", 0.0)
+    return {**report["clear_mot"], "tracker": report["tracker"], "frames_run": report["frames"], "seconds": seconds,
+            "FPS": report["frames"] / seconds if seconds > 0 else float("inf")}
+
+
+def _dont_care(truth: MOTData | None, gt: MOTInput | None, score: str, ignore: np.ndarray | None
+               ) -> np.ndarray | None:
+    """The don't-care lines of ``truth`` under ``score``: ``ignore`` where given, else those of
+    :func:`~torchtrack.io.moving.dont_care` (with the ``velocity.txt`` beside ``gt`` where it is a path)."""
+    if score not in SCORES:
+        raise TorchtrackError(f"score must be one of {', '.join(SCORES)}; got {score!r}")
+    if ignore is not None and score != "moving":
+        raise TorchtrackError("ignore marks the don't-care lines of score='moving'; score='all' has none")
+    if truth is None or ignore is not None:
+        return ignore
+    return dont_care(truth, score, flags_beside(gt) if isinstance(gt, str | os.PathLike) else None)
 
 
 def _pipeline_config(value: str | os.PathLike | PipelineConfig | None) -> PipelineConfig:

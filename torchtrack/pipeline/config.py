@@ -14,6 +14,7 @@ from torchtrack.detector.network import MULTIPLE
 from torchtrack.filters.trackers.options import DEFAULTS, tracker_config
 from torchtrack.pipeline.registration import RegistrationConfig
 from torchtrack.sim.video_config import VideoConfig
+from torchtrack.threads import TRACKER_THREADS
 
 SELECTED_TRACKERS: dict = {
     "gmphd": {"fix_separation": 4.0, "confirm_new": True, "handover_distance": 10.0, "coast_threshold": 0.03,
@@ -90,9 +91,12 @@ class PipelineConfig(Checked):
     dtype: the tracker's floating-point type.
     device: where the trackers run (``cpu``, ``cuda``, ``cuda:N``): each frame's detections are put there and the
     trackers follow them (:mod:`torchtrack.filters.trackers.protocol`).
-    threads: torch intra-op threads while the pipeline runs (default 1: the other core serves the
+    threads: torch intra-op threads of the detector and the registration (default 1: the other core serves the
     concurrent frame decoding, registration and video encoding; on a loaded 2-core machine two torch
     threads made the detector 10–20 times slower, spinning against each other).
+    tracker_threads: torch intra-op threads of each tracker step (default
+    :data:`torchtrack.threads.TRACKER_THREADS`, one: the trackers' tensors are small, see
+    :mod:`torchtrack.threads`), whatever ``threads`` is.
     """
 
     tracker: str = option("gmphd", one_of=tuple(DEFAULTS))
@@ -127,6 +131,7 @@ class PipelineConfig(Checked):
     dtype: str = option("float64", one_of=("float32", "float64"))
     device: str = "cpu"
     threads: int = option(1, ge=1)
+    tracker_threads: int = option(TRACKER_THREADS, ge=1)
 
     def __post_init__(self) -> None:
         if isinstance(self.registration, dict):

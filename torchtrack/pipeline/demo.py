@@ -33,13 +33,12 @@ from torchtrack.io.frames import FolderSource
 from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.io.moving import flags_beside, moving_mask
 from torchtrack.io.outputs import write_json
-from torchtrack.metrics.table import format_table1, score
+from torchtrack.metrics.table import format_table1, protocol, score
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.plots import plot_scores, plot_tracks
 from torchtrack.pipeline.replay import run_tracker
 from torchtrack.pipeline.track_video import track_video
 from torchtrack.sim.video import VideoConfig, read_camera, write_sequence
-from torchtrack.threads import torch_threads
 
 
 def _paths(data: MOTData, to_first: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
@@ -84,9 +83,8 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     metrics["source"] = "sequence/frames"        # relative to out, as ``files``: out is moved into place at the end
     scores = {cfg.tracker: {**metrics["clear_mot"], "FPS": metrics["fps"].get("tracking_only", float("inf"))}}
     for name in [n for n in tracker_names() if n != cfg.tracker]:
-        with torch_threads(cfg.threads):
-            run = run_tracker(make_tracker(name, cfg.options_for(name)), cfg, result.detections,
-                              out / "trackers" / f"{name}.txt")
+        run = run_tracker(make_tracker(name, cfg.options_for(name)), cfg, result.detections,
+                          out / "trackers" / f"{name}.txt")
         scores[name] = {**score(gt, run.tracks, cfg.threshold, ignore), "FPS": run.fps}
     homographies = {d.index: d.homography for d in result.detections}
     first = next(iter(FolderSource(seq / "frames"))).image
@@ -100,7 +98,7 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
     }
     metrics.update({
         "demo": {"seed": seed, "generator_seed": gen_seed, "frames": vcfg.frames,
-                 "size": [vcfg.height, vcfg.width], "truth": truth,
+                 "size": [vcfg.height, vcfg.width], "truth": truth, "threshold": cfg.threshold,
                  "generate_s": t_generated - t_start, "total_s": time.perf_counter() - t_start},
         "trackers": scores,
         "files": {k: str(Path(v).relative_to(out)) for k, v in {**result.files, **plots}.items()},
@@ -111,7 +109,8 @@ def run_demo(out: str | Path = "out/demo", seed: int = 0, frames: int | None = N
 
 def format_demo(metrics: dict) -> str:
     """The Table 1 text plus the end-to-end line."""
-    table = format_table1(metrics["trackers"])
+    demo = metrics["demo"]
+    table = format_table1(metrics["trackers"], protocol(demo["truth"] == "moving", demo["threshold"]))
     fps = metrics["fps"]
     det = metrics.get("detector", {})
     lines = [

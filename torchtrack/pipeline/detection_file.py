@@ -18,7 +18,7 @@ import numpy as np
 from torchtrack.filters.trackers.protocol import Tracker, make_tracker
 from torchtrack.io.mot import MOTData
 from torchtrack.io.outputs import write_json
-from torchtrack.metrics.table import score
+from torchtrack.metrics.table import score, scoring
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.frame_detections import mot_frames, stream_frames
 from torchtrack.pipeline.replay import run_tracker
@@ -48,7 +48,9 @@ def track_detections(det: MOTData, name: str, config: PipelineConfig, out: str |
     if tracker is None:
         tracker = make_tracker(name, config.options_for(name))
     run = run_tracker(tracker, config, mot_frames(det, stream_frames(det, gt)), out / "tracks.txt")
-    metrics = {"tracker": name, **(score(gt, run.tracks, config.threshold, ignore) if gt is not None else {}),
+    scores = {**score(gt, run.tracks, config.threshold, ignore), **scoring(ignore is not None, config.threshold)
+              } if gt is not None else {}
+    metrics = {"tracker": name, **scores,
                "frames_run": run.frames, "seconds": run.seconds, "FPS": run.fps}
     if hasattr(tracker, "cap_hits"):
         metrics["cap_hits"] = tracker.cap_hits

@@ -25,7 +25,7 @@ from tqdm import tqdm
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.mot import MOTData, read_mot
-from torchtrack.io.moving import moving_mask
+from torchtrack.io.moving import dont_care
 from torchtrack.metrics.table import score
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.frame_detections import FrameDetections
@@ -63,14 +63,15 @@ class SequenceDetections:
 
 def collect(root: str | Path, out: str | Path, config: PipelineConfig, detector=None,
             progress: bool = True) -> list[SequenceDetections]:
-    """Run registration and detection once on every sequence of ``root`` that has truth."""
+    """Run registration and detection once on every sequence of ``root`` that has truth, scored on its moving
+    vehicles (:func:`torchtrack.io.moving.dont_care`, as ``track --sequences`` by default)."""
     data = []
     cfg = config.replace(video=False)
     for seq in find_sequences(root):
         if seq.gt is None:
             continue
         gt = read_mot(seq.gt)
-        ignore = ~moving_mask(gt, seq.velocity) if seq.velocity else None
+        ignore = dont_care(gt, "moving", seq.velocity)
         result = track_video(seq.source(), Path(out) / seq.name, cfg, detector=detector, gt=gt,
                              gt_path=str(seq.gt), ignore=ignore, keep_detections=True, progress=progress)
         data.append(SequenceDetections(seq.name, gt, ignore, result.detections))

@@ -7,8 +7,10 @@ A sequence is a sub-folder ``S`` of the folder given, holding its frames as
 * one video file in ``S`` (``S/video.mp4`` as written by ``torchtrack simulate-video --format mp4``),
 
 and optionally its truth ``S/gt.txt`` or ``S/gt/gt.txt``, and for synthetic sequences the true camera
-motion ``S/camera.json`` (registration error is then measured) and ``S/velocity.txt`` (then only moving
-vehicles are targets, parked ones don't-care: :mod:`torchtrack.io.moving`). Sub-folders holding
+motion ``S/camera.json`` (registration error is then measured) and ``S/velocity.txt`` (the simulator's flags of
+the moving vehicles). By default only the moving vehicles are targets, the others don't-care, as ``eval --moving``
+scores (:func:`torchtrack.io.moving.dont_care`: the flags where there are, else the paper's rule); ``score="all"``
+makes every object a target. Sub-folders holding
 none of these are skipped with a warning.
 
 Aggregation is exact: the truth and tracks of all sequences are concatenated, with frame numbers and
@@ -34,14 +36,13 @@ from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.frames import IMAGE_SUFFIXES, VIDEO_SUFFIXES, FrameSource, open_frames
 from torchtrack.io.mot import MOTData, concat_mot, read_mot
-from torchtrack.io.moving import flags_beside, moving_mask
+from torchtrack.io.moving import dont_care, flags_beside
 from torchtrack.io.outputs import OutputFolder, write_json
-from torchtrack.metrics.table import score
+from torchtrack.metrics.table import score as score_tracks
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.replay import run_tracker
 from torchtrack.pipeline.track_video import track_video
 from torchtrack.sim.video import read_camera
-from torchtrack.threads import torch_threads
 
 
 @dataclass
@@ -98,11 +99,12 @@ def find_sequences(root: str | Path) -> list[Sequence]:
 
 
 def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, progress: bool,
-                 others: list[str] = ()) -> dict:
+                 others: list[str] = (), score: str = "moving") -> dict:
     """Run the pipeline on one sequence, and the trackers ``others`` on the same detections (written to
-    ``out/<sequence>/trackers/<name>.txt``); returns what rank 0 needs to aggregate them."""
+    ``out/<sequence>/trackers/<name>.txt``), scored as ``score`` says (:func:`torchtrack.io.moving.dont_care`);
+    returns what rank 0 needs to aggregate them."""
     gt = read_mot(seq.gt) if seq.gt else None
-    ignore = ~moving_mask(gt, seq.velocity) if seq.velocity else None
+    ignore = dont_care(gt, score, seq.velocity) if gt is not None else None
     camera = read_camera(seq.camera) if seq.camera else None
     t0 = time.perf_counter()
     result = track_video(seq.source(), out / seq.name, config, detector=detector, gt=gt, gt_path=str(seq.gt),
@@ -110,9 +112,8 @@ def run_sequence(seq: Sequence, out: Path, config: PipelineConfig, detector, pro
     seconds = time.perf_counter() - t0
     tracks = {config.tracker: (result.tracks, result.metrics["timings_s"].get("tracking", 0.0))}
     for name in others:
-        with torch_threads(config.threads):
-            run = run_tracker(make_tracker(name, config.options_for(name)), config, result.detections,
-                              out / seq.name / "trackers" / f"{name}.txt")
+        run = run_tracker(make_tracker(name, config.options_for(name)), config, result.detections,
+                          out / seq.name / "trackers" / f"{name}.txt")
         tracks[name] = (run.tracks, run.seconds)
     return {"name": seq.name, "metrics": result.metrics, "seconds": seconds, "gt": gt, "ignore": ignore,
             "tracks": tracks}
@@ -174,10 +175,10 @@ def shared_output(out: str | Path, command: str, force: bool = False,
 
 
 def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, detector=None,
-                  progress: bool = True, compare: list[str] = ()) -> dict | None:
-    """Evaluate every sequence of ``root`` and aggregate (module docstring); with ``compare``, those
-    trackers also run on the same detections and ``summary["trackers"]`` holds each one's pooled
-    CLEAR-MOT and tracker-only frames per second.
+                  progress: bool = True, compare: list[str] = (), score: str = "moving") -> dict | None:
+    """Evaluate every sequence of ``root`` and aggregate (module docstring), scored as ``score`` says (``moving``
+    or ``all``); with ``compare``, those trackers also run on the same detections and ``summary["trackers"]``
+    holds each one's pooled CLEAR-MOT and tracker-only frames per second.
 
     Under ``torchrun`` rank ``r`` of ``W`` takes sequences ``r, r + W, ...``; results are gathered on
     rank 0, which writes ``out/metrics.json`` and returns the summary; other ranks return None.
@@ -188,7 +189,8 @@ def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, det
     if detector is None:
         detector = load_detector(config.detector_weights, config.detector_tile, config.detector_backend)
     others = [n for n in compare if n != config.tracker]
-    mine = [run_sequence(s, out, config, detector, progress and rank == 0, others) for s in sequences[rank::world]]
+    mine = [run_sequence(s, out, config, detector, progress and rank == 0, others, score)
+            for s in sequences[rank::world]]
     if world > 1:
         gathered: list = [None] * world if rank == 0 else None
         dist.gather_object(mine, gathered, dst=0)
@@ -211,7 +213,7 @@ def run_sequences(root: str | Path, out: str | Path, config: PipelineConfig, det
         for name in [config.tracker, *others]:
             pooled = concatenate([(r["gt"], r["tracks"][name][0]) for r in scored])
             tracker_s = sum(r["tracks"][name][1] for r in scored)
-            summary["trackers"][name] = {**score(*pooled, config.threshold, masks),
+            summary["trackers"][name] = {**score_tracks(*pooled, config.threshold, masks),
                                          "FPS": sum(r["metrics"]["frames"] for r in scored) / max(tracker_s, 1e-9)}
         summary["aggregate"] = {**summary["trackers"][config.tracker], "sequences": len(scored)}
         if not others:

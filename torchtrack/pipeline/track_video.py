@@ -47,7 +47,7 @@ from torchtrack.io.frames import FrameSource, prefetch
 from torchtrack.io.mot import MOTData, from_points
 from torchtrack.io.outputs import write_json
 from torchtrack.io.video_writer import AnnotatedVideoWriter, save_png
-from torchtrack.metrics.table import score
+from torchtrack.metrics.table import score, scoring
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.detection import Detection
 from torchtrack.pipeline.fixed_lag import LaggedFrame
@@ -97,7 +97,9 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
         config: :class:`PipelineConfig` (defaults: enhanced GM-PHD, LK registration).
         detector: object with ``detect`` (default: the shipped weights, ``detector.load_detector``).
         gt: truth (frame coordinates) to score against and draw; ``gt_path`` names it in errors;
-            ``ignore (K,)`` bool over its lines marks don't-care objects (not drawn, not scored).
+            ``ignore (K,)`` bool over its lines marks don't-care objects (not drawn, not scored: the vehicles
+            that are not moving; ``metrics["clear_mot"]`` holds the keys of ``eval --json``, ``moving_only``
+            whether ``ignore`` was given).
         camera: true homographies ``(T, 3, 3)`` reference → frame ``k`` of a synthetic sequence; when
             given, the registration error against them is measured and reported.
         tracker: the tracker to run, already built (default: ``make_tracker(config.tracker, ...)``; e.g. a
@@ -201,7 +203,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
                      "frame_size": list(source.shape)}
     if gt is not None:
         check_truth_frames(gt, gt_path, frames)
-        metrics["clear_mot"] = score(gt, tracks_out.tracks(), cfg.threshold, ignore)
+        metrics["clear_mot"] = {**score(gt, tracks_out.tracks(), cfg.threshold, ignore),
+                                **scoring(ignore is not None, cfg.threshold)}
         det_scores = score(gt, _detections_as_tracks(det_out.tracks()), cfg.threshold, ignore)
         metrics["detector"] = {k: det_scores[k] for k in ("TP", "FP", "FN", "precision", "recall", "MOTP")}
     if stream.duplicates:

@@ -10,7 +10,8 @@ Per frame (:class:`TrackerStream`):
    frame (the two-threshold association of ByteTrack, Zhang et al., ECCV 2022, without its second
    association pass: the tracker's own association takes them) — with ``weak_continues_pending``, also of a
    new track extracted but not yet reported (``pending_positions``). They never start a track on their own;
-3. the tracker's ``step`` (identities unique per frame, see :func:`run_tracker_step`);
+3. the tracker's ``step`` (identities unique per frame, see :func:`run_tracker_step`) on the config's
+   ``tracker_threads`` torch threads (:mod:`torchtrack.threads`), whatever the detector runs on;
 4. the **fixed-lag output** (:class:`torchtrack.pipeline.fixed_lag.FixedLagTracks`, ``output_lag``
    frames, ``lag_distance`` px).
 """
@@ -23,6 +24,7 @@ import torch
 from torchtrack.pipeline.config import PipelineConfig
 from torchtrack.pipeline.fixed_lag import FixedLagTracks, LaggedFrame
 from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy
+from torchtrack.threads import clamp_threads, torch_threads
 
 
 def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype,
@@ -57,6 +59,7 @@ class TrackerStream:
         self.tracker = tracker
         self.config = config
         self.dtype = getattr(torch, config.dtype)
+        self.threads = clamp_threads(config.tracker_threads)
         self.output = FixedLagTracks(config.output_lag, config.lag_distance, config.merge_distance,
                                      config.merge_age)
         self.previous = np.zeros((0, 2))
@@ -90,7 +93,8 @@ class TrackerStream:
             self.tracker.reset()
             self.segment, self.id_offset, self.previous = det.segment, self.next_id, np.zeros((0, 2))
         given = self.tracker_input(det)
-        ids, positions, dropped = run_tracker_step(self.tracker, given, self.dtype, self.config.device)
+        with torch_threads(self.threads):
+            ids, positions, dropped = run_tracker_step(self.tracker, given, self.dtype, self.config.device)
         ids = ids + self.id_offset
         if len(ids):
             self.next_id = max(self.next_id, int(ids.max()) + 1)

@@ -3,8 +3,9 @@ this package (the workloads and references are library modules of ``torchtrack.b
 
 from torchtrack.bench._timing import BenchResult
 from torchtrack.cli import add_subcommands
-from torchtrack.cli._common import add_common_options
+from torchtrack.cli._common import add_common_options, positive_int
 from torchtrack.io.outputs import write_json
+from torchtrack.threads import TRACKER_THREADS
 
 NAME = "bench"
 HELP = "measure throughput against a reference implementation timed in the same run"
@@ -17,6 +18,14 @@ def add_arguments(parser) -> None:
 
 def run(args) -> int:
     return args._run(args)
+
+
+def add_threads_option(parser) -> None:
+    """``--threads`` of a filter's or tracker's bench, default :data:`torchtrack.threads.TRACKER_THREADS`."""
+    parser.add_argument("--threads", type=positive_int, default=TRACKER_THREADS,
+                        help=f"torch intra-op threads (default {TRACKER_THREADS}, as the trackers run in track: their "
+                             "tensors are small, so more threads cost a fork and join per op and spin against "
+                             "other work)")
 
 
 def report(args, result: BenchResult, text: str) -> int:

@@ -4,7 +4,7 @@ import argparse
 
 from torchtrack.bench import glmb
 from torchtrack.cli._common import positive_int
-from torchtrack.cli.bench import report
+from torchtrack.cli.bench import add_threads_option, report
 
 NAME = "glmb"
 HELP = "GLMB tracker frames/s at WPAFB scale against a per-hypothesis NumPy GLMB"
@@ -27,7 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--reference-frames", type=positive_int, default=20,
                         help="frames timed for the NumPy reference (default 20)")
     parser.add_argument("--velocities", action="store_true", help="use the detector's velocities (default: positions)")
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
+    add_threads_option(parser)
 
 
 def run(args) -> int:

@@ -2,12 +2,11 @@
 
 import argparse
 
-import torch
-
 from torchtrack.bench import gmphd
 from torchtrack.bench.gmphd import WORKLOADS
+from torchtrack.cli.bench import add_threads_option
 from torchtrack.io.outputs import write_json
-from torchtrack.threads import clamp_threads
+from torchtrack.threads import torch_threads
 
 NAME = "gmphd"
 HELP = "GM-PHD steps/s (Stone Soup tutorial setting and a WPAFB-scale frame) vs a per-component NumPy GM-PHD"
@@ -20,11 +19,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         "(default 20)")
     parser.add_argument("--repeats", type=int, default=5, help="timed passes of the whole sequence, the fastest kept "
                         "(default 5; slower passes are the machine's noise)")
-    parser.add_argument("--threads", type=int, default=1, help="torch threads (default 1)")
+    add_threads_option(parser)
 
 
 def run(args) -> int:
-    torch.set_num_threads(clamp_threads(max(1, args.threads)))
+    with torch_threads(args.threads):
+        return _run(args)
+
+
+def _run(args) -> int:
     overhead = gmphd.op_overhead_us()
     print(f"one tiny torch op costs {overhead:.1f} us of CPU now (about 1-2 us on an idle core)")
     results = {}

@@ -4,7 +4,7 @@ import argparse
 
 from torchtrack.bench import imm
 from torchtrack.cli._common import positive_int
-from torchtrack.cli.bench import report
+from torchtrack.cli.bench import add_threads_option, report
 
 NAME = "imm"
 HELP = "3-model IMM, 100 000 tracks, against FilterPy's IMMEstimator per track"
@@ -27,9 +27,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="tracks run through FilterPy (default 100)")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32",
                         help="floating-point type of both implementations")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: the compiled elementwise step is faster on one "
-                             "thread of this 2-core machine, 6.1 M vs 3.1 M track-steps/s idle)")
+    add_threads_option(parser)
     parser.add_argument("--no-compile", action="store_true", help="eager step instead of torch.compile")
 
 

@@ -1,7 +1,7 @@
 """``torchtrack bench kf``: the options and the output of :mod:`torchtrack.bench.kf`."""
 
 from torchtrack.bench import kf
-from torchtrack.cli.bench import report
+from torchtrack.cli.bench import add_threads_option, report
 
 NAME = "kf"
 HELP = "batched Kalman filter throughput vs NumPy and a per-track loop"
@@ -23,9 +23,10 @@ def add_arguments(parser) -> None:
     parser.add_argument("--general-steps", type=int, default=10, help="steps timed for the general path")
     parser.add_argument("--loop-tracks", type=int, default=200, help="tracks for the per-track loop")
     parser.add_argument("--no-compile", action="store_true", help="time the eager fast and general paths")
+    add_threads_option(parser)
 
 
 def run(args) -> int:
     result = kf.measure(args.tracks, args.steps, args.general_steps, args.loop_tracks, not args.no_compile,
-                        args.seed)
+                        args.seed, args.threads)
     return report(args, result, kf.format_report(result))

@@ -3,7 +3,7 @@
 import argparse
 
 from torchtrack.bench import lbp
-from torchtrack.cli.bench import report
+from torchtrack.cli.bench import add_threads_option, report
 from torchtrack.errors import TorchtrackError
 
 NAME = "lbp"
@@ -25,9 +25,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="fraction of track-measurement pairs inside the gate (default 0.2)")
     parser.add_argument("--dtype", choices=("float32", "float64"), default="float32",
                         help="floating-point type of both implementations")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: on a shared, loaded machine more threads spin and "
-                             "wait for each other)")
+    add_threads_option(parser)
     parser.add_argument("--repeats", type=int, default=5, help="timed repeats, best is kept (default 5)")
 
 

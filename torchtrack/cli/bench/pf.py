@@ -2,7 +2,7 @@
 
 from torchtrack.bench import pf
 from torchtrack.cli._common import positive_int
-from torchtrack.cli.bench import report
+from torchtrack.cli.bench import add_threads_option, report
 
 NAME = "pf"
 HELP = "JTC particle-filter bank throughput (particle-steps/s) vs a vectorised NumPy implementation"
@@ -23,7 +23,7 @@ def add_arguments(parser) -> None:
     parser.add_argument("--scans", type=positive_int, default=80, help="scans of the trajectory (default 80)")
     parser.add_argument("--dtype", choices=["float32", "float64"], default="float32",
                         help="floating-point type of both implementations")
-    parser.add_argument("--threads", type=positive_int, default=1, help="torch threads (default 1)")
+    add_threads_option(parser)
     parser.add_argument("--compile", action="store_true", help="torch.compile the filter step (inductor)")
     parser.add_argument("--repeats", type=positive_int, default=3, help="best of this many timed runs each (default 3)")
 

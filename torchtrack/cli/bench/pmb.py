@@ -4,7 +4,7 @@ import argparse
 
 from torchtrack.bench import pmb
 from torchtrack.cli._common import positive_int
-from torchtrack.cli.bench import report
+from torchtrack.cli.bench import add_threads_option, report
 
 NAME = "pmb"
 HELP = "TOMB/P filter scans/s (100 tracks, 150 measurements per scan) against a NumPy implementation"
@@ -28,9 +28,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lbp-iterations", type=int, default=30, help="LBP iteration cap (default 30)")
     parser.add_argument("--lbp-tol", type=float, default=1e-6,
                         help="LBP tolerance on the miss/new marginals (default 1e-6; 0: fixed iterations)")
-    parser.add_argument("--threads", type=int, default=1,
-                        help="torch intra-op threads (default 1: on a shared, loaded machine more threads spin and "
-                             "wait for each other)")
+    add_threads_option(parser)
     parser.add_argument("--repeats", type=int, default=3, help="timed repeats, the fastest kept")
 
 

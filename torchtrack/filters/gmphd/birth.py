@@ -45,7 +45,7 @@ class VelocityMap:
     def __init__(self, options: VelocityMapOptions | None = None, dtype: torch.dtype = torch.float32, device=None):
         self.options = options if options is not None else VelocityMapOptions()
         self.dtype, self.device = dtype, device
-        self._geom: tuple[Tensor, Tensor, Tensor] | None = None   # origin, grid size, strides as tensors
+        self._geom: tuple[Tensor, Tensor, Tensor] | None = None   # origin, last cell, strides as tensors
         self.reset()
 
     def reset(self) -> None:
@@ -59,12 +59,12 @@ class VelocityMap:
         o = self.options
         if self._geom is None or self._geom[0].dtype != pos.dtype or self._geom[0].device != pos.device:
             self._geom = (torch.tensor(o.origin, dtype=pos.dtype, device=pos.device),
-                          torch.tensor([o.shape[1], o.shape[0]], device=pos.device),        # cols, rows
+                          torch.tensor([o.shape[1] - 1, o.shape[0] - 1], device=pos.device),  # last col, row
                           torch.tensor([1, o.shape[1]], device=pos.device))                 # flat strides
-        origin, size, stride = self._geom
+        origin, last, stride = self._geom
         colrow = torch.floor((pos - origin) / o.cell).long()                                  # (E, 2)
-        inside = ((colrow >= 0) & (colrow < size)).all(1)
-        return (torch.minimum(colrow.clamp_min(0), size - 1) * stride).sum(1), inside
+        clamped = torch.clamp(colrow, scalar(0, colrow), last)
+        return (clamped * stride).sum(1), (clamped == colrow).all(1)      # inside: nothing was clamped
 
     def update(self, pos: Tensor, vel: Tensor) -> None:
         """Add estimates ``pos, vel (E, 2)`` to their cells (no gradient)."""
@@ -85,12 +85,18 @@ class VelocityMap:
     def lookup(self, pos: Tensor) -> tuple[Tensor, Tensor]:
         """``h_v(p)`` for ``pos (B, 2)``: velocities ``(B, 2)`` and a bool ``(B,)`` where the map answers."""
         cell, inside = self._cells(pos.detach().to(self.dtype))
-        c = self.count[cell]
-        mean = self.sum_v[cell] / c.clamp_min(1e-12).unsqueeze(1)
-        spread = self.sum_v2[cell] / c.clamp_min(1e-12) - mean.pow(2).sum(1)
+        c = self.count.index_select(0, cell)
+        c_pos = c.clamp_min(1e-12)
+        mean = self.sum_v.index_select(0, cell) / c_pos.unsqueeze(1)
+        spread = self.sum_v2.index_select(0, cell) / c_pos - mean.pow(2).sum(1)
         valid = (inside & (c >= self.options.min_count) & (spread <= self.options.max_spread ** 2)
                  & (mean.norm(dim=1) > 0))
         return mean.to(pos.dtype), valid
+
+
+def _detached(x: Tensor) -> Tensor:
+    """``x`` without its gradient (itself where it has none: no operation while streaming)."""
+    return x.detach() if x.requires_grad else x
 
 
 class BirthConstants(NamedTuple):
@@ -135,8 +141,8 @@ class AdaptiveBirth(nn.Module):
             return torch.ones(z.shape[0], dtype=torch.bool, device=z.device)
         # a selection: no gradient. A component below the suppression weight explains nothing (radius −1).
         reach = self.options.distance_threshold
-        heavy = pred_log_w.detach() > scalar(math.log(self.options.suppress_weight), pred_log_w)
-        pos, z = pred_pos.detach(), z.detach()
+        heavy = _detached(pred_log_w) > scalar(math.log(self.options.suppress_weight), pred_log_w)
+        pos, z = _detached(pred_pos), _detached(z)
         if pos.shape[0] * z.shape[0] <= DENSE_PAIRS:
             d2 = squared_norm(innovation_pairs(pos, z))                                  # (M, J)
             return torch.where(heavy, d2, scalar(math.inf, d2)).amin(1) > scalar(reach**2, d2)

@@ -69,11 +69,11 @@ from torchtrack.filters.trackers.options import GMPHDFilterOptions
 from torchtrack.gaussian import (
     KalmanGain,
     chi2_quantile,
-    gain_from_cholesky,
     gaussian_log_likelihood,
     innovation_pairs,
     innovations_likelihood,
     kalman_gain,
+    leading_gain,
     log_det_from_cholesky,
     posterior_cov,
     scalar,
@@ -107,10 +107,10 @@ class MixtureState(NamedTuple):
 
     def select(self, index: Tensor) -> MixtureState:
         """Components at ``index`` (a long index or bool mask; a stop-gradient selection). A mask is turned into
-        indices once: on a GPU each boolean indexing waits for the device to count its ``True`` entries."""
+        indices once (on a GPU each boolean indexing waits for the device to count its ``True`` entries), and
+        each field is gathered by ``index_select`` (advanced indexing costs a few µs more per tensor)."""
         index = as_rows(index)
-        return MixtureState(self.log_weight[index], self.mean[index], self.cov[index], self.label[index],
-                            self.mask[index])
+        return MixtureState(*(field.index_select(0, index) for field in self))
 
     def expected_count(self) -> Tensor:
         """Expected number of targets ``Σ w_j`` (differentiable)."""
@@ -119,18 +119,24 @@ class MixtureState(NamedTuple):
 
 def as_rows(index: Tensor) -> Tensor:
     """``index`` as a long index of rows: a bool mask's ``True`` positions (one host sync on a GPU), else itself."""
-    return index.nonzero(as_tuple=True)[0] if index.dtype == torch.bool else index
+    return index.nonzero().view(-1) if index.dtype == torch.bool else index
+
+
+ALL_LABEL_PAIRS = 1024
+"""Up to this many (query, key) pairs :func:`labels_in` compares every pair at once."""
 
 
 def labels_in(query: Tensor, keys: Tensor) -> Tensor:
-    """``torch.isin(query, keys)`` for integer labels: on the CPU ``isin`` itself (one operation), elsewhere a
-    sorted search, the same mask ``(Q,)`` without the ``unique`` (a host sync) that ``isin`` runs on a GPU."""
-    if query.device.type == "cpu":
-        return torch.isin(query, keys)
+    """``torch.isin(query, keys)`` for integer labels, the same mask ``(Q,)`` by cheaper means: up to
+    :data:`ALL_LABEL_PAIRS` pairs every pair compared at once, beyond that a sorted search. (``isin`` itself
+    costs about 30 µs on the CPU for a few tens of labels — it sorts and uniques both — and on a GPU its
+    ``unique`` is a host sync.)"""
     if keys.numel() == 0:
         return torch.zeros_like(query, dtype=torch.bool)
+    if query.numel() * keys.numel() <= ALL_LABEL_PAIRS:
+        return (query.unsqueeze(1) == keys).any(1)
     ordered = torch.sort(keys).values
-    return ordered[torch.searchsorted(ordered, query).clamp_(max=keys.numel() - 1)] == query
+    return ordered.index_select(0, torch.searchsorted(ordered, query).clamp_(max=keys.numel() - 1)) == query
 
 
 def empty_mixture(n: int, dtype: torch.dtype = torch.float32, device=None) -> MixtureState:
@@ -166,6 +172,7 @@ class Matrices(NamedTuple):
     R_velocity: Tensor | None = None          # (m + 2, m + 2) blockdiag(R, σ_v² I): noise of [z, v]
     log_clutter_velocity: Tensor | None = None   # log κ_v, clutter density over velocities
     log_velocity_outlier: Tensor | None = None   # log ε, probability that a target's velocity is an outlier
+    log_velocity_inlier: Tensor | None = None    # log(1 − ε)
 
 
 class UpdateInfo(NamedTuple):
@@ -229,7 +236,7 @@ class GMPHD(nn.Module):
         eye = torch.eye(m, n, dtype=H.dtype, device=H.device)
         selects = bool(torch.equal(H.detach(), eye))
         R = self.measurement.noise_cov()
-        R_v = log_kv = log_eps = None
+        R_v = log_kv = log_eps = log_in = None
         if self.velocity_sigma is not None:
             if not selects or n != m + 2:
                 raise TorchtrackError("GMPHD velocity_sigma needs H = [I 0] and a state [position, velocity]")
@@ -237,10 +244,11 @@ class GMPHD(nn.Module):
             log_kv = torch.log(self.velocity_clutter_density())
             if self.options.velocity_outlier > 0:
                 log_eps = torch.tensor(math.log(self.options.velocity_outlier), dtype=R.dtype, device=R.device)
+                log_in = torch.log1p(-log_eps.exp())
         F = self.motion.transition_matrix(dt)
         return Matrices(F, self.motion.process_noise(dt), H, R, ps, pd, kappa,
                         torch.log(ps), torch.log(pd), torch.log1p(-pd), torch.log(kappa), torch.kron(F, F).T, selects,
-                        R_v, log_kv, log_eps)
+                        R_v, log_kv, log_eps, log_in)
 
     def predict(self, state: MixtureState, mats: Matrices) -> MixtureState:
         """Surviving components: ``w p_S``, ``F m``, ``F P Fᵀ + Q`` (eq. 3 without the birth term)."""
@@ -306,21 +314,19 @@ class GMPHD(nn.Module):
         p_dim = H.shape[0]
         base, base_pos, gain_p = log_pd + live_w, None, None                  # (J,) log p_D w_j
         if robust:         # the leading block of L is the factor of S's position block, that of L⁻¹ its inverse
-            gain_p = gain_from_cholesky(gain.chol[:, :p_dim, :p_dim], PHt[:, :, :p_dim])
+            gain_p = leading_gain(gain, PHt[:, :, :p_dim])
             K_p, P_upd_p = gain_p.gain, posterior_cov(state.cov, gain_p)
-            log_eps = mats.log_velocity_outlier
-            base_pos = base + log_eps + mats.log_clutter_velocity
-            base = base + torch.log1p(-log_eps.exp())
+            base_pos = base + mats.log_velocity_outlier + mats.log_clutter_velocity
+            base = base + mats.log_velocity_inlier
         parts = _Components(z_hat, S, gain, gain_p, base, base_pos, state.mask, gate)
         weigh = _dense_pairs if state.size * z.shape[0] <= DENSE_PAIRS else _sparse_pairs
         jj, kk, det_logw, use_pos, log_den_t, support = weigh(parts, z, log_kappa, pair_loglik, label_index)
         nu = z.index_select(0, kk) - z_hat.index_select(0, jj)           # (G, m)
-        det_mean = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K.index_select(0, jj),
-                                 nu.unsqueeze(-1)).squeeze(-1)              # m + K ν per gated pair
+        mean_j = state.mean.index_select(0, jj).unsqueeze(-1)
+        det_mean = torch.baddbmm(mean_j, K.index_select(0, jj), nu.unsqueeze(-1)).squeeze(-1)   # m + K ν per pair
         det_cov = P_upd.index_select(0, jj)
         if robust:
-            mean_pos = torch.baddbmm(state.mean.index_select(0, jj).unsqueeze(-1), K_p.index_select(0, jj),
-                                     nu[:, :p_dim].unsqueeze(-1)).squeeze(-1)
+            mean_pos = torch.baddbmm(mean_j, K_p.index_select(0, jj), nu[:, :p_dim].unsqueeze(-1)).squeeze(-1)
             det_mean = torch.where(use_pos.unsqueeze(-1), mean_pos, det_mean)
             det_cov = torch.where(use_pos.view(-1, 1, 1), P_upd_p.index_select(0, jj), det_cov)
 
@@ -374,8 +380,15 @@ class GMPHD(nn.Module):
         (Vo & Ma 2006, Table II); ``keep_label (P,)`` labels that win a merge (see :func:`merge`). More than
         ``2 capacity`` components are capped before merging, so the pairwise merge stays bounded in memory."""
         capacity = self.options.capacity if capacity is None else capacity
-        state = self.cap(self.prune(state), 2 * capacity)   # bounds the merge
-        return self.cap(merge(state, self.options.merge_threshold, self.options.merge_rounds, keep_label), capacity)
+        o = self.options
+        lw = state.log_weight
+        keep = as_rows(state.mask & (lw > scalar(math.log(o.prune_threshold), lw)))
+        if keep.shape[0] > 2 * capacity or o.merge_threshold <= 0:
+            state = self.cap(state.select(keep), 2 * capacity)   # bounds the merge
+            return self.cap(merge(state, o.merge_threshold, o.merge_rounds, keep_label), capacity)
+        # prune and sort by weight in one gather (what prune and merge's sort select, composed)
+        order = keep.index_select(0, torch.argsort(lw.detach().index_select(0, keep), descending=True))
+        return self.cap(merge_sorted(state.select(order), o.merge_threshold, o.merge_rounds, keep_label), capacity)
 
     def extract(self, state: MixtureState) -> Tensor:
         """Bool mask ``(J,)`` of components reported as targets (weight above ``extract_threshold``)."""
@@ -443,10 +456,12 @@ def _dense_pairs(c: _Components, z: Tensor, log_kappa: Tensor, pair_loglik: Pair
         support = torch.zeros(label_index[1], dtype=c.base.dtype, device=c.base.device)
         if J:
             support = support.index_add(0, label_index[0], (log_num - log_kappa.unsqueeze(0)).exp().sum(1))
-    jj, kk = gated.nonzero().unbind(1)
+    flat = gated.view(-1).nonzero().view(-1)          # row-major: ordered by component, then measurement
+    jj, kk = flat.div(M, rounding_mode="floor"), flat.remainder(M)
     if c.gain_pos is not None:
-        use_pos = (without_v > with_v)[jj, kk]
-    return _PairWeights(jj, kk, log_num[jj, kk] - den[kk], use_pos, den, support)
+        use_pos = (without_v > with_v).view(-1).index_select(0, flat)
+    return _PairWeights(jj, kk, log_num.view(-1).index_select(0, flat) - den.index_select(0, kk), use_pos, den,
+                        support)
 
 
 def _sparse_pairs(c: _Components, z: Tensor, log_kappa: Tensor, pair_loglik: PairLogLik | None,
@@ -540,14 +555,15 @@ def _within_reach(mean: Tensor, cov: Tensor, threshold: float) -> tuple[Tensor, 
     pos = _plane(mean[:, :k])
     bound = lam * scalar(threshold, lam) * scalar(1 + 1e-4, lam)              # squared screening radius of i
     ii, jj = disc_candidates(pos, bound.sqrt(), pos)
-    d2 = squared_norm(pos[ii] - pos[jj])
-    near = ((jj < ii) & (d2 <= bound[ii])).nonzero().squeeze(1)
-    ii, jj = ii[near], jj[near]
+    d2 = squared_norm(pos.index_select(0, ii) - pos.index_select(0, jj))
+    near = ((jj < ii) & (d2 <= bound.index_select(0, ii))).nonzero().view(-1)
+    ii, jj = ii.index_select(0, near), jj.index_select(0, near)
     if ii.numel():
-        L, _ = torch.linalg.cholesky_ex(cov[ii])
-        y = torch.linalg.solve_triangular(L, (mean[jj] - mean[ii]).unsqueeze(-1), upper=False)
-        ok = (y.pow(2).sum((-1, -2)) <= scalar(threshold, y)).nonzero().squeeze(1)
-        ii, jj = ii[ok], jj[ok]
+        L, _ = torch.linalg.cholesky_ex(cov.index_select(0, ii))
+        y = torch.linalg.solve_triangular(L, (mean.index_select(0, jj) - mean.index_select(0, ii)).unsqueeze(-1),
+                                          upper=False)
+        ok = (y.pow(2).sum((-1, -2)) <= scalar(threshold, y)).nonzero().view(-1)
+        ii, jj = ii.index_select(0, ok), jj.index_select(0, ok)
     return ii, jj
 
 
@@ -574,7 +590,15 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     """
     if state.size <= 1 or threshold <= 0:
         return state
-    state = state.select(torch.argsort(state.log_weight.detach(), descending=True))
+    return merge_sorted(state.select(torch.argsort(state.log_weight.detach(), descending=True)), threshold, rounds,
+                        keep_label)
+
+
+def merge_sorted(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Tensor | None = None
+                 ) -> MixtureState:
+    """:func:`merge` of a compacted mixture already ordered by decreasing weight."""
+    if state.size <= 1:
+        return state
     J = state.size
     mean, cov, log_w = state.mean, state.cov, state.log_weight
     # membership from detached tensors: a selection without gradient (cheaper than a no_grad block)
@@ -588,7 +612,7 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     is_head = owner == idx
     heads_up_to = torch.cumsum(is_head, 0)          # group g of a head = number of heads up to it, minus 1
     G = int(heads_up_to[-1])
-    gid = heads_up_to[owner] - 1
+    gid = heads_up_to.index_select(0, owner) - 1
     if G == J:
         return state
     w_max = log_w.max()
@@ -603,7 +627,7 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
         wsum = torch.zeros(G, dtype=w.dtype, device=w.device).index_add_(0, gid, w)
         mu = torch.zeros(G, n, dtype=w.dtype, device=w.device).index_add_(0, gid, w.unsqueeze(1) * mean)
         mu = mu / wsum.unsqueeze(1)
-    d = mean - mu[gid]
+    d = mean - mu.index_select(0, gid)
     spread = (cov + d.unsqueeze(-1) * d.unsqueeze(-2)).view(J, n * n)       # P_i + (m_i − m)(m_i − m)ᵀ
     if J <= DENSE_MERGE:
         P = torch.mm(Wn, spread).view(G, n, n)
@@ -613,10 +637,10 @@ def merge(state: MixtureState, threshold: float, rounds: int = 3, keep_label: Te
     label = state.label[is_head]
     if keep_label is not None and keep_label.numel():
         with torch.no_grad():
-            key = labels_in(state.label, keep_label).to(w.dtype) * 2.0 + w / wsum[gid]
+            key = labels_in(state.label, keep_label).to(w.dtype) * 2.0 + w / wsum.index_select(0, gid)
             best = torch.full((G,), -1.0, dtype=w.dtype, device=w.device).scatter_reduce(0, gid, key, "amax")
-            win = as_rows(key == best[gid])
-            label = label.clone().scatter_(0, gid[win], state.label[win])
+            win = as_rows(key == best.index_select(0, gid))
+            label = label.clone().scatter_(0, gid.index_select(0, win), state.label.index_select(0, win))
     return MixtureState(torch.log(wsum) + w_max, mu, P, label,
                         torch.ones(G, dtype=torch.bool, device=w.device))
 
@@ -633,11 +657,11 @@ def _owners_sparse(mean: Tensor, cov: Tensor, threshold: float, rounds: int) -> 
     owner = torch.arange(J, device=mean.device)
     alive = torch.ones(J, dtype=torch.bool, device=mean.device)
     for _ in range(rounds):
-        live = alive[ii] & alive[jj]
+        live = alive.index_select(0, ii) & alive.index_select(0, jj)
         # leaders: alive, with no alive heavier component within reach
         blocked = torch.zeros(J, dtype=torch.long, device=mean.device).scatter_reduce(0, ii, live.long(), "amax")
         leader = alive & (blocked == 0)
-        cand = alive[ii] & leader[jj]
+        cand = alive.index_select(0, ii) & leader.index_select(0, jj)
         first = big.scatter_reduce(0, ii, torch.where(cand, jj, none), "amin")   # heaviest leader within reach
         joins = alive & ~leader & (first < J)
         owner = torch.where(joins, first, owner)
@@ -670,11 +694,13 @@ def _reach_matrix(mean: Tensor, cov: Tensor, threshold: float) -> Tensor:
 def _owners_dense(reach: Tensor, rounds: int) -> Tensor:
     """The greedy leader rounds of :func:`merge` on a dense reach matrix; ``owner (J,)`` per component."""
     owner = torch.arange(reach.shape[0], device=reach.device)
-    alive = torch.ones_like(owner, dtype=torch.bool)
+    alive = None                                   # every component, in the first round (no mask to apply)
     live = reach                                   # [i, j]: alive heavier j within reach of i
     for _ in range(rounds):
-        blocked = live.any(1) & alive              # an alive heavier component within reach: not a leader
-        leader = alive & ~blocked
+        blocked = live.any(1)                      # an alive heavier component within reach: not a leader
+        if alive is not None:
+            blocked = blocked & alive
+        leader = ~blocked if alive is None else alive & ~blocked
         has, first = (live & leader.unsqueeze(0)).max(1)     # first (heaviest) leader within reach
         owner = torch.where(blocked & has, first, owner)     # joins its leader
         alive = blocked & ~has

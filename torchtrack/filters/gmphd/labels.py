@@ -21,8 +21,8 @@ def _first_of_label(label: Tensor, order: Tensor) -> Tensor:
 
     Returns ``(o, first)``: the permutation (indices into ``label``) and a bool mask over it.
     """
-    o = order[torch.sort(label[order], stable=True).indices]
-    ls = label[o]
+    o = order.index_select(0, torch.sort(label.index_select(0, order), stable=True).indices)
+    ls = label.index_select(0, o)
     first = torch.ones_like(ls, dtype=torch.bool)
     first[1:] = ls[1:] != ls[:-1]
     return o, first
@@ -34,9 +34,9 @@ def value_of_labels(keys: Tensor, values: Tensor, query: Tensor, default: Tensor
     if keys.numel() == 0:
         return default
     order = torch.argsort(keys)
-    index = order[torch.searchsorted(keys[order], query).clamp(max=keys.numel() - 1)]
-    found = (keys[index] == query).view(-1, *(1,) * (values.dim() - 1))
-    return torch.where(found, values[index], default)
+    index = order.index_select(0, torch.searchsorted(keys.index_select(0, order), query).clamp(max=keys.numel() - 1))
+    found = (keys.index_select(0, index) == query).view(-1, *(1,) * (values.dim() - 1))
+    return torch.where(found, values.index_select(0, index), default)
 
 
 def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_pos: Tensor,
@@ -57,16 +57,16 @@ def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_po
 
     Returns the relabelled state and the new first unused label.
     """
-    idx = estimate.nonzero(as_tuple=True)[0]
+    idx = as_rows(estimate)
     if idx.numel() < 2:
         return state, next_label
-    lab = state.label[idx]
-    pos = state.mean[idx, :pos_dim].detach()
+    lab = state.label.index_select(0, idx)
+    pos = state.mean.detach().index_select(0, idx)[:, :pos_dim]
     # distance to the label's previous estimate; inf where it has none
     previous = value_of_labels(prev_label, prev_pos.to(pos.dtype), lab, torch.full_like(pos, float("inf")))
     dist = (pos - previous).norm(dim=-1)
-    by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
-    by_dist = by_weight[torch.sort(dist[by_weight], stable=True).indices]
+    by_weight = torch.argsort(state.log_weight.detach().index_select(0, idx), descending=True)
+    by_dist = by_weight.index_select(0, torch.sort(dist.index_select(0, by_weight), stable=True).indices)
     o, first = _first_of_label(lab, by_dist)
     if min_separation > 0:
         position = torch.arange(o.numel(), device=o.device)
@@ -86,14 +86,15 @@ def label_fix(state: MixtureState, estimate: Tensor, prev_label: Tensor, prev_po
 def best_per_label(state: MixtureState, estimate: Tensor) -> Tensor:
     """Indices of the extracted components to report, one per label (the highest weight), as in the plain
     labelled GM-PHD: duplicates of a label are not reported."""
-    idx = estimate.nonzero(as_tuple=True)[0]
+    idx = as_rows(estimate)
     if idx.numel() < 2:
         return idx
-    if torch.unique(state.label[idx]).shape[0] == idx.shape[0]:     # labels already unique
+    label = state.label.index_select(0, idx)
+    if torch.unique(label).shape[0] == idx.shape[0]:     # labels already unique
         return idx
-    by_weight = torch.argsort(state.log_weight[idx].detach(), descending=True)
-    o, first = _first_of_label(state.label[idx], by_weight)
-    return idx[o[first]]
+    by_weight = torch.argsort(state.log_weight.detach().index_select(0, idx), descending=True)
+    o, first = _first_of_label(label, by_weight)
+    return idx.index_select(0, o[first])
 
 
 def relabel(state: MixtureState, old: Tensor, new: Tensor) -> MixtureState:
@@ -101,7 +102,8 @@ def relabel(state: MixtureState, old: Tensor, new: Tensor) -> MixtureState:
     changed = as_rows(old != new)
     if changed.numel() == 0:
         return state
-    return state._replace(label=value_of_labels(old[changed], new[changed], state.label, state.label))
+    return state._replace(label=value_of_labels(old.index_select(0, changed), new.index_select(0, changed),
+                                                state.label, state.label))
 
 
 class LostLabels(NamedTuple):
@@ -141,14 +143,14 @@ def label_handover(label: Tensor, pos: Tensor, prev_label: Tensor, prev_pos: Ten
         return label
     from torchtrack.association.assignment import greedy
 
-    pool_label = torch.cat([lost.label, prev_label[gone]])
+    pool_label = torch.cat([lost.label, prev_label.index_select(0, gone)])
     steps = torch.cat([lost.age + 1, torch.ones_like(gone)]).to(pos.dtype) * dt
-    start = torch.cat([lost.pos, prev_pos[gone]]).to(pos.dtype)
-    travel = torch.cat([lost.vel, prev_vel[gone]]).to(pos.dtype) * steps.unsqueeze(1)
+    start = torch.cat([lost.pos, prev_pos.index_select(0, gone)]).to(pos.dtype)
+    travel = torch.cat([lost.vel, prev_vel.index_select(0, gone)]).to(pos.dtype) * steps.unsqueeze(1)
     free = as_rows(~labels_in(pool_label, label))  # a lost label reported again this frame is not free
-    pool_label, start, travel = pool_label[free], start[free], travel[free]
+    pool_label, start, travel = (x.index_select(0, free) for x in (pool_label, start, travel))
     # distance from each new estimate to the segment [p, p + v·Δt]: robust to a target slowing down
-    rel = pos[ni].detach().unsqueeze(1) - start.unsqueeze(0)                         # (N, L, 2)
+    rel = pos.detach().index_select(0, ni).unsqueeze(1) - start.unsqueeze(0)          # (N, L, 2)
     t = ((rel * travel).sum(-1) / travel.pow(2).sum(-1).clamp_min(1e-9)).clamp(0.0, 1.0)
     dist = (rel - t.unsqueeze(-1) * travel).norm(dim=-1)
     allowed = dist <= max_distance
@@ -168,10 +170,10 @@ def update_lost(lost: LostLabels, prev_label: Tensor, prev_pos: Tensor, prev_vel
     last report and the frame just processed, and entries older than ``max_age`` expire."""
     gone = as_rows(~labels_in(prev_label, label))
     keep = as_rows(~labels_in(lost.label, label) & (lost.age + 1 <= max_age))
-    return LostLabels(torch.cat([lost.label[keep], prev_label[gone]]),
-                      torch.cat([lost.pos[keep], prev_pos[gone].to(lost.pos.dtype)]),
-                      torch.cat([lost.vel[keep], prev_vel[gone].to(lost.vel.dtype)]),
-                      torch.cat([lost.age[keep] + 1, torch.ones_like(gone)]))
+    return LostLabels(torch.cat([lost.label.index_select(0, keep), prev_label.index_select(0, gone)]),
+                      torch.cat([lost.pos.index_select(0, keep), prev_pos.index_select(0, gone).to(lost.pos.dtype)]),
+                      torch.cat([lost.vel.index_select(0, keep), prev_vel.index_select(0, gone).to(lost.vel.dtype)]),
+                      torch.cat([lost.age.index_select(0, keep) + 1, torch.ones_like(gone)]))
 
 
 class TentativeLabels(NamedTuple):
@@ -202,6 +204,6 @@ def confirm_labels(label: Tensor, known: Tensor, tentative: TentativeLabels, ali
     wait = as_rows(~labels_in(tentative.label, label) & (tentative.misses < max_misses)
                    & labels_in(tentative.label, alive))
     new = as_rows(~report)
-    return report, TentativeLabels(torch.cat([label[new], tentative.label[wait]]),
-                                   torch.cat([count[new], tentative.count[wait]]),
-                                   torch.cat([torch.zeros_like(new), tentative.misses[wait] + 1]))
+    return report, TentativeLabels(torch.cat([label.index_select(0, new), tentative.label.index_select(0, wait)]),
+                                   torch.cat([count.index_select(0, new), tentative.count.index_select(0, wait)]),
+                                   torch.cat([torch.zeros_like(new), tentative.misses.index_select(0, wait) + 1]))

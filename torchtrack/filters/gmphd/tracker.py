@@ -196,10 +196,11 @@ class GMPHDTracker(nn.Module):
         sel = best_per_label(post, est)
         if o.label_fix and o.coast_threshold is not None:
             coast = (~est & (post.log_weight > math.log(o.coast_threshold))
-                     & labels_in(post.label, memory.prev_label) & ~labels_in(post.label, post.label[sel]))
+                     & labels_in(post.label, memory.prev_label)
+                     & ~labels_in(post.label, post.label.index_select(0, sel)))
             sel = torch.cat([sel, best_per_label(post, coast)])
-        ids = post.label[sel]
-        mean = post.mean[sel]
+        ids = post.label.index_select(0, sel)
+        mean = post.mean.index_select(0, sel)
         pos, vel = mean[:, :2], mean[:, 2:4]
         lost = memory.lost
         if o.handover_frames > 0:
@@ -223,24 +224,24 @@ class GMPHDTracker(nn.Module):
                 known = known | labels_in(ids, lost_before.label)
             report, tentative = confirm_labels(ids, known, tentative, post.label, self.confirm_frames,
                                                o.confirm_misses)
-            pending = pos[as_rows(~report)].detach()
+            pending = pos.index_select(0, as_rows(~report)).detach()
             report = as_rows(report)
-            sel, ids, pos, vel = sel[report], ids[report], pos[report], vel[report]
+            sel, ids, pos, vel = (x.index_select(0, report) for x in (sel, ids, pos, vel))
         pos_d, vel_d = pos.detach(), vel.detach()
         if vmap is not None:
-            cov = post.cov.detach()[sel]
+            cov = post.cov.detach().index_select(0, sel)
             settled = as_rows((cov[:, 2, 2] + cov[:, 3, 3]) < o.settled_velocity_var)
-            vmap.update(pos_d[settled], vel_d[settled])
+            vmap.update(pos_d.index_select(0, settled), vel_d.index_select(0, settled))
         is_birth = as_rows(is_birth)
-        zb = z[is_birth]
-        vb = velocity[is_birth] if velocity is not None else None
+        zb = z.index_select(0, is_birth)
+        vb = velocity.index_select(0, is_birth) if velocity is not None else None
         b_mean, b_std, b_logw = birth.forward(zb, vb, vmap, birth_consts)
         B = int(zb.shape[0])
         b_label = torch.arange(next_label, next_label + B, dtype=torch.long, device=z.device)
         births = MixtureState(b_logw, b_mean, torch.diag_embed(b_std.pow(2)), b_label,       # N(mean, diag(std²))
                               torch.ones(B, dtype=torch.bool, device=z.device))
         if use_tone and B:
-            tones = add_births(tones, b_label, tone[is_birth])
+            tones = add_births(tones, b_label, tone.index_select(0, is_birth))
         new_state = phd.cap(concat(post, births), capacity)
         # labels carry no gradient
         new_memory = TrackerMemory(next_label + B, ids, pos_d, vel_d, lost, tentative, tones, existence)
@@ -310,11 +311,11 @@ class GMPHDTracker(nn.Module):
         if self._stream.last_frame is None and positions.device != self.device:
             self.to(positions.device)
             self.reset()
-        kw = {"dtype": self.dtype, "device": self.device}
+        s = self._stream
+        kw = {"dtype": self.dtype, "device": s.pending.device}   # the stream's device (no walk of the parameters)
         z = torch.as_tensor(positions, **kw).reshape(-1, 2)
         v = None if velocities is None else torch.as_tensor(velocities, **kw).reshape(-1, 2)
         t = None if tones is None else torch.as_tensor(tones, **kw).reshape(-1)
-        s = self._stream
         dt = frame_step(s.last_frame, frame)
         with torch.inference_mode():
             mats = s.mats.get(dt)
