@@ -5,7 +5,7 @@ import re
 import numpy as np
 import pytest
 
-from torchtrack.io.mot import concat_mot, from_points
+from torchtrack.io.mot import concat_mot, format_lines, from_points, read_mot
 from torchtrack.metrics import clear_mot, hota
 from torchtrack.metrics.hota import KEYS as HOTA_KEYS
 from torchtrack.metrics.table import TABLE1_HEADER, format_table1, protocol, score, table1_row
@@ -30,6 +30,7 @@ def moving_tracks(seed: int, frames=25, objects=8):
 def test_table1_row_carries_the_hota_and_idf1_of_the_metrics():
     gt, pred = moving_tracks(0)
     m = score(gt, pred, threshold=10.0)
+    pred = pred.as_written()                                           # what score() scores
     ref_hota, ref_clear = hota(gt, pred, threshold=10.0), clear_mot(gt, pred, threshold=10.0)
     assert {k: m[k] for k in HOTA_KEYS} == pytest.approx({k: ref_hota[k] for k in HOTA_KEYS}, abs=1e-12)
     assert 0.3 < m["HOTA"] < 0.9 and 0.3 < m["IDF1"] < 0.95          # neither trivial score
@@ -42,8 +43,20 @@ def test_table1_row_carries_the_hota_and_idf1_of_the_metrics():
 
 def test_threshold_reaches_hota():
     gt, pred = moving_tracks(1)
-    assert score(gt, pred, threshold=4.0)["HOTA"] == pytest.approx(hota(gt, pred, threshold=4.0)["HOTA"], abs=1e-12)
+    written = pred.as_written()
+    assert score(gt, pred, threshold=4.0)["HOTA"] == pytest.approx(hota(gt, written, threshold=4.0)["HOTA"],
+                                                                    abs=1e-12)
     assert score(gt, pred, threshold=4.0)["HOTA"] != pytest.approx(score(gt, pred, threshold=10.0)["HOTA"])
+
+
+def test_scores_are_those_of_the_written_file(tmp_path):
+    """HOTA's similarity thresholds tell 1e-4 px apart: a command's printed scores are eval's on its file."""
+    gt, pred = moving_tracks(2)
+    path = tmp_path / "tracks.txt"
+    path.write_text(format_lines(pred))
+    back = read_mot(path)
+    assert score(gt, pred, threshold=10.0) == score(gt, back, threshold=10.0)
+    assert not np.array_equal(pred.x, back.x)                        # the file does round
 
 
 def test_ignored_truth_is_scored_as_if_removed_with_the_predictions_on_it():
@@ -55,7 +68,7 @@ def test_ignored_truth_is_scored_as_if_removed_with_the_predictions_on_it():
     all_gt = concat_mot([gt, parked])
     all_pred = concat_mot([pred, on_parked, beside])
     ignore = all_gt.id == 50
-    kept_gt, kept_pred = gt, concat_mot([pred, beside])                  # the data with those lines removed
+    kept_gt, kept_pred = gt, concat_mot([pred, beside]).as_written()     # the data with those lines removed
 
     ours = score(all_gt, all_pred, threshold=10.0, ignore=ignore)
     ref_hota, ref_clear = hota(kept_gt, kept_pred, threshold=10.0), clear_mot(kept_gt, kept_pred, threshold=10.0)

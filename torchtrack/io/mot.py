@@ -76,6 +76,13 @@ class MOTData(NamedTuple):
         """(K, 4) boxes ``x, y, w, h``."""
         return np.stack([self.x, self.y, self.w, self.h], axis=1)
 
+    def as_written(self) -> MOTData:
+        """The same objects with the box coordinates a MOTChallenge file of :func:`format_lines` holds (three
+        decimals), so that scores of this data equal those of the file read back (HOTA's similarity thresholds
+        can tell 1e-4 px apart)."""
+        rounded = [np.array([float(f"{v:.3f}") for v in a], np.float64) for a in (self.x, self.y, self.w, self.h)]
+        return self._replace(x=rounded[0], y=rounded[1], w=rounded[2], h=rounded[3])
+
     def velocity(self) -> np.ndarray | None:
         """(K, 2) velocity ``vx, vy`` in px/frame, or None."""
         if self.vx is None or self.vy is None:

@@ -47,7 +47,10 @@ def score(gt: MOTData, tracks: MOTData, threshold: float = 10.0, ignore: np.ndar
     """CLEAR-MOT and IDF1 of ``tracks`` against ``gt`` at a centre distance of ``threshold`` px, and the HOTA
     keys (``HOTA, DetA, AssA, LocA, DetRe, DetPr, AssRe, AssPr``, fractions) with the centre similarity
     ``max(0, 1 - d / threshold)``; ``ignore (K,)`` marks don't-care truth lines (e.g. parked vehicles under
-    the paper's moving-objects protocol), removed with the predictions on them before either is scored."""
+    the paper's moving-objects protocol), removed with the predictions on them before either is scored. The tracks
+    are scored as their MOTChallenge file holds them (:meth:`MOTData.as_written`): a command's printed scores are
+    those ``torchtrack eval`` gives on the files it wrote."""
+    tracks = tracks.as_written()
     scores = clear_mot(gt, tracks, threshold=threshold, ignore=ignore)
     found = hota(gt, tracks, threshold=threshold, ignore=ignore)
     scores.update({k: found[k] for k in HOTA_KEYS})
