@@ -154,6 +154,30 @@ def test_tune_steps_below_one_writes_nothing(tmp_path, capsys):
         read_tune_config(path, ["early_stopping.patience=0"])
 
 
+@pytest.mark.parametrize("config, key, value", [("tune-kalman", "q", "two"), ("tune-kalman", "dt", "fast"),
+                                                ("tune-imm-formation", "measurement_sigma", "[1]")])
+def test_a_model_option_that_is_not_a_number_names_its_key(config, key, value, tmp_path, capsys):
+    out = tmp_path / "out"
+    assert main(["tune", "--config", config, "--out", str(out), "--set", f"model.{key}={value}"]) == 2
+    line = _one_error_line(capsys)
+    assert line.startswith(f"torchtrack tune: error: model.{key} must be a") and "got " in line
+    assert not out.exists()
+
+
+def test_a_camera_file_that_is_not_the_documented_object(tmp_path, capsys):
+    import torch
+
+    from torchtrack.sim.video import VideoConfig, write_sequence
+
+    seq = write_sequence(VideoConfig(height=64, width=64, frames=2), torch.Generator().manual_seed(0), tmp_path / "s")
+    camera = tmp_path / "camera.json"
+    camera.write_text("[[[1, 0, 0], [0, 1, 0], [0, 0, 1]]]")          # the homographies without their object
+    assert main(["track", "--frames", str(seq / "frames"), "--camera", str(camera), "--no-video",
+                 "--out", str(tmp_path / "out")]) == 2
+    line = _one_error_line(capsys)
+    assert line.startswith(f"torchtrack track: error: {camera}: not a camera.json") and "a JSON list" in line
+
+
 def test_maneuver_onset_after_the_last_scan(tmp_path, capsys):
     import torch
 

@@ -335,8 +335,10 @@ def read_camera(path: str | Path) -> np.ndarray:
     path = Path(path)
     try:
         data = json.loads(path.read_text())
+        if not isinstance(data, dict):
+            raise ValueError(f"a JSON {type(data).__name__}, not an object with a 'homographies' list")
         H = np.asarray(data["homographies"], np.float64)
-    except (OSError, ValueError, KeyError) as exc:
+    except (OSError, ValueError, KeyError, TypeError) as exc:
         raise TorchtrackError(f"{path}: not a camera.json written by simulate-video ({exc})") from exc
     if H.ndim != 3 or H.shape[1:] != (3, 3):
         raise TorchtrackError(f"{path}: homographies must have shape (T, 3, 3), got {H.shape}")

@@ -63,9 +63,9 @@ class IMMTunable(KalmanTunable):
         controls = self.options.get("controls", DEFAULT_CONTROLS)
         M = len(controls)
         motion = ModeControlInput(controls, self.options.get("sigma", 0.2))
-        meas = LinearPosition(2, sigma=float(self.options.get("measurement_sigma", 100.0)))
+        meas = LinearPosition(2, sigma=self.number("measurement_sigma", 100.0))
         T = floored_transition(self.options.get("transition", DEFAULT_TRANSITION),
-                               float(self.options.get("transition_floor", 1e-3)))
+                               self.number("transition_floor", 1e-3))
         if T.shape[0] != M:
             raise TorchtrackError(f"transition must be {M}x{M} for {M} modes; got {tuple(T.shape)}")
         return ConstantVelocityIMM(motion, meas, RowStochastic(T, "mode transition matrix")).to(self.dtype)

@@ -120,16 +120,16 @@ class KalmanTunable(Tunable):
     def __init__(self, options: Mapping[str, Any] | None = None):
         super().__init__(options)
         check_keys(self.options, self.option_keys, f"model ({self.name})")
-        self.ndim = int(self.options.get("ndim", 2))
+        self.ndim = self.number("ndim", 2, int)
         self.kind = self.options.get("motion", "cv")
         if self.kind not in ("cv", "ca"):
             raise TorchtrackError(f"model.motion must be 'cv' or 'ca'; got {self.kind!r}")
-        self.dt = float(self.options.get("dt", 1.0))
+        self.dt = self.number("dt", 1.0)
         self.dtype = _dtype(self.options.get("dtype", "float64"))
-        self.vel_std = float(self.options.get("init_velocity_std", self.default_velocity_std))
-        self.acc_std = float(self.options.get("init_acceleration_std", 10.0))
-        self.gospa_c = float(self.options.get("gospa_c", self.default_gospa_c))
-        self.gospa_p = float(self.options.get("gospa_p", 2.0))
+        self.vel_std = self.number("init_velocity_std", self.default_velocity_std)
+        self.acc_std = self.number("init_acceleration_std", 10.0)
+        self.gospa_c = self.number("gospa_c", self.default_gospa_c)
+        self.gospa_p = self.number("gospa_p", 2.0)
 
     def _motion(self, q: float) -> nn.Module:
         if self.kind == "cv":
@@ -138,8 +138,8 @@ class KalmanTunable(Tunable):
 
     def _models(self) -> tuple[nn.Module, LinearPosition]:
         """The motion and measurement models at the start values ``q`` and ``sigma``."""
-        motion = self._motion(float(self.options.get("q", 1.0)))
-        sigma = float(self.options.get("sigma", 1.0))
+        motion = self._motion(self.number("q", 1.0))
+        sigma = self.number("sigma", 1.0)
         return motion, LinearPosition(self.ndim, state_dim=motion.state_dim, sigma=sigma)
 
     def build(self) -> KalmanFilter:

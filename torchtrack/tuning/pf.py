@@ -31,11 +31,11 @@ class ParticleTunable(KalmanTunable):
 
     def __init__(self, options: Mapping[str, Any] | None = None):
         super().__init__(options)
-        self.seed = int(self.options.get("seed", 0))
+        self.seed = self.number("seed", 0, int)
 
     def build(self) -> ParticleFilter:
         ess = self.options.get("ess_threshold", 0.5)
-        return ParticleFilter(*self._models(), int(self.options.get("particles", 500)),
+        return ParticleFilter(*self._models(), self.number("particles", 500, int),
                               resampler=self.options.get("resampler", "systematic"),
                               ess_threshold=None if ess is None else float(ess)).to(self.dtype)
 

@@ -44,6 +44,18 @@ class Tunable:
     def __init__(self, options: Mapping[str, Any] | None = None):
         self.options = dict(options or {})
 
+    def number(self, key: str, default: float, kind: type = float) -> float:
+        """The option ``key`` of the ``model`` section as ``kind`` (``float`` or ``int``); a value that is not
+        one is an error naming ``model.key`` and the value."""
+        value = self.options.get(key, default)
+        try:
+            if isinstance(value, bool):
+                raise ValueError
+            return kind(value)
+        except (TypeError, ValueError):
+            raise TorchtrackError(f"model.{key} must be a{'n integer' if kind is int else ' number'}; "
+                                  f"got {value!r}") from None
+
     def build(self) -> nn.Module:
         """The filter module from ``self.options`` (start values of the parameters included)."""
         raise NotImplementedError
