@@ -312,8 +312,8 @@ class GLMBFilter:
 
     def _cap_hit(self) -> None:
         self.cap_hits += 1
-        if self.cap_hits == 1:
-            log.warning("GLMB: hypothesis cap hit (more than %d hypotheses of one group above the prune threshold): "
+        if self.cap_hits == 1:   # info, not a warning: the cap is a documented bound the user need not act on
+            log.info("GLMB: hypothesis cap hit (more than %d hypotheses of one group above the prune threshold): "
                         "the lightest are dropped (frames with a hit are counted in cap_hits)", self.max_hypotheses)
 
     def _regroup(self, state: GLMBState, group_of_row: Tensor, n_groups: int) -> tuple[Tensor, Tensor, Tensor, bool]:
