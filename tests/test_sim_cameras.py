@@ -117,3 +117,16 @@ def test_default_sequences_are_unchanged_by_the_sensor_and_effects_change_them()
     np.testing.assert_array_equal(np.stack(plain), np.stack(again))
     blurred = [f for f in generate_sequence(SMALL.replace(motion_blur=2.0), torch.Generator().manual_seed(0))]
     assert np.abs(blurred[0].image.astype(float) - plain[0]).mean() > 0.5
+
+
+def test_train_init_names_a_shipped_file_or_a_path_and_refuses_weights_of_another_shape(tmp_path):
+    from torchtrack.detector.config import DetectorConfig, ModelConfig, TrainConfig
+    from torchtrack.detector.inference import DEFAULT_WEIGHTS
+    from torchtrack.detector.train import initial_weights, train
+
+    assert initial_weights("centertrack_small") == DEFAULT_WEIGHTS == initial_weights("centertrack_small.pt")
+    assert initial_weights(str(tmp_path / "w.pt")) == tmp_path / "w.pt"
+    cfg = DetectorConfig(model=ModelConfig(widths=(8, 8, 8), head=8, motion=4),
+                         train=TrainConfig(init="centertrack_small", out=str(tmp_path / "out")))
+    with pytest.raises(TorchtrackError, match="train.init centertrack_small: the weights do not fit"):
+        train(cfg, progress=False)

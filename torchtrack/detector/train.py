@@ -78,7 +78,11 @@ def train(cfg: DetectorConfig, seed: int = 0, resume: bool = False, progress: bo
         torch.use_deterministic_algorithms(True, warn_only=True)
     det = Detector(cfg)
     if t.init and not resume:
-        det.net.load_state_dict(load_checkpoint(initial_weights(t.init))["model"])
+        try:
+            det.net.load_state_dict(load_checkpoint(initial_weights(t.init))["model"])
+        except RuntimeError as exc:
+            raise TorchtrackError(f"train.init {t.init}: the weights do not fit model {cfg.model} "
+                                  f"({str(exc).splitlines()[0]})") from None
         if rank == 0:
             log(f"train.init: starting from {initial_weights(t.init)}")
     model = det.net.to(device)
