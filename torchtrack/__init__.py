@@ -1,8 +1,9 @@
 """torchtrack: batched, differentiable target tracking on PyTorch.
 
-The main job from Python: :func:`track` runs a tracker on frames, a video or detections (as ``torchtrack track``)
-and :func:`evaluate` scores tracks (as ``torchtrack eval``): :func:`torchtrack.pipeline.api.track` and
-:func:`torchtrack.metrics.evaluation.evaluate_scores`, imported on first use so ``import torchtrack`` stays light.
+The main job from Python: :func:`track` runs a tracker on frames, a video or detections (as ``torchtrack track``;
+calibrated first with ``calibrate=N``) and :func:`evaluate` scores tracks (as ``torchtrack eval``):
+:func:`torchtrack.calibrated_track.track` and :func:`torchtrack.metrics.evaluation.evaluate_scores`, imported on
+first use so ``import torchtrack`` stays light.
 """
 
 from torchtrack.errors import TorchtrackError
@@ -12,10 +13,14 @@ __all__ = ["TorchtrackError", "__version__", "evaluate", "track"]
 
 
 def __getattr__(name: str):
-    if name in ("track", "TrackResult"):
-        from torchtrack.pipeline import api
+    if name == "track":
+        from torchtrack.calibrated_track import track
 
-        return getattr(api, name)
+        return track
+    if name == "TrackResult":
+        from torchtrack.pipeline.api import TrackResult
+
+        return TrackResult
     if name == "evaluate":
         from torchtrack.metrics.evaluation import evaluate_scores
 

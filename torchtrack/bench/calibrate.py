@@ -29,7 +29,7 @@ from torchtrack.io.mot import MOTData
 from torchtrack.pipeline.api import track
 from torchtrack.sim.detections import simulate_detections
 from torchtrack.tuning.calibration import calibrate
-from torchtrack.tuning.decisions import BOOTSTRAP_FRAMES, SEARCH
+from torchtrack.tuning.decisions import MODEL_SEARCH, SEARCH
 
 SPACE: dict[str, tuple[float, float, bool]] = {
     "filter.sigma": (0.5, 6.0, True), "filter.p_detection": (0.3, 0.99, False),
@@ -96,7 +96,7 @@ def measure(gt: MOTData, pd: float, sigma: float, clutter: float, velocity_sigma
     result = calibrate(train_det, train, None, seed, progress=progress)
     cal_s = time.perf_counter() - t0
     frames = train[1] - train[0] + 1
-    passes = len(result.calibration.iterations) * frames + len(result.bootstrap) * min(BOOTSTRAP_FRAMES, frames)
+    passes = result.tracker_frames
     n_trials = trials if trials is not None else max(1, math.ceil(passes / frames))
     t0 = time.perf_counter()
     best = optuna_search(train_det, train_gt, n_trials, seed, progress)
@@ -110,10 +110,11 @@ def measure(gt: MOTData, pd: float, sigma: float, clutter: float, velocity_sigma
              "reference_hota": reference["HOTA"] if reference else None,
              "calibrate_seconds": cal_s, "reference_seconds": ref_s if best is not None else None,
              "reference_trials": n_trials if best is not None else 0, "tracker_frames_calibrate": passes,
-             "fitted": result.calibration.values, "decisions": result.decisions, "optuna_best": best,
+             "fitted": result.calibration.values if result.calibration else None,
+             "status": result.status, "problems": result.problems, "decisions": result.decisions, "optuna_best": best,
              "sensor": {"pd": pd, "sigma": sigma, "clutter": clutter, "velocity_sigma": velocity_sigma},
              "train": list(train), "test": list(test), "seed": seed,
-             "searched": [key for key, _ in SEARCH]}
+             "searched": [key for key, _ in SEARCH + MODEL_SEARCH]}
     workload = (f"p_D {pd:g}, σ {sigma:g} px, clutter {clutter:g}/frame"
                 + (f", velocity σ {velocity_sigma:g}" if velocity_sigma else "")
                 + f"; calibrate on frames {train[0]}-{train[1]}, held out {test[0]}-{test[1]}")
@@ -135,7 +136,8 @@ def format_report(r: BenchResult) -> str:
             [f"Optuna TPE with truth ({e['reference_trials']} trials)", cell(e["reference_mota"]),
              cell(e["reference_hota"]), "—" if e["reference_seconds"] is None else f"{e['reference_seconds']:.1f}"],
             ["built-in defaults", cell(e["defaults_mota"]), cell(e["defaults_hota"]), "—"]]
-    lines = [f"workload: {r.workload}", format_table(["configuration", "held-out MOTA", "HOTA", "seconds"], rows)]
+    lines = [f"workload: {r.workload}", f"calibration status: {e['status']}",
+             format_table(["configuration", "held-out MOTA", "HOTA", "seconds"], rows)]
     if e["reference_mota"] is None:
         lines.append("Optuna is not installed (pip install torchtrack-mtt[bench]): the reference was skipped")
     return "\n".join(lines)

@@ -13,6 +13,8 @@ ranks split every frame into strips and rank 0 alone writes the folder.
 from __future__ import annotations
 
 import argparse
+import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -21,7 +23,7 @@ from torchtrack.cli._common import PIPELINE_PRESETS, config_file
 from torchtrack.cli._strips import frame_strips, rank_output, strip_group, strip_metrics
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import tracker_names
-from torchtrack.io.frames import open_frames
+from torchtrack.io.frames import FrameSource, open_frames
 from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.io.moving import dont_care, flags_beside
 from torchtrack.io.outputs import OutputFolder, write_json
@@ -135,10 +137,17 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
     else:
         source = open_frames(args.video or args.frames)
         gt, ignore = _truth(args, len(source))
-        result = track(frames=args.frames, video=args.video, tracker=config.tracker, gt=gt, ignore=ignore,
-                       gt_name=str(args.truth_csv or args.gt), score=args.score,
-                       device=args.device, pipeline_config=config, camera=_camera(args), out=out, force=args.force,
-                       inputs=inputs, progress=not args.no_progress)
+        with tempfile.TemporaryDirectory(prefix="torchtrack-calibrate-") as scratch:
+            calibrated: dict[str, Path] = {}
+            if getattr(args, "calibrate", None):
+                config, calibrated = _calibrated(args, config, source, Path(scratch))
+            result = track(frames=args.frames, video=args.video, tracker=config.tracker, gt=gt, ignore=ignore,
+                           gt_name=str(args.truth_csv or args.gt), score=args.score, device=args.device,
+                           pipeline_config=config, camera=_camera(args), out=None if calibrated else out,
+                           force=args.force, inputs=inputs, progress=not args.no_progress)
+            if calibrated:
+                result.files.update(calibrated)
+                result.save(out, args.force)
         m, files = result.report, result.files
     name = Path(args.video or args.frames).name
     gt_given = bool(args.gt or args.truth_csv)
@@ -157,6 +166,18 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
     print("wrote " + ", ".join(str(p) for p in files.values()))
     write_json(args.json, m)
     return 0
+
+
+def _calibrated(args: argparse.Namespace, config: PipelineConfig, source: FrameSource, folder: Path
+                ) -> tuple[PipelineConfig, dict[str, Path]]:
+    """``--calibrate N``: the pipeline's trackers calibrated on the first N frames, and the calibration's files
+    (written into ``folder``)."""
+    from torchtrack.cli.calibrate import progress_line
+    from torchtrack.tuning.video import calibrate_frames, pipeline_with
+
+    result = calibrate_frames(source, config, args.calibrate, args.seed, progress_line)
+    print(f"calibration: {result.status}: {result.message}", file=sys.stderr)
+    return pipeline_with(config, result), result.write(folder, str(source.path))
 
 
 def _truth(args: argparse.Namespace, frames: int) -> tuple[MOTData | None, np.ndarray | None]:

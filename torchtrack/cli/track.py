@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -94,9 +95,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "built from the file's options with the fitted values, exactly the tuned tracker "
                              "(with --detections; --tracker must be the file's, not with --config)")
     parser.add_argument("--calibrate", type=positive_int, default=None, metavar="N",
-                        help="with --detections: calibrate the trackers on the first N frames without truth "
-                             "(torchtrack calibrate), then track every frame with the result; OUT also holds "
-                             "track.yaml, calibration.json and loss.png (not with --config/--params)")
+                        help="calibrate the trackers on the first N frames without truth (torchtrack calibrate; "
+                             "with --frames/--video on the detections the pipeline gives its tracker there), then "
+                             "track every frame with the result; OUT also holds track.yaml, calibration.json and "
+                             "loss.png, and calibration.json's status says whether the fit passed its checks "
+                             "(not with --config/--params/--sequences)")
     parser.add_argument("--gt", type=Path, default=None, help="ground truth (MOTChallenge) to score against")
     parser.add_argument("--score", choices=SCORES, default="moving",
                         help="which objects of the truth are targets: moving (default) the moving vehicles, the "
@@ -162,9 +165,11 @@ def check_arguments(args: argparse.Namespace) -> None:
         clash = [flag for flag, value in (("--config", args.config), ("--params", args.params),
                                           ("--compare", args.compare), ("--benchmark", args.benchmark),
                                           ("--strips", args.strips)) if value]
-        if clash or args.detections is None:
-            raise TorchtrackError("--calibrate needs --detections and sets the trackers' options itself; "
-                                  f"it does not combine with {', '.join(clash) or '--video/--frames/--sequences'}")
+        if args.sequences:
+            clash.append("--sequences")
+        if clash or not (args.detections or args.frames or args.video):
+            raise TorchtrackError("--calibrate needs --detections, --frames or --video and sets the trackers' "
+                                  f"options itself; it does not combine with {', '.join(clash) or 'no input'}")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -218,23 +223,12 @@ def _run(args: argparse.Namespace) -> int:
 
 def _run_calibrated(args: argparse.Namespace, base: PipelineConfig | None) -> int:
     """``--calibrate N``: calibrate on the first N frames of ``--detections``, track all of them with the result."""
-    import tempfile
+    from torchtrack.calibrated_track import track
 
-    from torchtrack.cli.calibrate import calibrate_into
-    from torchtrack.io.mot import read_mot
-    from torchtrack.pipeline.api import track
-
-    det = read_mot(args.detections)
-    first = int(det.frame.min()) if det.size else 1
-    with tempfile.TemporaryDirectory(prefix="torchtrack-calibrate-") as tmp:
-        folder = Path(tmp)
-        result = calibrate_into(det, folder, (first, first + args.calibrate - 1), None, args.seed,
-                                str(args.detections))
-        tracked = track(detections=det, tracker=args.tracker, config=result.sections, gt=args.gt,
-                        score=args.score, device=args.device, threshold=args.threshold, pipeline_config=base)
-        tracked.files.update(config=folder / "track.yaml", calibration=folder / "calibration.json",
-                             loss=folder / "loss.png")
-        tracked.save(args.out, args.force)
+    tracked = track(detections=args.detections, calibrate=args.calibrate, seed=args.seed, tracker=args.tracker,
+                    gt=args.gt, score=args.score, device=args.device, threshold=args.threshold,
+                    pipeline_config=base, progress=True, out=args.out, force=args.force)
+    print(f"calibration: {tracked.calibration['status']}: {tracked.calibration['message']}", file=sys.stderr)
     _print_report(args, tracked.report, args.gt is not None)
     return 0
 

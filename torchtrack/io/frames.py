@@ -21,6 +21,7 @@ ignored. Images are ordered by natural sort (``frame_2.png`` before ``frame_10.p
 
 from __future__ import annotations
 
+import itertools
 import re
 import warnings
 from collections import deque
@@ -205,6 +206,20 @@ class ArraySource(FrameSource):
 
     def _images(self) -> Iterator[tuple[str, np.ndarray]]:
         return ((f"{self.path}[{index}]", image) for index, image in enumerate(self.images, start=1))
+
+
+class FirstFrames(FrameSource):
+    """The first ``count`` frames of ``source``."""
+
+    def __init__(self, source: FrameSource, count: int) -> None:
+        self.source, self.count = source, count
+        self.path, self.shape, self.color = source.path, source.shape, source.color
+
+    def __len__(self) -> int:
+        return min(self.count, len(self.source))
+
+    def _images(self) -> Iterator[tuple[str, np.ndarray]]:
+        return itertools.islice(self.source._images(), self.count)
 
 
 def open_frames(path: str | Path, color: bool = False) -> FrameSource:

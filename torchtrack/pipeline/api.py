@@ -66,7 +66,10 @@ class TrackResult:
             it was scored) and :data:`EXTRAS` beside them.
         report: everything ``metrics.json`` holds (the scores where there is truth, frames, timings, frames/s;
             for frames and videos the scores under ``clear_mot``, with the registration's summary).
-        files: the files written, by kind (``tracks``, ``detections``, ``metrics``, ``video``).
+        files: the files written, by kind (``tracks``, ``detections``, ``metrics``, ``video``; with
+            ``calibrate``: ``config``, ``calibration``, ``loss``).
+        calibration: with ``calibrate``, the content of ``calibration.json`` (its ``status`` says whether the
+            fit passed its checks); else None.
     """
 
     tracks: np.ndarray
@@ -74,6 +77,7 @@ class TrackResult:
     metrics: dict | None
     report: dict
     files: dict[str, Path] = field(default_factory=dict)
+    calibration: dict | None = None
     _scratch: tempfile.TemporaryDirectory | None = field(default=None, repr=False)
 
     def save(self, out_dir: str | os.PathLike, force: bool = False) -> dict[str, Path]:
@@ -187,7 +191,7 @@ def track(frames: str | os.PathLike | np.ndarray | Iterable[np.ndarray] | None =
     if folder is not None:
         files = {kind: folder.final(path) for kind, path in files.items()}
     metrics = _flat_metrics(report, detections is None) if truth is not None else None
-    return TrackResult(as_rows(tracks), as_rows(given), metrics, report, files, scratch)
+    return TrackResult(as_rows(tracks), as_rows(given), metrics, report, files, _scratch=scratch)
 
 
 def _flat_metrics(report: dict, video: bool) -> dict:

@@ -46,6 +46,13 @@ def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype,
     return ids[keep], positions[keep], len(ids) - len(keep)
 
 
+def gated(det: FrameDetections, config: PipelineConfig) -> FrameDetections:
+    """The detections the moving-object gate of ``config`` passes (all of them where it is off)."""
+    if config.min_speed > 0 or config.min_motion > 0:
+        return det.moving(config.min_speed, config.min_motion, config.gate_registration)
+    return det
+
+
 class TrackerStream:
     """A tracker fed a pipeline's :class:`FrameDetections` frame by frame (module docstring).
 
@@ -70,9 +77,7 @@ class TrackerStream:
 
     def tracker_input(self, det: FrameDetections) -> FrameDetections:
         """The detections the tracker gets: moving, and strong or continuing a previous position."""
-        gated = self.config.min_speed > 0 or self.config.min_motion > 0
-        moving = det.moving(self.config.min_speed, self.config.min_motion, self.config.gate_registration) \
-            if gated else det
+        moving = gated(det, self.config)
         keep = moving.strong.copy()
         weak = np.flatnonzero(~keep & (moving.scores >= (self.config.weak_threshold or np.inf)))
         if len(weak) and len(self.previous) and not np.isnan(moving.velocities).any():

@@ -102,6 +102,10 @@ def detection_frames(det: MOTData, frames: tuple[int, int] | None = None, veloci
     return DetectionFrames(first, last, positions, velocities, region)
 
 
+class NoTracks(TorchtrackError):
+    """The E-step confirmed no track long enough to fit the sensor on."""
+
+
 @dataclass
 class Tracks:
     """Confirmed tracks of an E-step: ``z (B, T, m)`` each track's detections from its first (NaN: none),
@@ -240,7 +244,8 @@ class Calibration:
     """The result: fitted ``values`` (sensor, ``q``, ``p_survival``, ``birth_rate``) and ``stderr``, the
     likelihood of the last M-step before and after (``loglik_before``, ``loglik_after``), the negative
     log-likelihood per detection over every M-step's iterations (``trace``), the window, region, number of
-    tracks used, seconds, and the decisions and trackers' sections (filled by :mod:`torchtrack.tuning.decisions`)."""
+    tracks used, the share of the frames strictly inside the tracks' lives with a detection
+    (``detected_share``: what p_D should come near), and seconds."""
 
     values: dict[str, float]
     stderr: dict[str, float]
@@ -252,6 +257,7 @@ class Calibration:
     detections: int
     velocities: bool
     tracks: int
+    detected_share: float = float("nan")
     iterations: list[dict] = field(default_factory=list)
     seconds: float = 0.0
 
@@ -322,8 +328,8 @@ def calibrate_sensor(data: DetectionFrames, tracker_config: Callable[[dict], dic
         radius = 3.0 * max(values["sigma"], 1.0)
         tracks = associate(data, found, radius)
         if tracks.z.shape[0] == 0:
-            raise TorchtrackError("calibration: the tracker confirmed no track of 5 detections or more; "
-                                  "the detections hold no targets it can follow")
+            raise NoTracks("calibration: the tracker confirmed no track of 5 detections or more; "
+                           "the detections hold no targets it can follow")
         vs = values["velocity_sigma"] if velocities else None
         if per_track_q is None or len(per_track_q) != tracks.z.shape[0]:
             values["q"], per_track_q = fit_q(tracks, values["sigma"], vs)
@@ -360,6 +366,7 @@ def calibrate_sensor(data: DetectionFrames, tracker_config: Callable[[dict], dic
         values.pop("clutter_velocity_sigma", None)
     cal = Calibration(values=values, stderr=stderr, loglik_before=est.loglik_before, loglik_after=est.loglik_after,
                       trace=trace, frames=(data.first, data.last), region=data.region, detections=data.count,
-                      velocities=velocities, tracks=int(tracks.z.shape[0]), iterations=history,
+                      velocities=velocities, tracks=int(tracks.z.shape[0]), detected_share=seen,
+                      iterations=history,
                       seconds=time.perf_counter() - t0)
     return cal, tracks, sm.mean

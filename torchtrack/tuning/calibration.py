@@ -5,46 +5,124 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 from typing import Any
 
 from torchtrack.io.mot import MOTData
-from torchtrack.io.outputs import save_figure
-from torchtrack.tuning.calibrate import Calibration, calibrate_sensor, detection_frames
-from torchtrack.tuning.decisions import bootstrap_decisions, gmphd_section, pseudo_truth, tracker_sections
+from torchtrack.io.outputs import save_figure, write_json, write_yaml
+from torchtrack.tuning.calibrate import ITERATIONS, Calibration, NoTracks, calibrate_sensor, detection_frames
+from torchtrack.tuning.decisions import (
+    BOOTSTRAP_FRAMES,
+    bootstrap_decisions,
+    gmphd_section,
+    merged,
+    pseudo_truth,
+    tracker_sections,
+)
+from torchtrack.tuning.fit_check import CHECK_FRAMES, fit_problems, tracks_nothing
+
+STARTS: tuple[dict[str, Any], ...] = ({}, {"confirm_new": 4, "birth_weight": 0.005})
+"""The E-step tracker's decisions of the first start (the rules' own) and of the second, tried where the first
+fit fails (:mod:`torchtrack.tuning.fit_check`): a stricter tracker, whose tracks follow fewer false detections."""
+BUILT_IN = {"gmphd": {}, "labelled-gmphd": {}, "glmb": {}, "pmb": {}}
+"""The sections written when every start fails: each tracker's built-in options."""
 
 
 @dataclass
 class CalibrationResult:
-    """The fitted model (:class:`Calibration`), the decisions, the bootstrap's scores and the trackers'
-    ``track --config`` sections."""
+    """The fitted model (:class:`Calibration`; None where no start confirmed a track), the decisions, the
+    bootstrap's scores, the trackers' ``track --config`` sections, and the verdict: ``status`` ``ok`` (the
+    first start), ``retried`` (the second) or ``defaults`` (every start failed: the sections are the built-in
+    options), the frames the trackers stepped through over every start (``tracker_frames``: the cost in
+    tracker passes), the ``problems`` found at each start, and ``message``, the verdict in one line."""
 
-    calibration: Calibration
+    calibration: Calibration | None
     decisions: dict[str, Any]
     bootstrap: list[dict]
     sections: dict[str, Any]
     seconds: float
+    status: str = "ok"
+    tracker_frames: int = 0
+    problems: list[list[str]] = field(default_factory=list)
+    message: str = "the fit passed its checks"
+
+    def write(self, folder: Path, source: str) -> dict[str, Path]:
+        """``track.yaml``, ``calibration.json`` and ``loss.png`` into ``folder``; returns them by kind
+        (``config``, ``calibration``, ``loss``)."""
+        c = self.calibration
+        window = f"frames {c.frames[0]}-{c.frames[1]}" if c is not None else "no track confirmed"
+        files = {"config": folder / "track.yaml", "calibration": folder / "calibration.json",
+                 "loss": folder / "loss.png"}
+        write_yaml(files["config"], self.sections,
+                   header=f"# torchtrack calibrate on {source}, {window}; status {self.status}\n")
+        write_json(files["calibration"], self.record(source))
+        plot_calibration(self, files["loss"])
+        return files
 
     def record(self, source: str) -> dict[str, Any]:
         """The contents of ``calibration.json``."""
+        verdict = {"status": self.status, "message": self.message, "problems": self.problems}
         c = self.calibration
-        return {"detections": source, "frames": list(c.frames), "detections_used": c.detections,
+        if c is None:
+            return {"detections": source, **verdict, "decisions": self.decisions, "seconds": self.seconds}
+        return {"detections": source, **verdict, "frames": list(c.frames), "detections_used": c.detections,
                 "velocities": c.velocities, "region": list(c.region), "tracks_used": c.tracks,
-                "values": c.values, "stderr": c.stderr, "loglik_before": c.loglik_before,
-                "loglik_after": c.loglik_after, "iterations": c.iterations, "decisions": self.decisions,
-                "bootstrap": self.bootstrap, "seconds": self.seconds}
+                "detected_share": c.detected_share, "values": c.values, "stderr": c.stderr,
+                "loglik_before": c.loglik_before, "loglik_after": c.loglik_after, "iterations": c.iterations,
+                "decisions": self.decisions, "bootstrap": self.bootstrap, "seconds": self.seconds}
 
 
 def calibrate(det: MOTData, frames: tuple[int, int] | None = None, velocity: bool | None = None, seed: int = 0,
-              source: str = "detections", progress: Callable[[str], None] | None = None) -> CalibrationResult:
+              source: str = "detections", progress: Callable[[str], None] | None = None,
+              base: dict | None = None) -> CalibrationResult:
     """Calibrate the trackers to the sensor of ``det`` (frames ``A..B`` inclusive, None: all) without truth;
-    ``velocity`` as :func:`~torchtrack.tuning.calibrate.detection_frames`; ``seed`` drives the bootstrap."""
+    ``velocity`` as :func:`~torchtrack.tuning.calibrate.detection_frames`; ``seed`` drives the bootstrap.
+    ``base``: the enhanced GM-PHD's options that the calibrated ones go over and that count as its built-in
+    ones (default: none, the tracker's own; the video pipeline's are its ``trackers.gmphd``).
+    Each start of :data:`STARTS` is tried until one passes :func:`~torchtrack.tuning.fit_check.fit_problems`;
+    where none does, the sections are the built-in options (``status`` ``defaults``)."""
     t0 = time.perf_counter()
     data = detection_frames(det, frames, velocity, source)
-    cal, tracks, mean = calibrate_sensor(data, gmphd_section, progress=progress)
-    decisions, log = bootstrap_decisions(cal, pseudo_truth(tracks, mean, data.first), seed, progress)
-    return CalibrationResult(cal, decisions, log, tracker_sections(cal, decisions), time.perf_counter() - t0)
+    problems: list[list[str]] = []
+    last = None
+    window = len(data.positions)
+    stepped = 0
+    for n, decisions in enumerate(STARTS):
+        stepped += window * ITERATIONS
+        try:
+            cal, tracks, mean = calibrate_sensor(data, partial(_e_step, decisions), progress=progress)
+        except NoTracks as e:
+            problems.append([str(e).removeprefix("calibration: ")])
+            continue
+        boot = bootstrap_decisions(cal, pseudo_truth(tracks, mean, data.first), seed, progress, base)
+        stepped += len(boot.log) * min(BOOTSTRAP_FRAMES, window) + 2 * min(CHECK_FRAMES, window)
+        sections = tracker_sections(cal, boot.decisions, boot.values)
+        sections["gmphd"] = merged(base or {}, sections["gmphd"])
+        if boot.defaults_mota is not None and boot.defaults_mota > boot.mota:
+            sections["gmphd"] = dict(base or {})     # the built-in options track the simulated frames better
+        found = fit_problems(cal, boot.mota)
+        if not found and tracks_nothing(data, sections["gmphd"], base or {}):
+            found.append("the calibrated tracker reports no track where the built-in one does")
+        problems.append(found)
+        last = (cal, boot, sections)
+        if not found:
+            status = "ok" if n == 0 else "retried"
+            message = ("the fit passed its checks" if n == 0 else
+                       f"the first fit failed ({'; '.join(problems[0])}); the second start passed its checks")
+            return CalibrationResult(cal, boot.decisions, boot.log, sections, time.perf_counter() - t0, status,
+                                     stepped, problems, message)
+    found = list(dict.fromkeys(p for attempt in problems for p in attempt))
+    message = f"the fit failed at every start ({'; '.join(found)}): track.yaml holds the built-in options"
+    cal, boot = (last[0], last[1]) if last is not None else (None, None)
+    return CalibrationResult(cal, boot.decisions if boot else {}, boot.log if boot else [],
+                             {**BUILT_IN, "gmphd": dict(base or {})},
+                             time.perf_counter() - t0, "defaults", stepped, problems, message)
+
+
+def _e_step(decisions: dict[str, Any], values: dict[str, float]) -> dict[str, Any]:
+    return gmphd_section(values, decisions)
 
 
 def plot_calibration(result: CalibrationResult, path: str | Path) -> Path:
@@ -55,7 +133,8 @@ def plot_calibration(result: CalibrationResult, path: str | Path) -> Path:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4))
-    ax.plot(range(len(result.calibration.trace)), result.calibration.trace, lw=1)
+    trace = result.calibration.trace if result.calibration is not None else []
+    ax.plot(range(len(trace)), trace, lw=1)
     ax.set_xlabel("L-BFGS evaluation (all M-steps in turn)")
     ax.set_ylabel("negative log-likelihood per candidate pair")
     ax.set_title("torchtrack calibrate")
