@@ -10,9 +10,17 @@ from functools import partial
 from pathlib import Path
 from typing import Any
 
+from torchtrack.filters.trackers.options import POSITIONS_ONLY
 from torchtrack.io.mot import MOTData
 from torchtrack.io.outputs import save_figure, write_json, write_yaml
-from torchtrack.tuning.calibrate import ITERATIONS, Calibration, NoTracks, calibrate_sensor, detection_frames
+from torchtrack.tuning.calibrate import (
+    ITERATIONS,
+    Calibration,
+    NoTracks,
+    calibrate_sensor,
+    detection_frames,
+    initial_values,
+)
 from torchtrack.tuning.decisions import (
     BOOTSTRAP_FRAMES,
     bootstrap_decisions,
@@ -27,7 +35,8 @@ STARTS: tuple[dict[str, Any], ...] = ({}, {"confirm_new": 4, "birth_weight": 0.0
 """The E-step tracker's decisions of the first start (the rules' own) and of the second, tried where the first
 fit fails (:mod:`torchtrack.tuning.fit_check`): a stricter tracker, whose tracks follow fewer false detections."""
 BUILT_IN = {"gmphd": {}, "labelled-gmphd": {}, "glmb": {}, "pmb": {}}
-"""The sections written when every start fails: each tracker's built-in options."""
+"""The sections written when every start fails: each tracker's built-in options (the enhanced GM-PHD's with the
+measured clutter density, :func:`fallback_section`)."""
 
 
 @dataclass
@@ -82,7 +91,8 @@ def calibrate(det: MOTData, frames: tuple[int, int] | None = None, velocity: boo
     ``base``: the enhanced GM-PHD's options that the calibrated ones go over and that count as its built-in
     ones (default: none, the tracker's own; the video pipeline's are its ``trackers.gmphd``).
     Each start of :data:`STARTS` is tried until one passes :func:`~torchtrack.tuning.fit_check.fit_problems`;
-    where none does, the sections are the built-in options (``status`` ``defaults``)."""
+    where none does, the sections are the built-in options (``status`` ``defaults``; on a detection file, with
+    the measured clutter density: :func:`fallback_section`)."""
     t0 = time.perf_counter()
     data = detection_frames(det, frames, velocity, source)
     problems: list[list[str]] = []
@@ -114,11 +124,26 @@ def calibrate(det: MOTData, frames: tuple[int, int] | None = None, velocity: boo
             return CalibrationResult(cal, boot.decisions, boot.log, sections, time.perf_counter() - t0, status,
                                      stepped, problems, message)
     found = list(dict.fromkeys(p for attempt in problems for p in attempt))
-    message = f"the fit failed at every start ({'; '.join(found)}): track.yaml holds the built-in options"
     cal, boot = (last[0], last[1]) if last is not None else (None, None)
+    if base is None:
+        kappa = (cal.values if cal is not None else initial_values(data))["clutter_density"]
+        gmphd = fallback_section(kappa, data.velocities is not None)
+        held = f"the built-in options with the measured clutter density {kappa:.3g}"
+    else:
+        gmphd, held = dict(base), "the built-in options"
+    message = f"the fit failed at every start ({'; '.join(found)}): track.yaml holds {held}"
     return CalibrationResult(cal, boot.decisions if boot else {}, boot.log if boot else [],
-                             {**BUILT_IN, "gmphd": dict(base or {})},
-                             time.perf_counter() - t0, "defaults", stepped, problems, message)
+                             {**BUILT_IN, "gmphd": gmphd}, time.perf_counter() - t0, "defaults", stepped, problems,
+                             message)
+
+
+def fallback_section(clutter_density: float, velocities: bool) -> dict[str, Any]:
+    """The enhanced GM-PHD's section after a failed fit on a detection file: its built-in options with the clutter
+    density measured where no track passes (identified whatever the tracks: the detections' density far from
+    them), in the options of the input's kind."""
+    if velocities:
+        return {"filter": {"clutter_density": clutter_density}}
+    return {"positions_only": merged(POSITIONS_ONLY, {"filter": {"clutter_density": clutter_density}})}
 
 
 def _e_step(decisions: dict[str, Any], values: dict[str, float]) -> dict[str, Any]:
