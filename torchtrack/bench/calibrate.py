@@ -9,7 +9,8 @@ image), training frames ``A..B`` and held-out frames ``C..D``. Measured in the s
   training frames as the calibration made, counted in frames);
 * **defaults** — the built-in options.
 
-Each configuration then tracks the held-out frames from empty and is scored (CLEAR-MOT at 10 px, HOTA). Optuna
+Each configuration then tracks the held-out frames from empty and is scored (CLEAR-MOT at 10 px, HOTA), and so do
+the GLMB and the PMB with their calibrated sections and with their built-in options. Optuna
 is an optional benchmark dependency (``pip install torchtrack-mtt[bench]``); without it the reference is skipped
 with a message.
 """
@@ -44,10 +45,10 @@ def _window(data: MOTData, first: int, last: int) -> MOTData:
     return data.select((data.frame >= first) & (data.frame <= last))
 
 
-def held_out(det: MOTData, gt: MOTData, config: dict | None) -> dict[str, float]:
-    """MOTA, HOTA, IDS of the enhanced GM-PHD with ``config`` (gmphd section, None: defaults) on ``det``, every
-    object of ``gt`` a target (the detections are simulated from all of them, parked vehicles too)."""
-    result = track(detections=det, gt=gt, tracker="gmphd", config={"gmphd": config} if config else None,
+def held_out(det: MOTData, gt: MOTData, config: dict | None, tracker: str = "gmphd") -> dict[str, float]:
+    """MOTA, HOTA, IDS of ``tracker`` with ``config`` (its section, None: defaults) on ``det``, every object of
+    ``gt`` a target (the detections are simulated from all of them, parked vehicles too)."""
+    result = track(detections=det, gt=gt, tracker=tracker, config={tracker: config} if config else None,
                    score="all")
     m = result.metrics
     return {"MOTA": m["MOTA"], "HOTA": m["HOTA"], "IDS": m["IDS"]}
@@ -106,11 +107,14 @@ def measure(gt: MOTData, pd: float, sigma: float, clutter: float, velocity_sigma
     calibrated = held_out(test_det, test_gt, result.sections["gmphd"])
     defaults = held_out(test_det, test_gt, None)
     reference = held_out(test_det, test_gt, best) if best is not None else None
+    others = {name: {"calibrated": held_out(test_det, test_gt, result.sections[name] or None, name)["MOTA"],
+                     "defaults": held_out(test_det, test_gt, None, name)["MOTA"]} for name in ("glmb", "pmb")}
     extra = {"calibrated_mota": calibrated["MOTA"], "calibrated_hota": calibrated["HOTA"],
              "defaults_mota": defaults["MOTA"], "defaults_hota": defaults["HOTA"],
              "reference_mota": reference["MOTA"] if reference else None,
              "reference_hota": reference["HOTA"] if reference else None,
-             "calibrate_seconds": cal_s, "reference_seconds": ref_s if best is not None else None,
+             "calibrate_seconds": cal_s, "others_mota": others,
+             "reference_seconds": ref_s if best is not None else None,
              "reference_trials": n_trials if best is not None else 0, "tracker_frames_calibrate": passes,
              "fitted": result.calibration.values if result.calibration else None,
              "status": result.status, "problems": result.problems, "decisions": result.decisions, "optuna_best": best,
@@ -140,6 +144,8 @@ def format_report(r: BenchResult) -> str:
             ["built-in defaults", cell(e["defaults_mota"]), cell(e["defaults_hota"]), "—"]]
     lines = [f"workload: {r.workload}", f"calibration status: {e['status']}",
              format_table(["configuration", "held-out MOTA", "HOTA", "seconds"], rows)]
+    lines.append("held-out MOTA, calibrated / built-in: " + ", ".join(
+        f"{name} {x['calibrated']:.3f} / {x['defaults']:.3f}" for name, x in e["others_mota"].items()))
     if e["reference_mota"] is None:
         lines.append("Optuna is not installed (pip install torchtrack-mtt[bench]): the reference was skipped")
     return "\n".join(lines)

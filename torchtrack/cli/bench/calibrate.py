@@ -16,7 +16,8 @@ calibration's tracker passes over the training frames (--trials to change). Optu
 (pip install torchtrack-mtt[bench]); without it the reference is skipped with a message.
 
 JSON keys: those of every bench plus calibrated_mota, reference_mota, defaults_mota (and _hota),
-calibrate_seconds, reference_seconds, the fitted values and decisions.
+calibrate_seconds, reference_seconds, status (ok, retried, defaults), others_mota (the GLMB and the PMB,
+calibrated and built-in), the fitted values and decisions.
 
 Example (WPAFB AOI 02 truth from torchtrack convert-wpafb):
   torchtrack bench calibrate --gt out/wpafb/gt.txt --pd 0.7 --sigma 2.5 --clutter 100 \\
