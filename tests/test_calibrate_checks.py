@@ -18,10 +18,10 @@ from torchtrack.filters.trackers.protocol import make_tracker
 from torchtrack.io.mot import read_mot
 from torchtrack.sim.detections import simulate_detections
 from torchtrack.sim.video import VideoConfig, write_sequence
-from torchtrack.tuning.calibrate import Q_GRID, Calibration, detection_frames
+from torchtrack.tuning.calibrate import Q_GRID, Calibration
 from torchtrack.tuning.calibration import calibrate
 from torchtrack.tuning.decisions import frame_inputs, merged, run_frames
-from torchtrack.tuning.fit_check import fit_problems
+from torchtrack.tuning.fit_check import fit_problems, fit_warnings
 
 
 def _calibration(**values) -> Calibration:
@@ -38,8 +38,8 @@ def test_each_sign_of_a_failed_fit_is_named():
     assert fit_problems(_calibration(sigma=100.0), 0.6) == ["sigma 100 at its bound"]
     assert fit_problems(_calibration(), 0.01) == ["bootstrap MOTA 0.010 under 0.05"]
     cal = _calibration()
-    cal.stderr["sigma"] = float("nan")
-    assert fit_problems(cal, 0.6) == ["standard error of sigma not finite"]
+    cal.stderr["sigma"] = float("nan")          # a warning only: sound fits on sharp sensors have them too
+    assert fit_problems(cal, 0.6) == [] and fit_warnings(cal) == ["standard error of sigma not finite"]
 
 
 def test_merged_sets_keys_mapping_into_mapping():

@@ -87,7 +87,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"{key:24s} {value:.4g}" + (f" ± {err:.2g}" if err is not None else ""))
     if args.tracker in result.sections:
         print(f"{args.tracker}: {result.sections[args.tracker]}")
-    print(f"status: {result.status}: {result.message}")
+    print(f"status: {result.status}: {result.message}" + "".join(f"; warning: {w}" for w in result.warnings))
     print(f"wrote {args.out}/track.yaml, calibration.json, loss.png ({result.seconds:.1f} s)")
     return 0
 

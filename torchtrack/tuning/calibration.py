@@ -29,7 +29,7 @@ from torchtrack.tuning.decisions import (
     pseudo_truth,
     tracker_sections,
 )
-from torchtrack.tuning.fit_check import CHECK_FRAMES, fit_problems, tracks_nothing
+from torchtrack.tuning.fit_check import CHECK_FRAMES, fit_problems, fit_warnings, tracks_nothing
 
 STARTS: tuple[dict[str, Any], ...] = ({}, {"confirm_new": 4, "birth_weight": 0.005})
 """The E-step tracker's decisions of the first start (the rules' own) and of the second, tried where the first
@@ -45,7 +45,8 @@ class CalibrationResult:
     bootstrap's scores, the trackers' ``track --config`` sections, and the verdict: ``status`` ``ok`` (the
     first start), ``retried`` (the second) or ``defaults`` (every start failed: the sections are the built-in
     options), the frames the trackers stepped through over every start (``tracker_frames``: the cost in
-    tracker passes), the ``problems`` found at each start, and ``message``, the verdict in one line."""
+    tracker passes), the ``problems`` found at each start, ``message``, the verdict in one line, and the
+    ``warnings`` of the fit kept (:func:`~torchtrack.tuning.fit_check.fit_warnings`)."""
 
     calibration: Calibration | None
     decisions: dict[str, Any]
@@ -55,6 +56,7 @@ class CalibrationResult:
     status: str = "ok"
     tracker_frames: int = 0
     problems: list[list[str]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
     message: str = "the fit passed its checks"
 
     def write(self, folder: Path, source: str) -> dict[str, Path]:
@@ -72,7 +74,8 @@ class CalibrationResult:
 
     def record(self, source: str) -> dict[str, Any]:
         """The contents of ``calibration.json``."""
-        verdict = {"status": self.status, "message": self.message, "problems": self.problems}
+        verdict = {"status": self.status, "message": self.message, "problems": self.problems,
+                   "warnings": self.warnings}
         c = self.calibration
         if c is None:
             return {"detections": source, **verdict, "decisions": self.decisions, "seconds": self.seconds}
@@ -122,7 +125,7 @@ def calibrate(det: MOTData, frames: tuple[int, int] | None = None, velocity: boo
             message = ("the fit passed its checks" if n == 0 else
                        f"the first fit failed ({'; '.join(problems[0])}); the second start passed its checks")
             return CalibrationResult(cal, boot.decisions, boot.log, sections, time.perf_counter() - t0, status,
-                                     stepped, problems, message)
+                                     stepped, problems, message, fit_warnings(cal))
     found = list(dict.fromkeys(p for attempt in problems for p in attempt))
     cal, boot = (last[0], last[1]) if last is not None else (None, None)
     if base is None:

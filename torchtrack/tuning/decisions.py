@@ -52,16 +52,21 @@ SEARCH: tuple[tuple[str, tuple], ...] = (
 the built-in default; for the clutter's velocity density None is the rule's ``1 / (2π e τ²)`` and 2.5e-3 the
 built-in uniform density over ±10 px/frame: the trackers hold one constant for every gate, and a gate around a
 driving vehicle sees far fewer false velocities than the clutter's average)."""
-MODEL_SEARCH: tuple[tuple[str, tuple[float, ...]], ...] = (
-    ("sigma", (0.8, 1.25)),
-    ("p_detection", (0.85, 1.1)),
-    ("clutter_density", (0.5, 2.0)),
-    ("q", (0.3, 3.0)),
-    ("velocity_sigma", (0.8, 1.25)),
+MODEL_SEARCH: tuple[tuple[str, float], ...] = (
+    ("sigma", 1.25),
+    ("p_detection", 1.1),
+    ("clutter_density", 2.0),
+    ("q", 3.0),
+    ("velocity_sigma", 1.25),
 )
-"""The fitted values the bootstrap then searches, as factors on the fit (p_D kept below 0.99): σ with truth
-jitter and ``q`` of motion that is not constant velocity are not identified (docs/calibrate.md), so the fit is
-where the search starts, not its answer."""
+"""The fitted values the bootstrap then searches, each with its first step as a factor (p_D kept below 0.99): σ
+with truth jitter and ``q`` of motion that is not constant velocity are not identified (docs/calibrate.md), so the
+fit is where the search starts, not its answer."""
+SEARCH_ROUNDS = 2
+"""Rounds of the pattern search over :data:`MODEL_SEARCH`; each round takes the square root of the last one's
+factors."""
+MAX_MOVES = 3
+"""Steps one value may take in one direction within a round."""
 
 
 def confirm_frames(p_detection: float, sigma: float, clutter_density: float) -> int:
@@ -164,7 +169,9 @@ def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
                         progress: Callable[[str], None] | None = None, base: dict | None = None) -> Bootstrap:
     """The enhanced GM-PHD's decisions (:data:`SEARCH`) and values (:data:`MODEL_SEARCH`) maximising MOTA on
     detections simulated under the fitted model from ``truth`` (the pseudo-truth) over its last
-    :data:`BOOTSTRAP_FRAMES` frames: one coordinate pass from the rules' configuration, each move kept where it
+    :data:`BOOTSTRAP_FRAMES` frames: one coordinate pass over the decisions from the rules' configuration, then a
+    pattern search over the values (each value stepped by its factor up, or else down, while the MOTA rises, at
+    most :data:`MAX_MOVES` steps; :data:`SEARCH_ROUNDS` rounds of finer factors); a move is kept only where it
     scores higher. Each candidate's options go over ``base`` (:func:`merged`; default: none), and ``base`` itself
     (the built-in options) is scored on the same frames."""
     v = cal.values
@@ -204,17 +211,26 @@ def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
             say(f"bootstrap {key}={option}: MOTA {s:.3f} (best {best:.3f})")
             if s > best:
                 best, chosen = s, trial
-    for key, factors in MODEL_SEARCH:
-        if key not in values:
-            continue
-        fitted = values[key]
-        for factor in factors:
-            moved = {**values, key: min(fitted * factor, 0.99) if key == "p_detection" else fitted * factor}
-            s = score("gmphd", gmphd_section(moved, chosen))
-            log.append({"values": {key: moved[key]}, "mota": s})
-            say(f"bootstrap {key}={moved[key]:.4g}: MOTA {s:.3f} (best {best:.3f})")
-            if s > best:
-                best, values = s, moved
+    for rounds in range(SEARCH_ROUNDS):
+        for key, step in MODEL_SEARCH:
+            if key not in values:
+                continue
+            factor = step ** (0.5 ** rounds)
+            for direction in (factor, 1 / factor):
+                moved = False
+                for _ in range(MAX_MOVES):
+                    x = values[key] * direction
+                    trial = {**values, key: min(x, 0.99) if key == "p_detection" else x}
+                    if trial[key] == values[key]:
+                        break
+                    s = score("gmphd", gmphd_section(trial, chosen))
+                    log.append({"values": {key: trial[key]}, "mota": s})
+                    say(f"bootstrap {key}={trial[key]:.4g}: MOTA {s:.3f} (best {best:.3f})")
+                    if s <= best:
+                        break
+                    best, values, moved = s, trial, True
+                if moved:
+                    break
     defaults = score("gmphd", {})
     log.append({"built-in": True, "mota": defaults})
     say(f"bootstrap built-in options: MOTA {defaults:.3f}")

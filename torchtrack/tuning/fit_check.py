@@ -8,10 +8,13 @@ top of its grid, and the bootstrap's best tracker reports nothing. Each sign is 
 - ``q`` at either end of :data:`~torchtrack.tuning.calibrate.Q_GRID`;
 - p_D under :data:`P_D_RATIO` of the share of the frames inside the tracks' lives with a detection (the two
   agree within a few percent on sensors the tracker follows), or σ / σ_v at their bounds;
-- a standard error that is not finite (a flat or singular likelihood);
 - the bootstrap's best MOTA under :data:`MIN_BOOTSTRAP_MOTA` (the fitted model itself says nothing is trackable);
 - the calibrated enhanced GM-PHD reporting no track on the calibration frames where the built-in one reports
   some.
+
+A standard error that is not finite is only a warning (:func:`fit_warnings`): it comes with sound fits too,
+where the likelihood is so peaked (p_D near 1, σ under a pixel) that its Hessian is not positive definite in
+floating point.
 """
 
 from __future__ import annotations
@@ -40,12 +43,15 @@ def fit_problems(cal: Calibration, bootstrap_mota: float) -> list[str]:
     for key in ("sigma", "velocity_sigma"):
         if key in v and not low * 1.01 < v[key] < high * 0.99:
             problems.append(f"{key} {v[key]:.3g} at its bound")
-    bad = sorted(key for key, err in cal.stderr.items() if not math.isfinite(err))
-    if bad:
-        problems.append(f"standard error of {', '.join(bad)} not finite")
     if bootstrap_mota < MIN_BOOTSTRAP_MOTA:
         problems.append(f"bootstrap MOTA {bootstrap_mota:.3f} under {MIN_BOOTSTRAP_MOTA}")
     return problems
+
+
+def fit_warnings(cal: Calibration) -> list[str]:
+    """What in ``cal`` deserves a look but does not fail it (module docstring)."""
+    bad = sorted(key for key, err in cal.stderr.items() if not math.isfinite(err))
+    return [f"standard error of {', '.join(bad)} not finite"] if bad else []
 
 
 def tracks_nothing(data: DetectionFrames, config: dict, built_in: dict) -> bool:
