@@ -16,6 +16,7 @@ from torchtrack.io.outputs import save_figure, write_json, write_yaml
 from torchtrack.tuning.calibrate import (
     ITERATIONS,
     Calibration,
+    DetectionFrames,
     NoTracks,
     calibrate_sensor,
     detection_frames,
@@ -30,6 +31,7 @@ from torchtrack.tuning.decisions import (
     tracker_sections,
 )
 from torchtrack.tuning.fit_check import CHECK_FRAMES, fit_problems, fit_warnings, tracks_nothing
+from torchtrack.tuning.gmphd import quiet_caps
 
 STARTS: tuple[dict[str, Any], ...] = ({}, {"confirm_new": 4, "birth_weight": 0.005})
 """The E-step tracker's decisions of the first start (the rules' own) and of the second, tried where the first
@@ -96,8 +98,13 @@ def calibrate(det: MOTData, frames: tuple[int, int] | None = None, velocity: boo
     Each start of :data:`STARTS` is tried until one passes :func:`~torchtrack.tuning.fit_check.fit_problems`;
     where none does, the sections are the built-in options (``status`` ``defaults``; on a detection file, with
     the measured clutter density: :func:`fallback_section`)."""
+    with quiet_caps():          # mis-specified trackers fill the GM-PHD's component cap on every frame
+        return _calibrate(detection_frames(det, frames, velocity, source), seed, progress, base)
+
+
+def _calibrate(data: DetectionFrames, seed: int, progress: Callable[[str], None] | None, base: dict | None
+               ) -> CalibrationResult:
     t0 = time.perf_counter()
-    data = detection_frames(det, frames, velocity, source)
     problems: list[list[str]] = []
     last = None
     window = len(data.positions)
