@@ -50,6 +50,9 @@ class PipelineConfig(Checked):
     previous frame around the detection, grey levels; ``detection.motion_evidence``) is below these are
     not given to the tracker (they are still recorded in ``detections.txt`` and feed the detector's prior
     heatmap). 0 passes every detection.
+    motion_noise_factor: the motion-evidence threshold is at least this times the frame difference's noise
+    level (``detection.frame_noise``: the median absolute difference to the registered previous frame), so that
+    on a noisy camera the sensor's noise does not pass for motion (0: ``min_motion`` alone).
     gate_registration: the motion-evidence threshold is raised by this times the difference the
     registration's frame-to-frame residual leaves at the detection (residual × local gradient,
     ``detection.misregistration``): on a real camera edges of roofs and roads then stop passing for motion
@@ -104,6 +107,7 @@ class PipelineConfig(Checked):
     trackers: dict = field(default_factory=lambda: copy.deepcopy(SELECTED_TRACKERS))
     min_speed: float = option(2.0, ge=0)
     min_motion: float = option(5.0, ge=0)
+    motion_noise_factor: float = option(0.0, ge=0)
     gate_registration: float = option(3.0, ge=0)
     gate_budget: float = option(0.05, ge=0, le=1)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)

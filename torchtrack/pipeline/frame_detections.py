@@ -23,7 +23,9 @@ class FrameDetections(NamedTuple):
     ``clutter (K,)`` the frame difference the registration's residual leaves at each detection (grey levels,
     :func:`~torchtrack.pipeline.detection.misregistration`; None: not measured); ``segment`` the registration's
     segment (a frame it could not register starts the next, and the tracks restart there); ``cluttered`` whether
-    the moving-object gate was raised on this frame (its plain form passed more than its budget of the pixels).
+    the moving-object gate was raised on this frame (its plain form passed more than its budget of the pixels);
+    ``noise`` the frame difference's noise level (:func:`~torchtrack.pipeline.detection.frame_noise`; 0: not
+    measured).
     On the first frame there is no previous frame: ``velocities`` are NaN (unknown) and ``motion`` is ``inf``,
     so that the moving-object gate passes everything and the trackers start without a velocity."""
 
@@ -40,6 +42,7 @@ class FrameDetections(NamedTuple):
     clutter: np.ndarray | None = None
     segment: int = 0
     cluttered: bool = False
+    noise: float = 0.0
 
     @classmethod
     def registered(cls, index: int, positions: np.ndarray, velocities: np.ndarray | None = None,
@@ -56,12 +59,14 @@ class FrameDetections(NamedTuple):
     def select(self, keep: np.ndarray) -> FrameDetections:
         """The detections where ``keep (K,)`` (a mask or indices)."""
         return self._replace(**{k: v[keep] for k, v in self._asdict().items()
-                                if k not in ("index", "homography", "segment", "cluttered") and v is not None})
+                                if k not in ("index", "homography", "segment", "cluttered", "noise") and v is not None})
 
-    def moving(self, min_speed: float = 0.0, min_motion: float = 0.0, margin: float = 0.0) -> FrameDetections:
+    def moving(self, min_speed: float = 0.0, min_motion: float = 0.0, margin: float = 0.0,
+               noise_factor: float = 0.0) -> FrameDetections:
         """The detections with predicted speed ``>= min_speed`` px/frame (or unknown) and motion evidence
-        ``>= min_motion + gate_margin(margin · clutter)``."""
-        need = min_motion + (gate_margin(margin * self.clutter) if margin and self.clutter is not None else 0.0)
+        ``>= max(min_motion, noise_factor · noise) + gate_margin(margin · clutter)``."""
+        need = max(min_motion, noise_factor * self.noise) + (
+            gate_margin(margin * self.clutter) if margin and self.clutter is not None else 0.0)
         return self.select(~(np.hypot(self.velocities[:, 0], self.velocities[:, 1]) < min_speed)
                            & (self.motion >= need))
 

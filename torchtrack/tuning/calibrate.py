@@ -29,6 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import torch
 from scipy.spatial import cKDTree
+from tqdm import tqdm
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import make_tracker
@@ -118,11 +119,13 @@ class Tracks:
     detected: torch.Tensor
 
 
-def run_tracker(data: DetectionFrames, config: dict) -> dict[int, list[tuple[int, np.ndarray]]]:
-    """Confirmed tracks of the enhanced GM-PHD with ``config`` over the window: id → [(window index, position)]."""
+def run_tracker(data: DetectionFrames, config: dict, bar: str | None = None
+                ) -> dict[int, list[tuple[int, np.ndarray]]]:
+    """Confirmed tracks of the enhanced GM-PHD with ``config`` over the window: id → [(window index, position)];
+    ``bar``: draw a progress bar with this label (on stderr)."""
     tracker = make_tracker("gmphd", config)
     out: dict[int, list[tuple[int, np.ndarray]]] = {}
-    for k in range(len(data.positions)):
+    for k in tqdm(range(len(data.positions)), desc=bar, disable=bar is None, leave=False, unit="frame"):
         ids, pos = tracker.step(*data.frame_input(k))
         for i, p in zip(ids.tolist(), pos.cpu().double().numpy()):
             out.setdefault(i, []).append((k, p))
@@ -324,7 +327,7 @@ def calibrate_sensor(data: DetectionFrames, tracker_config: Callable[[dict], dic
     per_track_q = None
     stderr: dict[str, float] = {}
     for it in range(iterations):
-        found = run_tracker(data, config)
+        found = run_tracker(data, config, None if progress is None else f"E-step {it + 1}")
         radius = 3.0 * max(values["sigma"], 1.0)
         tracks = associate(data, found, radius)
         if tracks.z.shape[0] == 0:
