@@ -37,9 +37,9 @@ STARTS: tuple[dict[str, Any], ...] = ({}, {"confirm_new": 4, "birth_weight": 0.0
 """The E-step tracker's decisions of the first start (the rules' own) and of the second, tried where the first
 fit fails (:mod:`torchtrack.tuning.fit_check`): a stricter tracker, whose tracks follow fewer false detections."""
 BUILT_IN_MARGIN = 0.02
-"""The bootstrap MOTA by which the calibrated enhanced GM-PHD must beat its built-in options to replace them: on a
-short window (20 frames of video) a few errors either way are within the bootstrap's resolution, and the built-in
-options were chosen on validation data of their own."""
+"""The bootstrap MOTA by which a calibrated tracker (the enhanced GM-PHD, the GLMB, the PMB) must beat its built-in
+options to replace them: on a short window (20 frames of video) a few errors either way are within the bootstrap's
+resolution, and the built-in options were chosen on validation data of their own."""
 BUILT_IN = {"gmphd": {}, "labelled-gmphd": {}, "glmb": {}, "pmb": {}}
 """The sections written when every start fails: each tracker's built-in options (the enhanced GM-PHD's with the
 measured clutter density, :func:`fallback_section`)."""
@@ -124,8 +124,9 @@ def _calibrate(data: DetectionFrames, seed: int, progress: Callable[[str], None]
         stepped += len(boot.log) * min(BOOTSTRAP_FRAMES, window) + 2 * min(CHECK_FRAMES, window)
         sections = tracker_sections(cal, boot.decisions, boot.values)
         sections["gmphd"] = merged(base or {}, sections["gmphd"])
-        if boot.defaults_mota is not None and boot.defaults_mota > boot.mota - BUILT_IN_MARGIN:
-            sections["gmphd"] = dict(base or {})     # the calibrated options do not track clearly better
+        for name, (calibrated, built_in) in boot.against_built_in.items():
+            if built_in > calibrated - BUILT_IN_MARGIN:     # the calibrated options do not track clearly better
+                sections[name] = dict(base or {}) if name == "gmphd" else {}
         found = fit_problems(cal, boot.mota)
         if not found and tracks_nothing(data, sections["gmphd"], base or {}):
             found.append("the calibrated tracker reports no track where the built-in one does")

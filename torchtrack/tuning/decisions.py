@@ -155,13 +155,14 @@ def pseudo_truth(tracks: Tracks, mean: torch.Tensor, first: int) -> MOTData:
 @dataclass
 class Bootstrap:
     """The bootstrap search's result: the enhanced GM-PHD's ``decisions`` and ``values`` (the fit moved by
-    :data:`MODEL_SEARCH`), their MOTA on the simulated frames (``mota``), the built-in options' there
-    (``defaults_mota``; None when not scored) and every candidate's score (``log``)."""
+    :data:`MODEL_SEARCH`), their MOTA on the simulated frames (``mota``), each tracker's MOTA there with its
+    calibrated section and with its built-in options (``against_built_in``: name → (calibrated, built-in), for
+    gmphd, glmb and pmb) and every candidate's score (``log``)."""
 
     decisions: dict[str, Any]
     values: dict[str, float]
     mota: float
-    defaults_mota: float | None
+    against_built_in: dict[str, tuple[float, float]]
     log: list[dict]
 
 
@@ -172,8 +173,9 @@ def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
     :data:`BOOTSTRAP_FRAMES` frames: one coordinate pass over the decisions from the rules' configuration, then a
     pattern search over the values (each value stepped by its factor up, or else down, while the MOTA rises, at
     most :data:`MAX_MOVES` steps; :data:`SEARCH_ROUNDS` rounds of finer factors); a move is kept only where it
-    scores higher. Each candidate's options go over ``base`` (:func:`merged`; default: none), and ``base`` itself
-    (the built-in options) is scored on the same frames."""
+    scores higher. Each candidate's options go over ``base`` (:func:`merged`; default: none). The enhanced GM-PHD
+    with ``base`` itself (its built-in options), and the GLMB and the PMB with their calibrated sections and their
+    built-in options, are scored on the same frames."""
     v = cal.values
     last = int(truth.frame.max())
     truth = truth.select(truth.frame > last - BOOTSTRAP_FRAMES)
@@ -231,9 +233,6 @@ def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
                     best, values, moved = s, trial, True
                 if moved:
                     break
-    defaults = score("gmphd", {})
-    log.append({"built-in": True, "mota": defaults})
-    say(f"bootstrap built-in options: MOTA {defaults:.3f}")
     if cal.velocities:                       # the GLMB weighs false velocities in its own way: its own choice
         scores = {option: score("glmb", tracker_sections(cal, {**chosen, "glmb_velocity_clutter_density": option}
                                                          )["glmb"])
@@ -241,7 +240,14 @@ def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
         log += [{"decisions": {"glmb_velocity_clutter_density": k}, "mota": x} for k, x in scores.items()]
         say(f"bootstrap glmb velocity_clutter_density: {scores}")
         chosen["glmb_velocity_clutter_density"] = max(scores, key=scores.get)
-    return Bootstrap(chosen, values, best, defaults, log)
+    sections = tracker_sections(cal, chosen, values)
+    against = {"gmphd": (best, score("gmphd", {}))}
+    for name in ("glmb", "pmb"):
+        against[name] = (score(name, sections[name]), score(name, {}))
+    for name, (mine, built_in) in against.items():
+        log.append({"tracker": name, "calibrated": mine, "built-in": built_in})
+        say(f"bootstrap {name}: MOTA {mine:.3f} calibrated, {built_in:.3f} built-in")
+    return Bootstrap(chosen, values, best, against, log)
 
 
 def merged(base: dict, over: dict) -> dict:
