@@ -142,7 +142,7 @@ def test_gate_is_raised_only_on_frames_where_the_plain_gate_passes_more_than_its
     noisy = np.clip(base.astype(int) + np.random.default_rng(0).integers(-2, 3, base.shape), 0, 255).astype(np.uint8)
     shifted = cv2.warpAffine(base, np.float32([[1, 0, 0.8], [0, 1, 0.0]]), (128, 128))  # a 0.8 px misregistration
     detection = Detection(FixedPoints(), Registration(RegistrationConfig(method="none")), StageTimer(),
-                          gate=(5.0, 3.0, 2.0, 0.05))
+                          gate=(5.0, 3.0, 2.0, 0.05, 0.0))
     assert not detection(1, base).cluttered                    # no previous frame
     clean = detection(2, noisy)                                 # sensor noise only: a few % pass
     assert detection.gate_pass <= 0.05 and not clean.cluttered and not clean.clutter.any()

@@ -156,8 +156,9 @@ class Detection:
 
     Each detection's ``clutter`` is the difference the registration's residual near it leaves there
     (:func:`local_residual`, :func:`misregistration`: parallax included), which the moving-object gate adds
-    to its threshold. With ``gate = (min_motion, margin, min_speed, budget)`` the fraction of the frame's
-    pixels the plain gate (``min_motion``) passes is measured (``gate_pass``; :func:`gate_pass_fraction`);
+    to its threshold. With ``gate = (min_motion, margin, min_speed, budget, noise_factor)`` the fraction of the
+    frame's pixels the plain gate (``max(min_motion, noise_factor · noise)``, ``noise`` the frame's
+    :func:`frame_noise`) passes is measured (``gate_pass``; :func:`gate_pass_fraction`);
     only on a frame where it exceeds ``budget`` (and ``min_motion`` > 0) — misregistration or parallax
     showing as change over large areas — is the gate raised (``clutter`` kept, ``cluttered`` set, and
     ``gate_pass`` measured with ``margin``); elsewhere ``clutter`` is zero, and the passing pixels are the
@@ -168,7 +169,7 @@ class Detection:
 
     def __init__(self, detector, registration: Registration, timer: StageTimer,
                  threshold: float | None = None, weak_threshold: float | None = None,
-                 gate: tuple[float, float, float, float] | None = None, scale: float = 1.0) -> None:
+                 gate: tuple[float, float, float, float, float] | None = None, scale: float = 1.0) -> None:
         self.detector = detector
         self.scale = scale
         self.gate = gate
@@ -225,7 +226,8 @@ class Detection:
                 clutter = misregistration(image, prev, residual, pos)
                 raised = False
                 if self.gate is not None:
-                    min_motion, margin, _, budget = self.gate
+                    min_motion, margin, _, budget, noise_factor = self.gate
+                    min_motion = max(min_motion, noise_factor * noise) if min_motion else 0.0
                     self.gate_pass = gate_pass_fraction(image, prev, min_motion, 0.0, self.last.residual)
                     raised = bool(margin and min_motion) and self.gate_pass > budget
                     if raised:

@@ -120,7 +120,8 @@ def track_video(source: FrameSource, out: str | Path, config: PipelineConfig | N
     timer = StageTimer()
     detection = Detection(detector, Registration(cfg.registration), timer, cfg.detection_threshold,
                           cfg.weak_threshold,
-                          gate=(cfg.min_motion, cfg.gate_registration, cfg.min_speed, cfg.gate_budget),
+                          gate=(cfg.min_motion, cfg.gate_registration, cfg.min_speed, cfg.gate_budget,
+                                cfg.motion_noise_factor),
                           scale=cfg.detector_scale)
     if tracker is None:
         tracker = make_tracker(cfg.tracker, cfg.options_for(cfg.tracker))
