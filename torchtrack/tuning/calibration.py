@@ -124,9 +124,10 @@ def _calibrate(data: DetectionFrames, seed: int, progress: Callable[[str], None]
         stepped += len(boot.log) * min(BOOTSTRAP_FRAMES, window) + 2 * min(CHECK_FRAMES, window)
         sections = tracker_sections(cal, boot.decisions, boot.values)
         sections["gmphd"] = merged(base or {}, sections["gmphd"])
-        for name, (calibrated, built_in) in boot.against_built_in.items():
-            if built_in > calibrated - BUILT_IN_MARGIN:     # the calibrated options do not track clearly better
-                sections[name] = dict(base or {}) if name == "gmphd" else {}
+        kept = [name for name, (calibrated, built_in) in boot.against_built_in.items()
+                if built_in > calibrated - BUILT_IN_MARGIN]          # the calibrated options do not track better
+        for name in kept:
+            sections[name] = dict(base or {}) if name == "gmphd" else {}
         found = fit_problems(cal, boot.mota)
         if not found and tracks_nothing(data, sections["gmphd"], base or {}):
             found.append("the calibrated tracker reports no track where the built-in one does")
@@ -136,6 +137,9 @@ def _calibrate(data: DetectionFrames, seed: int, progress: Callable[[str], None]
             status = "ok" if n == 0 else "retried"
             message = ("the fit passed its checks" if n == 0 else
                        f"the first fit failed ({'; '.join(problems[0])}); the second start passed its checks")
+            if kept:
+                message += (f"; {', '.join(kept)} keep{'s' if len(kept) == 1 else ''} the built-in options, which "
+                            "track the simulated frames as well")
             return CalibrationResult(cal, boot.decisions, boot.log, sections, time.perf_counter() - t0, status,
                                      stepped, problems, fit_warnings(cal), message)
     found = list(dict.fromkeys(p for attempt in problems for p in attempt))
