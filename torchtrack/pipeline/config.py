@@ -52,7 +52,9 @@ class PipelineConfig(Checked):
     heatmap). 0 passes every detection.
     motion_noise_factor: the motion-evidence threshold is at least this times the frame difference's noise
     level (``detection.frame_noise``: the median absolute difference to the registered previous frame), so that
-    on a noisy camera the sensor's noise does not pass for motion (0: ``min_motion`` alone).
+    on a noisy camera the sensor's noise does not pass for motion (0: ``min_motion`` alone). 1.5, the best mean
+    MOTA of 0, 1.5, 1.75 and 2 on twelve validation cameras (docs/benchmarks.md#cameras), leaves the default
+    camera's gate at ``min_motion`` and raises it on the noisy ones.
     gate_registration: the motion-evidence threshold is raised by this times the difference the
     registration's frame-to-frame residual leaves at the detection (residual × local gradient,
     ``detection.misregistration``): on a real camera edges of roofs and roads then stop passing for motion
@@ -107,7 +109,7 @@ class PipelineConfig(Checked):
     trackers: dict = field(default_factory=lambda: copy.deepcopy(SELECTED_TRACKERS))
     min_speed: float = option(2.0, ge=0)
     min_motion: float = option(5.0, ge=0)
-    motion_noise_factor: float = option(0.0, ge=0)
+    motion_noise_factor: float = option(1.5, ge=0)
     gate_registration: float = option(3.0, ge=0)
     gate_budget: float = option(0.05, ge=0, le=1)
     registration: RegistrationConfig = field(default_factory=RegistrationConfig)

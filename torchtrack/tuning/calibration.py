@@ -120,6 +120,11 @@ def _calibrate(data: DetectionFrames, seed: int, progress: Callable[[str], None]
         except NoTracks as e:
             problems.append([str(e).removeprefix("calibration: ")])
             continue
+        found = fit_problems(cal)
+        if found:                   # the fit's own signs: no bootstrap search on a failed fit
+            problems.append(found)
+            last = (cal, None)
+            continue
         boot = bootstrap_decisions(cal, pseudo_truth(tracks, mean, data.first), seed, progress, base)
         stepped += len(boot.log) * min(BOOTSTRAP_FRAMES, window) + 2 * min(CHECK_FRAMES, window)
         sections = tracker_sections(cal, boot.decisions, boot.values)
@@ -132,7 +137,7 @@ def _calibrate(data: DetectionFrames, seed: int, progress: Callable[[str], None]
         if not found and tracks_nothing(data, sections["gmphd"], base or {}):
             found.append("the calibrated tracker reports no track where the built-in one does")
         problems.append(found)
-        last = (cal, boot, sections)
+        last = (cal, boot)
         if not found:
             status = "ok" if n == 0 else "retried"
             message = ("the fit passed its checks" if n == 0 else
@@ -143,7 +148,7 @@ def _calibrate(data: DetectionFrames, seed: int, progress: Callable[[str], None]
             return CalibrationResult(cal, boot.decisions, boot.log, sections, time.perf_counter() - t0, status,
                                      stepped, problems, fit_warnings(cal), message)
     found = list(dict.fromkeys(p for attempt in problems for p in attempt))
-    cal, boot = (last[0], last[1]) if last is not None else (None, None)
+    cal, boot = last if last is not None else (None, None)
     if base is None:
         kappa = (cal.values if cal is not None else initial_values(data))["clutter_density"]
         gmphd = fallback_section(kappa, data.velocities is not None)

@@ -30,8 +30,9 @@ CHECK_FRAMES = 150
 """The last frames of the calibration window on which the calibrated and the built-in trackers are run."""
 
 
-def fit_problems(cal: Calibration, bootstrap_mota: float) -> list[str]:
-    """The signs of a failed fit in ``cal`` and the bootstrap's best MOTA (module docstring), one phrase each."""
+def fit_problems(cal: Calibration, bootstrap_mota: float | None = None) -> list[str]:
+    """The signs of a failed fit in ``cal`` and (where given) the bootstrap's best MOTA (module docstring), one
+    phrase each."""
     v = cal.values
     problems = []
     if v["q"] >= float(Q_GRID[-1]) * 0.999 or v["q"] <= float(Q_GRID[0]) * 1.001:
@@ -43,7 +44,7 @@ def fit_problems(cal: Calibration, bootstrap_mota: float) -> list[str]:
     for key in ("sigma", "velocity_sigma"):
         if key in v and not low * 1.01 < v[key] < high * 0.99:
             problems.append(f"{key} {v[key]:.3g} at its bound")
-    if bootstrap_mota < MIN_BOOTSTRAP_MOTA:
+    if bootstrap_mota is not None and bootstrap_mota < MIN_BOOTSTRAP_MOTA:
         problems.append(f"bootstrap MOTA {bootstrap_mota:.3f} under {MIN_BOOTSTRAP_MOTA}")
     return problems
 
