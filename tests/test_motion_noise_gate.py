@@ -26,3 +26,4 @@ def test_the_gate_is_the_larger_of_min_motion_and_the_noise_times_its_factor():
     assert det.moving(min_motion=5.0).motion.tolist() == [6.0, 9.0, 12.0]
     assert det.moving(min_motion=5.0, noise_factor=2.0).motion.tolist() == [9.0, 12.0]     # max(5, 2 · 4) = 8
     assert det.moving(min_motion=5.0, noise_factor=1.0).motion.tolist() == [6.0, 9.0, 12.0]
+    assert det.moving(min_motion=0.0, noise_factor=2.0).motion.tolist() == [3.0, 6.0, 9.0, 12.0]   # the gate off

@@ -64,8 +64,9 @@ class FrameDetections(NamedTuple):
     def moving(self, min_speed: float = 0.0, min_motion: float = 0.0, margin: float = 0.0,
                noise_factor: float = 0.0) -> FrameDetections:
         """The detections with predicted speed ``>= min_speed`` px/frame (or unknown) and motion evidence
-        ``>= max(min_motion, noise_factor · noise) + gate_margin(margin · clutter)``."""
-        need = max(min_motion, noise_factor * self.noise) + (
+        ``>= max(min_motion, noise_factor · noise) + gate_margin(margin · clutter)`` (``min_motion`` 0: the motion
+        gate off, its noise part too)."""
+        need = (max(min_motion, noise_factor * self.noise) if min_motion > 0 else 0.0) + (
             gate_margin(margin * self.clutter) if margin and self.clutter is not None else 0.0)
         return self.select(~(np.hypot(self.velocities[:, 0], self.velocities[:, 1]) < min_speed)
                            & (self.motion >= need))

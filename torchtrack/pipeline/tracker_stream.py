@@ -48,7 +48,7 @@ def run_tracker_step(tracker, det: FrameDetections, dtype: torch.dtype,
 
 def gated(det: FrameDetections, config: PipelineConfig) -> FrameDetections:
     """The detections the moving-object gate of ``config`` passes (all of them where it is off)."""
-    if config.min_speed > 0 or config.min_motion > 0 or config.motion_noise_factor > 0:
+    if config.min_speed > 0 or config.min_motion > 0:
         return det.moving(config.min_speed, config.min_motion, config.gate_registration, config.motion_noise_factor)
     return det
 
