@@ -1,5 +1,7 @@
-"""``torchtrack calibrate`` as one call: the sensor's EM (:mod:`torchtrack.tuning.calibrate`), the decisions
-(:mod:`torchtrack.tuning.decisions`), the record written as ``calibration.json`` and the loss plot."""
+"""``torchtrack calibrate`` as one call: the sensor's EM (:mod:`torchtrack.tuning.calibrate`), its checks
+(:mod:`torchtrack.tuning.fit_check`: a failed fit is fitted again from a stricter start, and where that fails too
+the built-in options are written), the bootstrap's search (:mod:`torchtrack.tuning.decisions`), the record
+written as ``calibration.json`` and the loss plot."""
 
 from __future__ import annotations
 
