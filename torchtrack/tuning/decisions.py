@@ -157,13 +157,15 @@ class Bootstrap:
     """The bootstrap search's result: the enhanced GM-PHD's ``decisions`` and ``values`` (the fit moved by
     :data:`MODEL_SEARCH`), their MOTA on the simulated frames (``mota``), each tracker's MOTA there with its
     calibrated section and with its built-in options (``against_built_in``: name → (calibrated, built-in), for
-    gmphd, glmb and pmb) and every candidate's score (``log``)."""
+    gmphd, glmb and pmb), every candidate's score (``log``) and the number of pseudo-truth points the MOTA is
+    over (``points``: one error moves it by ``1 / points``)."""
 
     decisions: dict[str, Any]
     values: dict[str, float]
     mota: float
     against_built_in: dict[str, tuple[float, float]]
     log: list[dict]
+    points: int
 
 
 def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
@@ -247,7 +249,7 @@ def bootstrap_decisions(cal: Calibration, truth: MOTData, seed: int = 0,
     for name, (mine, built_in) in against.items():
         log.append({"tracker": name, "calibrated": mine, "built-in": built_in})
         say(f"bootstrap {name}: MOTA {mine:.3f} calibrated, {built_in:.3f} built-in")
-    return Bootstrap(chosen, values, best, against, log)
+    return Bootstrap(chosen, values, best, against, log, truth.size)
 
 
 def merged(base: dict, over: dict) -> dict:
