@@ -7,15 +7,16 @@ import sys
 from pathlib import Path
 
 NAME = "calibrate"
-HELP = "fit a new sensor (noise, p_D, clutter, velocity noise) and the tracker's decisions from detections alone"
-DESCRIPTION = """Calibrate the trackers to a new sensor from its detections alone, without truth
+HELP = "fit a new sensor (noise, p_D, clutter, velocity noise) and the trackers' options without truth"
+DESCRIPTION = """Calibrate the trackers to a new sensor or camera without truth, from its detections or its frames
 (docs/calibrate.md): the enhanced GM-PHD tracks the frames, its tracks are smoothed, and the position noise,
 detection probability and velocity noise maximise the multi-object likelihood of the detections given them;
 the clutter density and velocity spread are measured where no track passes; the process noise, survival and
 birth rate come from the tracks. The tracker's birth weight, coasting and confirmation are then chosen by the
 MOTA of a parametric bootstrap under the fitted model, which then also moves the fitted values (sensor
 noise, p_D, clutter density, process noise, velocity noise) and the extraction threshold where that tracks the
-simulated frames better. A fit that failed (the tracker following clutter: q or a noise at its bound, p_D far
+simulated frames better; each tracker keeps its built-in options unless its calibrated ones make clearly fewer
+errors there. A fit that failed (the tracker following clutter: q or a noise at its bound, p_D far
 below the share of frames with a detection, a bootstrap MOTA near zero, a tracker that reports nothing) is
 refitted from a stricter start and, if that fails too, track.yaml holds the built-in options; the status line
 and calibration.json's "status" (ok, retried, defaults) say which.
