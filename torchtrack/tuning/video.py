@@ -1,5 +1,5 @@
 """Calibration from frames or a video (``torchtrack track --frames/--video --calibrate N``, ``torchtrack calibrate
---from-frames``, ``torchtrack.track(..., calibrate=N)``; docs/calibrate.md, "From video").
+--from-frames``, ``torchtrack.track(..., calibrate=N)``; docs/calibrate.md, "From frames or a video").
 
 The video pipeline runs on the first ``N`` frames; the detections its tracker is given there — those the
 moving-object gate passes, at the detector's threshold, in the first frame's coordinates, with the detector's
