@@ -26,7 +26,7 @@ def track(frames: Any = None, video: str | os.PathLike | None = None, detections
     if options.get("config") is not None:
         raise TorchtrackError("calibrate sets the trackers' options itself; it does not combine with config")
     out, force = options.pop("out", None), options.pop("force", False)
-    say = _print_progress if options.get("progress") else None
+    say = progress_line if options.get("progress") else None
     if detections is not None:
         det = as_mot(detections, "detections")
         first = int(det.frame.min()) if det.size else 1
@@ -60,5 +60,6 @@ CALIBRATE_DOC = """        calibrate: first calibrate the trackers on the first 
 track.__doc__ = (track_pipeline.__doc__ or "").replace("\n\n    Returns:", "\n" + CALIBRATE_DOC + "    Returns:", 1)
 
 
-def _print_progress(line: str) -> None:
+def progress_line(line: str) -> None:
+    """A calibration's progress line, on stderr."""
     print(f"calibrate: {line}", file=sys.stderr)

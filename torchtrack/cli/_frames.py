@@ -14,21 +14,20 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
 import numpy as np
 
+from torchtrack.calibrated_track import track
 from torchtrack.cli._common import PIPELINE_PRESETS, config_file
 from torchtrack.cli._strips import frame_strips, rank_output, strip_group, strip_metrics
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import tracker_names
-from torchtrack.io.frames import FrameSource, open_frames
+from torchtrack.io.frames import open_frames
 from torchtrack.io.mot import MOTData, read_mot
 from torchtrack.io.moving import dont_care, flags_beside
 from torchtrack.io.outputs import OutputFolder, write_json
 from torchtrack.metrics.table import TABLE1_HEADER, format_table, format_table1, protocol, table1_row
-from torchtrack.pipeline.api import track
 from torchtrack.pipeline.config import PipelineConfig, load_pipeline_config
 from torchtrack.pipeline.sequences import destroy, run_sequences, shared_output
 from torchtrack.pipeline.track_video import track_video
@@ -137,17 +136,13 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
     else:
         source = open_frames(args.video or args.frames)
         gt, ignore = _truth(args, len(source))
-        with tempfile.TemporaryDirectory(prefix="torchtrack-calibrate-") as scratch:
-            calibrated: dict[str, Path] = {}
-            if getattr(args, "calibrate", None):
-                config, calibrated = _calibrated(args, config, source, Path(scratch))
-            result = track(frames=args.frames, video=args.video, tracker=config.tracker, gt=gt, ignore=ignore,
-                           gt_name=str(args.truth_csv or args.gt), score=args.score, device=args.device,
-                           pipeline_config=config, camera=_camera(args), out=None if calibrated else out,
-                           force=args.force, inputs=inputs, progress=not args.no_progress)
-            if calibrated:
-                result.files.update(calibrated)
-                result.save(out, args.force)
+        calibrate = getattr(args, "calibrate", None)
+        result = track(frames=args.frames, video=args.video, calibrate=calibrate, seed=args.seed,
+                       tracker=config.tracker, gt=gt, ignore=ignore, gt_name=str(args.truth_csv or args.gt),
+                       score=args.score, device=args.device, pipeline_config=config, camera=_camera(args), out=out,
+                       force=args.force, inputs=inputs, progress=not args.no_progress)
+        if result.calibration is not None:
+            print(f"calibration: {result.calibration['status']}: {result.calibration['message']}", file=sys.stderr)
         m, files = result.report, result.files
     name = Path(args.video or args.frames).name
     gt_given = bool(args.gt or args.truth_csv)
@@ -166,18 +161,6 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
     print("wrote " + ", ".join(str(p) for p in files.values()))
     write_json(args.json, m)
     return 0
-
-
-def _calibrated(args: argparse.Namespace, config: PipelineConfig, source: FrameSource, folder: Path
-                ) -> tuple[PipelineConfig, dict[str, Path]]:
-    """``--calibrate N``: the pipeline's trackers calibrated on the first N frames, and the calibration's files
-    (written into ``folder``)."""
-    from torchtrack.cli.calibrate import progress_line
-    from torchtrack.tuning.video import calibrate_frames, pipeline_with
-
-    result = calibrate_frames(source, config, args.calibrate, args.seed, progress_line)
-    print(f"calibration: {result.status}: {result.message}", file=sys.stderr)
-    return pipeline_with(config, result), result.write(folder, str(source.path))
 
 
 def _truth(args: argparse.Namespace, frames: int) -> tuple[MOTData | None, np.ndarray | None]:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 NAME = "calibrate"
@@ -101,6 +100,7 @@ def _read(path: Path):
 
 def _calibrate_frames(args: argparse.Namespace, folder: Path):
     """``--from-frames``: the pipeline's detections of frames 1-B, calibrated on frames A-B."""
+    from torchtrack.calibrated_track import progress_line
     from torchtrack.io.frames import open_frames
     from torchtrack.pipeline.config import load_pipeline_config
     from torchtrack.tuning.video import calibrate_frames
@@ -117,12 +117,9 @@ def _calibrate_frames(args: argparse.Namespace, folder: Path):
 
 def calibrate_into(det, folder: Path, frames, velocity, seed: int, source: str):
     """Calibrate on ``det`` and write track.yaml, calibration.json and loss.png into ``folder``."""
+    from torchtrack.calibrated_track import progress_line
     from torchtrack.tuning.calibration import calibrate
 
     result = calibrate(det, tuple(frames) if frames else None, velocity, seed, source, progress=progress_line)
     result.write(folder, source)
     return result
-
-
-def progress_line(line: str) -> None:
-    print(f"calibrate: {line}", file=sys.stderr)
