@@ -66,6 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from torchtrack.errors import TorchtrackError
+    from torchtrack.io.mot import read_mot
     from torchtrack.io.outputs import OutputFolder, write_json
 
     if args.frames is not None and args.frames[0] > args.frames[1]:
@@ -76,7 +77,7 @@ def run(args: argparse.Namespace) -> int:
     velocity = {"auto": None, "yes": True, "no": False}[args.velocity]
     with OutputFolder(args.out, "torchtrack calibrate", args.force, inputs=[given]) as staging:
         if args.detections is not None:
-            result = calibrate_into(_read(args.detections), Path(staging), args.frames, velocity, args.seed,
+            result = calibrate_into(read_mot(args.detections), Path(staging), args.frames, velocity, args.seed,
                                     str(args.detections))
         else:
             result = _calibrate_frames(args, Path(staging))
@@ -90,12 +91,6 @@ def run(args: argparse.Namespace) -> int:
     print(f"status: {result.status}: {result.message}" + "".join(f"; warning: {w}" for w in result.warnings))
     print(f"wrote {args.out}/track.yaml, calibration.json, loss.png ({result.seconds:.1f} s)")
     return 0
-
-
-def _read(path: Path):
-    from torchtrack.io.mot import read_mot
-
-    return read_mot(path)
 
 
 def _calibrate_frames(args: argparse.Namespace, folder: Path):

@@ -53,9 +53,9 @@ class PipelineConfig(Checked):
     motion_noise_factor: the motion-evidence threshold is at least this times the frame difference's noise
     level (``detection.frame_noise``: the median absolute difference to the registered previous frame), so that
     on a noisy camera the sensor's noise does not pass for motion (0: ``min_motion`` alone; with ``min_motion``
-    0 the motion gate is off, this part too). 1.5, the best mean
-    MOTA of 0, 1.5, 1.75 and 2 on twelve validation cameras (docs/benchmarks.md#cameras), leaves the default
-    camera's gate at ``min_motion`` and raises it on the noisy ones.
+    0 the motion gate is off, this part too). 1.5, the best mean MOTA of 0, 1.5, 1.75 and 2 on twelve validation
+    cameras (docs/benchmarks.md#cameras), leaves the default camera's gate at ``min_motion`` and raises it on the
+    noisy ones.
     gate_registration: the motion-evidence threshold is raised by this times the difference the
     registration's frame-to-frame residual leaves at the detection (residual × local gradient,
     ``detection.misregistration``): on a real camera edges of roofs and roads then stop passing for motion

@@ -220,7 +220,8 @@ class Detection:
                 raised = False
             else:
                 motion = motion_evidence(image, prev, pos)
-                noise = frame_noise(image, prev)
+                if self.gate is not None and self.gate[4] > 0:     # only a noise-relative gate needs it
+                    noise = frame_noise(image, prev)
                 residual = local_residual(pos, self.last.corners, self.last.corner_errors, self.last.residual,
                                           self.gate[2] if self.gate else 0.0)
                 clutter = misregistration(image, prev, residual, pos)
