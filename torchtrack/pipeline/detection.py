@@ -11,7 +11,7 @@ from scipy.spatial import cKDTree
 
 from torchtrack.errors import TorchtrackError
 from torchtrack.geometry import apply_homography, homography_jacobian, warp_previous
-from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy, gate_margin
+from torchtrack.pipeline.frame_detections import FrameDetections, as_numpy, gate_margin, motion_threshold
 from torchtrack.pipeline.registration import Registration, RegistrationResult
 from torchtrack.pipeline.timer import StageTimer
 
@@ -228,7 +228,7 @@ class Detection:
                 raised = False
                 if self.gate is not None:
                     min_motion, margin, _, budget, noise_factor = self.gate
-                    min_motion = max(min_motion, noise_factor * noise) if min_motion else 0.0
+                    min_motion = motion_threshold(min_motion, noise_factor, noise)
                     self.gate_pass = gate_pass_fraction(image, prev, min_motion, 0.0, self.last.residual)
                     raised = bool(margin and min_motion) and self.gate_pass > budget
                     if raised:

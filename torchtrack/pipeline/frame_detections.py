@@ -66,10 +66,17 @@ class FrameDetections(NamedTuple):
         """The detections with predicted speed ``>= min_speed`` px/frame (or unknown) and motion evidence
         ``>= max(min_motion, noise_factor · noise) + gate_margin(margin · clutter)`` (``min_motion`` 0: the motion
         gate off, its noise part too)."""
-        need = (max(min_motion, noise_factor * self.noise) if min_motion > 0 else 0.0) + (
+        need = motion_threshold(min_motion, noise_factor, self.noise) + (
             gate_margin(margin * self.clutter) if margin and self.clutter is not None else 0.0)
         return self.select(~(np.hypot(self.velocities[:, 0], self.velocities[:, 1]) < min_speed)
                            & (self.motion >= need))
+
+
+def motion_threshold(min_motion: float, noise_factor: float, noise: float) -> float:
+    """The moving-object gate's plain threshold on a frame whose difference has noise level ``noise`` (grey
+    levels): ``max(min_motion, noise_factor · noise)``; 0 where ``min_motion`` is 0 (the gate off, its noise part
+    too)."""
+    return max(min_motion, noise_factor * noise) if min_motion > 0 else 0.0
 
 
 MOTION_STEP = 1.0
