@@ -4,8 +4,10 @@ from __future__ import annotations
 
 import argparse
 import math
+import sys
 from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from torchtrack.config import Bounds, preset_path
 from torchtrack.errors import TorchtrackError
@@ -113,3 +115,8 @@ def add_scenario_options(parser: argparse.ArgumentParser, default_config: Path, 
     else:
         parser.add_argument("--params", type=Path, default=None, metavar="FITTED",
                             help=f"fitted parameters from torchtrack tune (OUT/params.yaml): {params}")
+
+
+def print_calibration(record: dict[str, Any]) -> None:
+    """The one-line verdict of a ``--calibrate`` run (its ``calibration.json`` record), on stderr."""
+    print(f"calibration: {record['status']}: {record['message']}", file=sys.stderr)

@@ -13,13 +13,12 @@ ranks split every frame into strips and rank 0 alone writes the folder.
 from __future__ import annotations
 
 import argparse
-import sys
 from pathlib import Path
 
 import numpy as np
 
 from torchtrack.calibrated_track import track
-from torchtrack.cli._common import PIPELINE_PRESETS, config_file
+from torchtrack.cli._common import PIPELINE_PRESETS, config_file, print_calibration
 from torchtrack.cli._strips import frame_strips, rank_output, strip_group, strip_metrics
 from torchtrack.errors import TorchtrackError
 from torchtrack.filters.trackers.protocol import tracker_names
@@ -142,7 +141,7 @@ def run_frame_inputs(args: argparse.Namespace, command: str, tracker_options: di
                        score=args.score, device=args.device, pipeline_config=config, camera=_camera(args), out=out,
                        force=args.force, inputs=inputs, progress=not args.no_progress)
         if result.calibration is not None:
-            print(f"calibration: {result.calibration['status']}: {result.calibration['message']}", file=sys.stderr)
+            print_calibration(result.calibration)
         m, files = result.report, result.files
     name = Path(args.video or args.frames).name
     gt_given = bool(args.gt or args.truth_csv)

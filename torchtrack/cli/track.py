@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import argparse
 import math
-import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -22,6 +21,7 @@ from torchtrack.cli._common import (
     config_file,
     positive_float,
     positive_int,
+    print_calibration,
 )
 from torchtrack.cli._frames import add_frame_options, frame_inputs_given, run_frame_inputs
 from torchtrack.cli._strips import (
@@ -228,7 +228,7 @@ def _run_calibrated(args: argparse.Namespace, base: PipelineConfig | None) -> in
     tracked = track(detections=args.detections, calibrate=args.calibrate, seed=args.seed, tracker=args.tracker,
                     gt=args.gt, score=args.score, device=args.device, threshold=args.threshold,
                     pipeline_config=base, progress=True, out=args.out, force=args.force)
-    print(f"calibration: {tracked.calibration['status']}: {tracked.calibration['message']}", file=sys.stderr)
+    print_calibration(tracked.calibration)
     _print_report(args, tracked.report, args.gt is not None)
     return 0
 
